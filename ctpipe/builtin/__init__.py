@@ -1,0 +1,1 @@
+"""ctpipe's own stages, each module a plugin listed in ``ctpipe.plugins.BUILTIN_PLUGINS``."""

@@ -1,0 +1,102 @@
+"""Detectors wrapping OpenCV's SIFT, ORB, AKAZE, BRISK and KAZE.
+
+Parameter names are OpenCV's, in snake case (``nOctaveLayers`` -> ``n_octave_layers``), with
+OpenCV's defaults. Float images are mapped to uint8 by :func:`ctpipe.images.to_uint8`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from ctpipe import _opencv
+from ctpipe.data import Features
+from ctpipe.hookspecs import hookimpl
+from ctpipe.images import to_uint8
+from ctpipe.stages import Detector, param
+
+
+class _OpenCVDetector(Detector):
+    _opencv_name = ""
+
+    def detect(self, image: np.ndarray) -> Features:
+        return Features.build(**_opencv.detect_and_compute(self._opencv_name, self.params(), to_uint8(image)))
+
+
+@dataclass(frozen=True)
+class SiftDetector(_OpenCVDetector):
+    """SIFT keypoints and 128-float descriptors (OpenCV)."""
+
+    _opencv_name = "sift"
+    n_features: int = param(0, doc="keep the n best keypoints (0: all)", ge=0)
+    n_octave_layers: int = param(3, doc="layers per octave", ge=1)
+    contrast_threshold: float = param(0.04, doc="reject weak extrema in low-contrast regions", ge=0)
+    edge_threshold: float = param(10.0, doc="reject edge-like extrema", gt=0)
+    sigma: float = param(1.6, doc="Gaussian sigma at octave 0", gt=0)
+
+
+@dataclass(frozen=True)
+class OrbDetector(_OpenCVDetector):
+    """ORB: oriented FAST keypoints with rotated BRIEF binary descriptors (OpenCV)."""
+
+    _opencv_name = "orb"
+    n_features: int = param(500, doc="maximum number of keypoints", ge=1)
+    scale_factor: float = param(1.2, doc="pyramid decimation ratio", gt=1)
+    n_levels: int = param(8, doc="pyramid levels", ge=1)
+    edge_threshold: int = param(31, doc="border where no keypoints are detected, px", ge=0)
+    first_level: int = param(0, doc="pyramid level of the source image", ge=0)
+    wta_k: int = param(2, doc="points per BRIEF comparison (2, 3 or 4)", ge=2, le=4)
+    score_type: Literal["harris", "fast"] = param("harris", doc="keypoint ranking score")
+    patch_size: int = param(31, doc="oriented BRIEF patch size, px", ge=2)
+    fast_threshold: int = param(20, doc="FAST threshold", ge=0)
+
+
+_Diffusivity = Literal["pm_g1", "pm_g2", "weickert", "charbonnier"]
+
+
+@dataclass(frozen=True)
+class AkazeDetector(_OpenCVDetector):
+    """AKAZE: nonlinear-scale-space keypoints with binary MLDB descriptors (OpenCV)."""
+
+    _opencv_name = "akaze"
+    descriptor_type: Literal["mldb", "mldb_upright", "kaze", "kaze_upright"] = param("mldb", doc="descriptor kind")
+    descriptor_size: int = param(0, doc="descriptor bits (0: full)", ge=0)
+    descriptor_channels: int = param(3, doc="channels in the descriptor (1, 2 or 3)", ge=1, le=3)
+    threshold: float = param(0.001, doc="detector response threshold", gt=0)
+    n_octaves: int = param(4, doc="maximum octave evolution", ge=1)
+    n_octave_layers: int = param(4, doc="sublevels per octave", ge=1)
+    diffusivity: _Diffusivity = param("pm_g2", doc="diffusivity function")
+
+
+@dataclass(frozen=True)
+class BriskDetector(_OpenCVDetector):
+    """BRISK: scale-space AGAST keypoints with binary descriptors (OpenCV)."""
+
+    _opencv_name = "brisk"
+    thresh: int = param(30, doc="AGAST detection threshold", ge=0)
+    octaves: int = param(3, doc="detection octaves (0: single scale)", ge=0)
+    pattern_scale: float = param(1.0, doc="scale of the sampling pattern", gt=0)
+
+
+@dataclass(frozen=True)
+class KazeDetector(_OpenCVDetector):
+    """KAZE: nonlinear-scale-space keypoints with float descriptors (OpenCV)."""
+
+    _opencv_name = "kaze"
+    extended: bool = param(False, doc="128-float descriptors instead of 64")
+    upright: bool = param(False, doc="skip orientation (faster, not rotation invariant)")
+    threshold: float = param(0.001, doc="detector response threshold", gt=0)
+    n_octaves: int = param(4, doc="maximum octave evolution", ge=1)
+    n_octave_layers: int = param(4, doc="sublevels per octave", ge=1)
+    diffusivity: _Diffusivity = param("pm_g2", doc="diffusivity function")
+
+
+@hookimpl
+def ctpipe_register_stages(registry) -> None:
+    registry.add_detector("sift", SiftDetector)
+    registry.add_detector("orb", OrbDetector)
+    registry.add_detector("akaze", AkazeDetector)
+    registry.add_detector("brisk", BriskDetector)
+    registry.add_detector("kaze", KazeDetector)

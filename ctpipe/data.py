@@ -1,0 +1,191 @@
+"""Frozen containers passed between pipeline stages.
+
+Arrays inside are never modified by a stage; a stage returns new containers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ctpipe.errors import InputError
+from ctpipe.geometry import Geometry
+from ctpipe.model import FailedEstimation
+
+__all__ = ["Features", "Matches", "PairEstimate", "ScanObservations", "ScanSolution", "DESCRIPTOR_NORMS"]
+
+#: Norms a matcher may be asked to use, named as OpenCV names them (``NORM_L2`` ...).
+DESCRIPTOR_NORMS = ("L2", "L1", "HAMMING", "HAMMING2")
+
+
+@dataclass(frozen=True, eq=False)
+class Features:
+    """Keypoints and descriptors of one image.
+
+    Keypoints are ordered by ``response``, strongest first (ties: smaller y, then smaller x),
+    whichever detector made them.
+
+    Attributes
+    ----------
+    xy : ndarray of shape (N, 2), float32
+        Position (x=col, y=row) in pixels, OpenCV's convention (pixel centres at integers).
+    size : ndarray of shape (N,), float32
+        Diameter of the meaningful neighbourhood, pixels.
+    angle_deg : ndarray of shape (N,), float32
+        Orientation in degrees in [0, 360); NaN where the detector assigns none.
+    response : ndarray of shape (N,), float32
+        Detector strength.
+    octave : ndarray of shape (N,), int32
+        Pyramid octave the keypoint was found in (0 where not applicable).
+    class_id : ndarray of shape (N,), int32
+        Detector-specific class (SURF: sign of the Hessian trace); -1 where not applicable.
+    descriptors : ndarray of shape (N, D)
+        float32 for ``L2``/``L1`` norms, packed uint8 bits for ``HAMMING``/``HAMMING2``.
+    norm : str
+        Distance the descriptors are compared with, one of ``DESCRIPTOR_NORMS``.
+    """
+
+    xy: np.ndarray
+    size: np.ndarray
+    angle_deg: np.ndarray
+    response: np.ndarray
+    octave: np.ndarray
+    class_id: np.ndarray
+    descriptors: np.ndarray
+    norm: str
+
+    def __post_init__(self) -> None:
+        n = len(self.xy)
+        if self.xy.shape != (n, 2):
+            raise InputError(f"Features.xy must have shape (N, 2), got {self.xy.shape}")
+        for name in ("size", "angle_deg", "response", "octave", "class_id"):
+            if getattr(self, name).shape != (n,):
+                raise InputError(f"Features.{name} must have shape ({n},), got {getattr(self, name).shape}")
+        if self.descriptors.ndim != 2 or len(self.descriptors) != n:
+            raise InputError(f"Features.descriptors must have shape ({n}, D), got {self.descriptors.shape}")
+        if self.norm not in DESCRIPTOR_NORMS:
+            raise InputError(f"Features.norm must be one of {', '.join(DESCRIPTOR_NORMS)}, got {self.norm!r}")
+        binary = self.norm.startswith("HAMMING")
+        if binary and self.descriptors.dtype != np.uint8:
+            raise InputError(f"Features with norm {self.norm} need uint8 descriptors, got {self.descriptors.dtype}")
+        if not binary and self.descriptors.dtype != np.float32:
+            raise InputError(f"Features with norm {self.norm} need float32 descriptors, got {self.descriptors.dtype}")
+        for array in (self.xy, self.size, self.angle_deg, self.response, self.octave, self.class_id, self.descriptors):
+            array.flags.writeable = False
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+    @classmethod
+    def build(cls, *, xy, size, angle_deg, response, octave=None, class_id=None, descriptors, norm) -> "Features":
+        """Normalise dtypes and apply the ordering rule; detectors construct through this."""
+        xy = np.asarray(xy, dtype=np.float32).reshape(-1, 2)
+        n = len(xy)
+        response = np.asarray(response, dtype=np.float32).reshape(n)
+        order = np.lexsort((xy[:, 0], xy[:, 1], -response)) if n else np.arange(0)
+        descriptors = np.asarray(descriptors)
+        if n == 0:
+            descriptors = descriptors.reshape(0, descriptors.shape[1] if descriptors.ndim == 2 else 0)
+        dtype = np.uint8 if norm.startswith("HAMMING") else np.float32
+        return cls(
+            xy=np.ascontiguousarray(xy[order]),
+            size=np.asarray(size, dtype=np.float32).reshape(n)[order],
+            angle_deg=np.asarray(angle_deg, dtype=np.float32).reshape(n)[order],
+            response=response[order],
+            octave=(np.zeros(n) if octave is None else np.asarray(octave)).astype(np.int32).reshape(n)[order],
+            class_id=(np.full(n, -1) if class_id is None else np.asarray(class_id)).astype(np.int32).reshape(n)[order],
+            descriptors=np.ascontiguousarray(descriptors[order].astype(dtype, copy=False)),
+            norm=norm,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Matches:
+    """Putative correspondences between two feature sets.
+
+    Attributes
+    ----------
+    index_ab : ndarray of shape (M, 2), int64
+        Row ``k`` pairs keypoint ``index_ab[k, 0]`` of the first view with ``index_ab[k, 1]``
+        of the second.
+    distance : ndarray of shape (M,), float32
+        Descriptor distance of each match.
+    """
+
+    index_ab: np.ndarray
+    distance: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.index_ab)
+
+
+@dataclass(frozen=True, eq=False)
+class PairEstimate:
+    """An estimator's answer for one view pair.
+
+    Attributes
+    ----------
+    angle_rad : float
+        Turntable angle from the first to the second view.
+    inlier_mask : ndarray of shape (M,), bool
+        Which correspondences support the angle.
+    residual : float
+        RMS Sampson distance of the inliers, normalised units.
+    """
+
+    angle_rad: float
+    inlier_mask: np.ndarray
+    residual: float
+
+    @property
+    def n_inliers(self) -> int:
+        return int(np.count_nonzero(self.inlier_mask))
+
+    @property
+    def angle_deg(self) -> float:
+        return float(np.rad2deg(self.angle_rad))
+
+
+@dataclass(frozen=True, eq=False)
+class ScanObservations:
+    """Everything a refiner sees: the whole scan, not one pair.
+
+    Attributes
+    ----------
+    geometry : Geometry
+    n_views : int
+    features : tuple of Features, one per view
+    pairs : ndarray of shape (P, 2), int64
+        View indices ``(i, j)`` of each estimated pair.
+    matches : tuple of Matches, one per pair
+    points_a, points_b : tuple of ndarray of shape (M_k, 2)
+        Normalised coordinates of each pair's matches in its first and second view.
+    estimates : tuple of PairEstimate or FailedEstimation, one per pair
+    """
+
+    geometry: Geometry
+    n_views: int
+    features: tuple[Features, ...]
+    pairs: np.ndarray
+    matches: tuple[Matches, ...]
+    points_a: tuple[np.ndarray, ...]
+    points_b: tuple[np.ndarray, ...]
+    estimates: tuple[PairEstimate | FailedEstimation, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class ScanSolution:
+    """A refiner's answer for the whole scan.
+
+    Attributes
+    ----------
+    angles_rad : ndarray of shape (V,)
+        Angle of every view relative to view 0 (``angles_rad[0] == 0``); NaN for views not
+        connected to view 0 by successful pairs.
+    pair_estimates : tuple of PairEstimate or FailedEstimation, one per pair
+        The (refined) per-pair answers.
+    """
+
+    angles_rad: np.ndarray
+    pair_estimates: tuple[PairEstimate | FailedEstimation, ...]

@@ -1,0 +1,29 @@
+"""Exceptions that carry a one-line message meant for the user.
+
+The CLI prints ``str(exc)`` of these on one line and exits with status 2; anything else is a
+bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+__all__ = ["CtpipeError", "ConfigError", "InputError", "PluginError", "EstimationError"]
+
+
+class CtpipeError(Exception):
+    """Base class of errors caused by what the user gave ctpipe."""
+
+
+class ConfigError(CtpipeError, ValueError):
+    """A configuration value is wrong; the message starts with its YAML path."""
+
+
+class InputError(CtpipeError, ValueError):
+    """An input array, file or geometry is not usable."""
+
+
+class PluginError(CtpipeError):
+    """A plugin registered something inconsistent (duplicate or malformed stage)."""
+
+
+class EstimationError(CtpipeError):
+    """The data do not determine what was asked (too few matches, no consensus)."""

@@ -1,0 +1,69 @@
+"""Loading plugins: built-in ones and third-party ones, through the same path.
+
+Every run builds a fresh plugin manager with :func:`get_plugin_manager` (no module-level
+global), then :func:`collect_stages` asks each plugin to register its stages.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Iterable
+
+import pluggy
+
+from ctpipe import hookspecs
+from ctpipe.registry import StageRegistry
+
+__all__ = ["BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "get_plugin_manager", "collect_stages", "get_registry"]
+
+#: Modules holding ctpipe's own stages, registered by name like any other plugin.
+BUILTIN_PLUGINS: tuple[str, ...] = (
+    "ctpipe.builtin.opencv_detectors",
+    "ctpipe.builtin.matchers",
+    "ctpipe.builtin.estimators",
+    "ctpipe.builtin.refiners",
+)
+
+#: Entry-point group third-party distributions advertise their plugins in.
+ENTRY_POINT_GROUP = "ctpipe"
+
+
+def get_plugin_manager(*, blocked: Iterable[str] = (), entry_points: bool = True) -> pluggy.PluginManager:
+    """A new plugin manager with the built-in and (optionally) entry-point plugins loaded.
+
+    Parameters
+    ----------
+    blocked : iterable of str
+        Plugin names not to load: a built-in module name from :data:`BUILTIN_PLUGINS` or a
+        third-party entry-point name.
+    entry_points : bool
+        Load third-party plugins from the ``ctpipe`` entry-point group.
+    """
+    pm = pluggy.PluginManager("ctpipe")
+    pm.add_hookspecs(hookspecs)
+    for name in blocked:
+        pm.set_blocked(name)
+    for module_name in BUILTIN_PLUGINS:
+        if not pm.is_blocked(module_name):
+            pm.register(importlib.import_module(module_name), name=module_name)
+    if entry_points:
+        pm.load_setuptools_entrypoints(ENTRY_POINT_GROUP)
+    pm.check_pending()
+    return pm
+
+
+def collect_stages(pm: pluggy.PluginManager) -> StageRegistry:
+    """Ask every registered plugin for its stages.
+
+    Each implementation is called with a registrar bound to its plugin's name, so the registry
+    knows who provided every stage and can name both plugins on a clash.
+    """
+    registry = StageRegistry()
+    for impl in pm.hook.ctpipe_register_stages.get_hookimpls():
+        impl.function(registry=registry.registrar(impl.plugin_name))
+    return registry
+
+
+def get_registry(*, blocked: Iterable[str] = ()) -> StageRegistry:
+    """Shortcut: a fresh plugin manager's registry."""
+    return collect_stages(get_plugin_manager(blocked=blocked))

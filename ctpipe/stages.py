@@ -1,0 +1,207 @@
+"""The four stage kinds and how a stage declares its parameters.
+
+A stage is a frozen dataclass: its fields are its parameters, declared with :func:`param`
+(default, one-line doc, bounds). Parameters are validated when the stage is constructed,
+from Python or from YAML, with the same messages. Stages keep no state after ``__init__``;
+they return new results and never modify their inputs.
+
+Detector -> Matcher -> Estimator -> Refiner::
+
+    Detector.detect(image) -> Features
+    Matcher.match(features_a, features_b) -> Matches
+    Estimator.estimate(q_a, q_b, *, rng) -> PairEstimate | FailedEstimation
+    Refiner.refine(observations, *, rng) -> ScanSolution
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+
+from ctpipe.errors import ConfigError
+
+__all__ = ["param", "ParamSpec", "Stage", "Detector", "Matcher", "Estimator", "Refiner", "STAGE_KINDS", "check_value"]
+
+
+def param(default: Any, *, doc: str, ge=None, gt=None, le=None, lt=None) -> Any:
+    """Declare a stage parameter: a dataclass field with a doc line and bounds."""
+    return dataclasses.field(default=default, metadata={"doc": doc, "ge": ge, "gt": gt, "le": le, "lt": lt})
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """What a parameter accepts: its type, default, doc line and bounds."""
+
+    name: str
+    annotation: Any
+    default: Any
+    doc: str
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+    lt: float | None = None
+
+    @property
+    def allowed(self) -> str:
+        """Human description of the accepted values, e.g. ``a number > 0``."""
+        return _describe(self.annotation, self)
+
+
+_TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string", type(None): "null"}
+
+
+def _options(annotation) -> tuple:
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        return typing.get_args(annotation)
+    return (annotation,)
+
+
+def _describe(annotation, spec: ParamSpec | None = None) -> str:
+    parts = []
+    for option in _options(annotation):
+        if typing.get_origin(option) is Literal:
+            parts.append("one of " + ", ".join(repr(v) for v in typing.get_args(option)))
+        elif typing.get_origin(option) is tuple:
+            parts.append("a list of " + _describe(typing.get_args(option)[0], spec).replace("a ", "", 1) + "s")
+        else:
+            word = _TYPE_WORDS.get(option, getattr(option, "__name__", str(option)))
+            if option in (int, float) and spec is not None:
+                bounds = [f"{op} {v:g}" for op, v in ((">=", spec.ge), (">", spec.gt), ("<=", spec.le), ("<", spec.lt)) if v is not None]
+                word += (" " + " and ".join(bounds)) if bounds else ""
+            parts.append(word)
+    return " or ".join(parts)
+
+
+def _matches_type(option, value) -> bool:
+    if typing.get_origin(option) is Literal:
+        return any(value == v and type(value) is type(v) for v in typing.get_args(option))
+    if typing.get_origin(option) is tuple:
+        inner = typing.get_args(option)[0]
+        return isinstance(value, (list, tuple)) and len(value) > 0 and all(_matches_type(inner, v) for v in value)
+    if option is float:
+        return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    if option is int:
+        return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+    if option is type(None):
+        return value is None
+    return isinstance(value, option)
+
+
+def _in_bounds(spec: ParamSpec, value) -> bool:
+    values = value if isinstance(value, (list, tuple)) else (value,)
+    for v in values:
+        if not isinstance(v, (int, float, np.integer, np.floating)) or isinstance(v, bool):
+            continue
+        if isinstance(v, (float, np.floating)) and not math.isfinite(v):
+            return False
+        if spec.ge is not None and not v >= spec.ge or spec.gt is not None and not v > spec.gt:
+            return False
+        if spec.le is not None and not v <= spec.le or spec.lt is not None and not v < spec.lt:
+            return False
+    return True
+
+
+def check_value(spec: ParamSpec, value: Any, path: str) -> Any:
+    """Return ``value`` (floats as float, lists as tuples) or raise :class:`ConfigError`.
+
+    The message names ``path``, the value received and what is allowed.
+    """
+    if not any(_matches_type(option, value) for option in _options(spec.annotation)) or not _in_bounds(spec, value):
+        raise ConfigError(f"{path}: must be {spec.allowed}, got {value!r}")
+    if float in _options(spec.annotation) and isinstance(value, (int, np.integer, np.floating)):
+        return float(value)
+    if isinstance(value, list):
+        return tuple(value)
+    return value
+
+
+class Stage:
+    """Base of the four stage kinds. Subclasses are frozen dataclasses."""
+
+    kind: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        for spec in self.parameters():
+            value = check_value(spec, getattr(self, spec.name), f"{type(self).__name__}.{spec.name}")
+            object.__setattr__(self, spec.name, value)
+
+    @classmethod
+    def parameters(cls) -> tuple[ParamSpec, ...]:
+        """The stage's parameters in declaration order."""
+        hints = typing.get_type_hints(cls)
+        specs = []
+        for f in dataclasses.fields(cls):
+            meta = f.metadata
+            specs.append(
+                ParamSpec(f.name, hints[f.name], f.default, meta.get("doc", ""),
+                          meta.get("ge"), meta.get("gt"), meta.get("le"), meta.get("lt"))
+            )
+        return tuple(specs)
+
+    @classmethod
+    def summary(cls) -> str:
+        """First line of the class docstring: the stage's one-line description."""
+        doc = (cls.__doc__ or "").strip()
+        return doc.splitlines()[0].strip() if doc else ""
+
+    def params(self) -> dict[str, Any]:
+        """Current parameter values, as plain Python values."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+class Detector(Stage):
+    """Finds keypoints and computes descriptors on one 2-D image."""
+
+    kind = "detector"
+
+    def detect(self, image: np.ndarray):  # pragma: no cover - interface
+        """Return the :class:`~ctpipe.data.Features` of ``image`` (2-D, uint8 or float)."""
+        raise NotImplementedError
+
+
+class Matcher(Stage):
+    """Pairs keypoints of two views by descriptor similarity."""
+
+    kind = "matcher"
+
+    def match(self, features_a, features_b):  # pragma: no cover - interface
+        """Return :class:`~ctpipe.data.Matches` between two :class:`~ctpipe.data.Features`."""
+        raise NotImplementedError
+
+
+class Estimator(Stage):
+    """Estimates the turntable angle of one view pair from its correspondences."""
+
+    kind = "estimator"
+
+    def estimate(self, q_a: np.ndarray, q_b: np.ndarray, *, rng: np.random.Generator):  # pragma: no cover
+        """Return a :class:`~ctpipe.data.PairEstimate` or a falsy ``FailedEstimation``.
+
+        ``q_a``, ``q_b``: normalised coordinates of shape (M, 2) in the first and second view.
+        """
+        raise NotImplementedError
+
+
+class Refiner(Stage):
+    """Turns all pair estimates of a scan into per-view angles."""
+
+    kind = "refiner"
+
+    def refine(self, observations, *, rng: np.random.Generator):  # pragma: no cover - interface
+        """Return a :class:`~ctpipe.data.ScanSolution` for :class:`~ctpipe.data.ScanObservations`."""
+        raise NotImplementedError
+
+
+STAGE_KINDS: dict[str, type[Stage]] = {
+    "detector": Detector,
+    "matcher": Matcher,
+    "estimator": Estimator,
+    "refiner": Refiner,
+}
