@@ -69,7 +69,10 @@ def _describe(annotation, spec: ParamSpec | None = None) -> str:
         if typing.get_origin(option) is Literal:
             parts.append("one of " + ", ".join(repr(v) for v in typing.get_args(option)))
         elif typing.get_origin(option) is tuple:
-            parts.append("a list of " + _describe(typing.get_args(option)[0], spec).replace("a ", "", 1) + "s")
+            inner = typing.get_args(option)[0]
+            single = _describe(inner, spec)
+            plural = {int: "integers", float: "numbers", str: "strings"}.get(inner)
+            parts.append("a non-empty list of " + (single.replace(_TYPE_WORDS[inner], plural, 1) if plural else single))
         else:
             word = _TYPE_WORDS.get(option, getattr(option, "__name__", str(option)))
             if option in (int, float) and spec is not None:

@@ -1,0 +1,205 @@
+"""The pipeline: projections + geometry + view pairs -> per-pair and per-view angles."""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctpipe.config import PipelineConfig, build_stage, load_yaml, parse_pipeline
+from ctpipe.data import Features, ScanObservations
+from ctpipe.errors import EstimationError, InputError
+from ctpipe.geometry import Geometry
+from ctpipe.images import check_image
+from ctpipe.plugins import get_registry
+from ctpipe.registry import StageRegistry
+from ctpipe.stages import Detector, Estimator, Matcher, Refiner
+
+__all__ = ["Pipeline", "ScanResult", "consecutive_pairs"]
+
+
+def consecutive_pairs(n_views: int, baselines: tuple[int, ...] = (1,)) -> np.ndarray:
+    """View pairs ``(i, i + k)`` for every baseline ``k``, shape (P, 2)."""
+    pairs = [(i, i + k) for k in baselines for i in range(n_views - k)]
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanResult:
+    """What a pipeline run returns.
+
+    Attributes
+    ----------
+    pairs : ndarray of shape (P, 2), int64
+    pair_angles_deg : ndarray of shape (P,)
+        Refined angle of each pair, NaN where it failed.
+    pair_inlier_masks : tuple of ndarray of shape (M_k,), bool
+    n_matches, n_inliers : ndarray of shape (P,), int64
+    residuals : ndarray of shape (P,)
+        RMS Sampson distance of each pair's inliers, normalised units.
+    pair_status : tuple of str
+        ``"ok"`` or why the pair failed.
+    angles_deg : ndarray of shape (V,)
+        Angle of every view relative to view 0, chained from the pairs; NaN where a view is
+        not connected to view 0 by successful pairs.
+    n_keypoints : ndarray of shape (V,), int64
+    timings_s : dict
+    """
+
+    pairs: np.ndarray
+    pair_angles_deg: np.ndarray
+    pair_inlier_masks: tuple[np.ndarray, ...]
+    n_matches: np.ndarray
+    n_inliers: np.ndarray
+    residuals: np.ndarray
+    pair_status: tuple[str, ...]
+    angles_deg: np.ndarray
+    n_keypoints: np.ndarray
+    timings_s: dict[str, float]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "angles_deg": self.angles_deg,
+            "n_keypoints": self.n_keypoints,
+            "pairs": [
+                {"views": [int(i), int(j)], "angle_deg": a, "n_matches": m, "n_inliers": n, "residual": r, "status": s}
+                for (i, j), a, m, n, r, s in zip(self.pairs, self.pair_angles_deg, self.n_matches, self.n_inliers,
+                                                  self.residuals, self.pair_status)
+            ],
+            "timings_s": self.timings_s,
+        }
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """Detector -> matcher -> estimator -> refiner over a whole scan.
+
+    Build one from stage objects, or with :meth:`from_config` from a YAML file or mapping.
+    """
+
+    detector: Detector
+    matcher: Matcher
+    estimator: Estimator
+    refiner: Refiner
+    baselines: tuple[int, ...] = (1,)
+    seed: int | None = 0
+
+    @classmethod
+    def from_config(cls, config: PipelineConfig | Mapping | str | Path | None = None, *,
+                    registry: StageRegistry | None = None) -> "Pipeline":
+        """A pipeline from a validated config, a mapping, or a YAML file path (None: defaults)."""
+        registry = registry or get_registry()
+        if isinstance(config, (str, Path)):
+            config = parse_pipeline(load_yaml(config), registry, path="pipeline")
+        elif not isinstance(config, PipelineConfig):
+            config = parse_pipeline(config, registry)
+        return cls(*(build_stage(getattr(config, kind), registry) for kind in ("detector", "matcher", "estimator", "refiner")),
+                   baselines=config.baselines, seed=config.seed)
+
+    def detect(self, projections: np.ndarray, *, progress: Callable[[int], None] | None = None) -> tuple[Features, ...]:
+        """Features of every view (threads: OpenCV releases the GIL)."""
+        def one(index: int) -> Features:
+            features = self.detector.detect(projections[index])
+            if progress is not None:
+                progress(1)
+            return features
+
+        with ThreadPoolExecutor(max_workers=min(len(projections), os.cpu_count() or 1)) as pool:
+            return tuple(pool.map(one, range(len(projections))))
+
+    def run(self, projections: np.ndarray, geometry: Geometry, *, pairs: np.ndarray | None = None,
+            progress: Callable[[int], None] | None = None) -> ScanResult:
+        """Estimate the angle of every view of a scan.
+
+        Parameters
+        ----------
+        projections : ndarray of shape (V, rows, cols)
+            uint8 or float images (float: e.g. ``-log`` line integrals); no NaN.
+        geometry : Geometry
+            Must match the projections' (rows, cols).
+        pairs : ndarray of shape (P, 2), optional
+            View pairs to estimate; default ``(i, i + k)`` for the configured baselines.
+
+        Raises
+        ------
+        InputError
+            Wrong shapes/dtypes, NaN pixels, pairs out of range.
+        EstimationError
+            When not a single pair could be estimated.
+        """
+        projections = _check_projections(projections, geometry)
+        n_views = len(projections)
+        pairs = consecutive_pairs(n_views, self.baselines) if pairs is None else _check_pairs(pairs, n_views)
+        if len(pairs) == 0:
+            raise InputError(f"no view pairs: {n_views} views with baselines {list(self.baselines)}")
+        timings = {}
+        start = time.perf_counter()
+        features = self.detect(projections, progress=progress)
+        timings["detect"] = time.perf_counter() - start
+
+        start = time.perf_counter()
+        matches = tuple(self.matcher.match(features[i], features[j]) for i, j in pairs)
+        points_a = tuple(geometry.pixels_to_normalised(features[i].xy[m.index_ab[:, 0]]) for (i, _), m in zip(pairs, matches))
+        points_b = tuple(geometry.pixels_to_normalised(features[j].xy[m.index_ab[:, 1]]) for (_, j), m in zip(pairs, matches))
+        timings["match"] = time.perf_counter() - start
+
+        start = time.perf_counter()
+        seeds = np.random.SeedSequence(self.seed).spawn(len(pairs) + 1)
+        estimates = tuple(self.estimator.estimate(q_a, q_b, rng=np.random.default_rng(s))
+                          for q_a, q_b, s in zip(points_a, points_b, seeds))
+        timings["estimate"] = time.perf_counter() - start
+
+        observations = ScanObservations(geometry=geometry, n_views=n_views, features=features, pairs=pairs,
+                                        matches=matches, points_a=points_a, points_b=points_b, estimates=estimates)
+        start = time.perf_counter()
+        solution = self.refiner.refine(observations, rng=np.random.default_rng(seeds[-1]))
+        timings["refine"] = time.perf_counter() - start
+
+        refined = solution.pair_estimates
+        if not any(refined):
+            counts = ", ".join(f"view {v}: {len(f)}" for v, f in enumerate(features[:6]))
+            raise EstimationError(
+                f"no view pair could be estimated (first pair: {refined[0]}); keypoints per view: {counts}"
+                f"{', ...' if n_views > 6 else ''}")
+        return ScanResult(
+            pairs=pairs,
+            pair_angles_deg=np.array([np.rad2deg(e.angle_rad) if e else np.nan for e in refined]),
+            pair_inlier_masks=tuple(e.inlier_mask if e else np.zeros(len(m), bool) for e, m in zip(refined, matches)),
+            n_matches=np.array([len(m) for m in matches], dtype=np.int64),
+            n_inliers=np.array([e.n_inliers if e else 0 for e in refined], dtype=np.int64),
+            residuals=np.array([e.residual if e else np.nan for e in refined]),
+            pair_status=tuple("ok" if e else str(e) for e in refined),
+            angles_deg=np.rad2deg(solution.angles_rad),
+            n_keypoints=np.array([len(f) for f in features], dtype=np.int64),
+            timings_s=timings,
+        )
+
+
+def _check_projections(projections, geometry: Geometry) -> np.ndarray:
+    projections = np.asarray(projections)
+    if projections.ndim != 3:
+        raise InputError(f"projections must be a 3-D array (views, rows, cols), got shape {projections.shape}")
+    if len(projections) < 2:
+        raise InputError(f"projections need at least 2 views to estimate an angle, got {len(projections)}")
+    if projections.shape[1:] != geometry.shape:
+        raise InputError(f"projections have (rows, cols) = {projections.shape[1:]} but the geometry says "
+                         f"{geometry.shape} (detector_rows, detector_cols)")
+    check_image(projections.reshape(-1, projections.shape[-1]), name="projections")
+    return projections
+
+
+def _check_pairs(pairs, n_views: int) -> np.ndarray:
+    pairs = np.asarray(pairs)
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or not np.issubdtype(pairs.dtype, np.integer):
+        raise InputError(f"pairs must be an integer array of shape (P, 2), got {pairs.dtype} {pairs.shape}")
+    if pairs.size and (pairs.min() < 0 or pairs.max() >= n_views):
+        raise InputError(f"pairs must index views 0..{n_views - 1}, got indices {pairs.min()}..{pairs.max()}")
+    if np.any(pairs[:, 0] == pairs[:, 1]):
+        raise InputError("pairs must join two different views, got a pair (i, i)")
+    return pairs.astype(np.int64)

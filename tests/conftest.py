@@ -1,0 +1,48 @@
+"""Shared fixtures: a small bead scan rendered analytically with known angles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ctpipe.geometry import Geometry
+from ctpipe.model import rotation_matrix
+
+
+def render_beads(geometry: Geometry, angles_deg, centres_mm: np.ndarray, radii_mm: np.ndarray) -> np.ndarray:
+    """Line integrals through spheres (chord length 2 sqrt(r^2 - d^2)), one view per angle.
+
+    Each sphere is rendered at its own magnification (its centre's depth); good enough for
+    features to be detected where the sphere centres project. Returns float32 (V, rows, cols).
+    """
+    rows, cols = np.mgrid[0:geometry.detector_rows, 0:geometry.detector_cols].astype(np.float64)
+    views = []
+    for angle in angles_deg:
+        camera = centres_mm @ rotation_matrix(np.deg2rad(angle)).T + [0.0, 0.0, geometry.source_to_object_mm]
+        image = np.zeros(geometry.shape)
+        for (x, y, z), radius in zip(camera, radii_mm):
+            u, v = geometry.normalised_to_pixels(np.array([[x / z, y / z]]))[0]
+            scale = geometry.source_to_detector_mm / z / geometry.pixel_pitch_u_mm
+            d2 = ((cols - u) ** 2 + (rows - v) ** 2) / scale**2
+            image += 2.0 * np.sqrt(np.clip(radius**2 - d2, 0.0, None))
+        views.append(image)
+    return np.asarray(views, dtype=np.float32)
+
+
+@pytest.fixture(scope="session")
+def bead_scan():
+    """(projections, geometry, true angles in degrees) of 200 beads, 5 views with uneven steps.
+
+    A wide cone (half-angle ~12 deg): the angle one correspondence fixes has an error of about
+    2 da / b, so narrow cones need many more keypoints than a test image of 256^2 has.
+    """
+    geometry = Geometry(source_to_object_mm=250.0, source_to_detector_mm=500.0, detector_cols=256,
+                        detector_rows=256, pixel_pitch_u_mm=0.8, pixel_pitch_v_mm=0.8)
+    rng = np.random.default_rng(3)
+    n = 200
+    r = 40.0 * np.sqrt(rng.uniform(0, 1, n))
+    phi = rng.uniform(0, 2 * np.pi, n)
+    centres = np.stack([r * np.cos(phi), rng.uniform(-40, 40, n), r * np.sin(phi)], axis=1)
+    radii = rng.uniform(0.8, 2.0, n)
+    angles = np.array([0.0, 2.0, 3.5, 6.5, 8.0])
+    return render_beads(geometry, angles, centres, radii), geometry, angles

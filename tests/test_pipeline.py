@@ -1,0 +1,62 @@
+import numpy as np
+import pytest
+
+from ctpipe.errors import EstimationError, InputError
+from ctpipe.pipeline import Pipeline, consecutive_pairs
+
+
+def test_pipeline_recovers_view_angles_of_a_rendered_bead_scan(bead_scan):
+    projections, geometry, truth = bead_scan
+    result = Pipeline.from_config({"matcher": {"name": "brute-force", "ratio": 0.8, "mutual": True}}).run(
+        projections, geometry)
+    assert result.pair_status == ("ok",) * 4
+    np.testing.assert_allclose(result.angles_deg, truth, atol=0.15)
+    np.testing.assert_allclose(result.pair_angles_deg, np.diff(truth), atol=0.15)
+    assert np.all(result.n_inliers >= 10)
+
+
+def test_multi_baseline_pairs_are_chained_by_least_squares(bead_scan):
+    projections, geometry, truth = bead_scan
+    result = Pipeline.from_config({"pairs": {"baselines": [1, 2]}}).run(projections, geometry)
+    assert len(result.pairs) == 4 + 3
+    np.testing.assert_allclose(result.angles_deg, truth, atol=0.15)
+
+
+def test_reversed_scan_gives_negative_angles(bead_scan):
+    projections, geometry, truth = bead_scan
+    result = Pipeline.from_config(None).run(projections[::-1].copy(), geometry)
+    np.testing.assert_allclose(result.angles_deg, truth[::-1] - truth[-1], atol=0.15)
+
+
+def test_pipeline_is_reproducible(bead_scan):
+    projections, geometry, _ = bead_scan
+    pipeline = Pipeline.from_config({"seed": 3})
+    a, b = pipeline.run(projections, geometry), pipeline.run(projections, geometry)
+    assert np.array_equal(a.angles_deg, b.angles_deg)
+
+
+def test_bad_inputs_are_named(bead_scan):
+    projections, geometry, _ = bead_scan
+    pipeline = Pipeline.from_config(None)
+    with pytest.raises(InputError, match="3-D array"):
+        pipeline.run(projections[0], geometry)
+    with pytest.raises(InputError, match="at least 2 views"):
+        pipeline.run(projections[:1], geometry)
+    with pytest.raises(InputError, match=r"\(rows, cols\) = \(256, 100\) but the geometry says \(256, 256\)"):
+        pipeline.run(projections[:, :, :100], geometry)
+    bad = projections.copy()
+    bad[1, 5, 5] = np.nan
+    with pytest.raises(InputError, match="1 NaN or infinite pixels"):
+        pipeline.run(bad, geometry)
+    with pytest.raises(InputError, match="pairs must index views 0..4"):
+        pipeline.run(projections, geometry, pairs=np.array([[0, 9]]))
+
+
+def test_blank_projections_say_no_pair_could_be_estimated(bead_scan):
+    _, geometry, _ = bead_scan
+    with pytest.raises(EstimationError, match="no view pair could be estimated.*view 0: 0"):
+        Pipeline.from_config(None).run(np.zeros((3, 256, 256), np.float32), geometry)
+
+
+def test_consecutive_pairs():
+    assert consecutive_pairs(4, (1, 2)).tolist() == [[0, 1], [1, 2], [2, 3], [0, 2], [1, 3]]
