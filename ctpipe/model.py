@@ -141,6 +141,7 @@ def fit_angle(
     weights: np.ndarray | None = None,
     objective: str = "sampson",
     iterations: int = 4,
+    polish: bool = True,
 ) -> float | FailedEstimation:
     """Least-squares angle of correspondences, scale-invariant.
 
@@ -158,6 +159,8 @@ def fit_angle(
         Normalised coordinates in the first and second view.
     weights : ndarray of shape (N,), optional
         Non-negative per-correspondence weights.
+    polish : bool
+        Finish the Sampson fit with the secant steps (skip inside loops that refit again).
 
     Returns
     -------
@@ -185,7 +188,7 @@ def fit_angle(
     # Reweighting ignores how the Sampson denominator changes with alpha, so its fixed point is
     # a hair (~1e-6 rad) off the minimum; a few secant steps on the exact derivative land on it.
     step = 1e-7
-    for _ in range(3):
+    for _ in range(3 if polish else 0):
         slope = _sampson_cost_derivative(alpha, w, a, b, x, y, xp, yp)
         curvature = (_sampson_cost_derivative(alpha + step, w, a, b, x, y, xp, yp) - slope) / step
         if not curvature > 0:

@@ -60,7 +60,7 @@ class Ransac1ptEstimator(Estimator):
         "count", doc="rank consensus sets by inlier count (the paper) or by truncated squared Sampson distance")
     refit: Literal["sampson", "tls", "none"] = param(
         "sampson", doc="least-squares refit of each consensus: Sampson, closed-form TLS, or none")
-    local_optimisations: int = param(3, doc="distinct consensus sets refit and re-scored (best first)", ge=1)
+    local_optimisations: int = param(1, doc="distinct consensus sets refit and re-scored (best first)", ge=1)
     noise_scale_factor: float | None = param(
         3.0, doc="after the refit keep only inliers within this many robust noise scales "
                   "(1.4826 x median Sampson distance of the consensus) and refit again; null: the paper's plain refit", gt=0)
@@ -114,6 +114,9 @@ class Ransac1ptEstimator(Estimator):
         _, alpha, mask = best
         if self.noise_scale_factor is not None and self.refit != "none":
             alpha, mask = self._tighten(alpha, mask, q_a, q_b)
+        if self.refit == "sampson":
+            final = fit_angle(q_a[mask], q_b[mask])
+            alpha = alpha if isinstance(final, FailedEstimation) else final
         return pair_estimate(alpha, mask, q_a, q_b)
 
     def _refit_consensus(self, alpha: float, mask: np.ndarray, q_a, q_b) -> tuple[float, np.ndarray]:
@@ -121,7 +124,7 @@ class Ransac1ptEstimator(Estimator):
             return float(alpha), mask
         # Refit, re-select the inliers of the refit angle, repeat while the set changes.
         for _ in range(4):
-            fitted = fit_angle(q_a[mask], q_b[mask], objective=self.refit)
+            fitted = fit_angle(q_a[mask], q_b[mask], objective=self.refit, iterations=2, polish=False)
             if isinstance(fitted, FailedEstimation):
                 break
             alpha = fitted
@@ -142,7 +145,7 @@ class Ransac1ptEstimator(Estimator):
             tight = mask & (d < self.noise_scale_factor * scale)
             if tight.sum() < max(2, mask.sum() // 2):
                 break
-            fitted = fit_angle(q_a[tight], q_b[tight], objective=self.refit)
+            fitted = fit_angle(q_a[tight], q_b[tight], objective=self.refit, iterations=2, polish=False)
             if isinstance(fitted, FailedEstimation):
                 break
             alpha = fitted
