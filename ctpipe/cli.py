@@ -119,24 +119,18 @@ class _progress:
             self.bar.close()
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return value
+def _int_at_least(minimum: int):
+    """argparse type: an integer >= ``minimum``, with a one-line message otherwise."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {text!r}")
+        return value
 
-
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
-    return value
+    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -161,9 +155,9 @@ def build_parser() -> argparse.ArgumentParser:
     experiments = p.add_subparsers(dest="experiment", required=True, parser_class=_Parser)
     p = experiments.add_parser("synthetic", help="the paper's synthetic experiments, every estimator")
     p.add_argument("--config", help="experiment YAML (default: the built-in ctpipe/data/synthetic.yaml)")
-    p.add_argument("--reps", type=_positive_int, help="repetitions per swept value (default 300)")
-    p.add_argument("--seed", type=_seed, help="random seed (default 0)")
-    p.add_argument("--jobs", type=_positive_int, help="worker processes (default: number of CPUs)")
+    p.add_argument("--reps", type=_int_at_least(1), help="repetitions per swept value (default 300)")
+    p.add_argument("--seed", type=_int_at_least(0), help="random seed (default 0)")
+    p.add_argument("--jobs", type=_int_at_least(1), help="worker processes (default: number of CPUs)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--out", help="directory for synthetic.csv, summary.json, tables.md and PNG plots")
     p.set_defaults(run=_cmd_experiment_synthetic)

@@ -14,7 +14,7 @@ import numpy as np
 
 from ctpipe.errors import InputError
 
-__all__ = ["atomic_write", "write_json", "write_csv", "read_projections", "read_image", "to_jsonable"]
+__all__ = ["atomic_write", "write_json", "write_csv", "read_projections", "to_jsonable"]
 
 
 def atomic_write(path: str | Path, write: Callable[[io.BufferedWriter], None]) -> Path:
@@ -61,12 +61,6 @@ def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence])
     for row in rows:
         writer.writerow(["" if isinstance(v, float) and not np.isfinite(v) else v for v in row])
     return atomic_write(path, lambda h: h.write(buffer.getvalue().encode()))
-
-
-def read_image(path: str | Path) -> np.ndarray:
-    """Read one 2-D image from ``.npy``, ``.tif``/``.tiff`` or ``.png``."""
-    array = _read_array(Path(path))
-    return array
 
 
 def read_projections(path: str | Path) -> np.ndarray:

@@ -47,14 +47,10 @@ def project(points: np.ndarray, alpha_rad: float, axis_distance: float) -> np.nd
 
 
 def _derangement(n: int, rng: np.random.Generator) -> np.ndarray:
-    """A random permutation with no fixed point (so no outlier keeps its true partner)."""
+    """A random permutation with no fixed point, so no outlier keeps its true partner."""
     if n < 2:
         return np.arange(n)
-    return (np.arange(n) + rng.integers(1, n, size=1)[0]) % n if n == 2 else _shuffle_without_fixed_points(n, rng)
-
-
-def _shuffle_without_fixed_points(n: int, rng: np.random.Generator) -> np.ndarray:
-    while True:
+    while True:  # about e draws on average
         perm = rng.permutation(n)
         if not np.any(perm == np.arange(n)):
             return perm
