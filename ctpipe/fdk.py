@@ -237,6 +237,11 @@ def _scan_weights(angles_rad: np.ndarray, geometry: Geometry, short_scan: bool |
     return view_weights(angles_rad, full_scan=False), redundancy
 
 
+# Voxel columns per tile edge: a 16 x 16 tile of (x, z) columns keeps its accumulator (16 x 16 x n_y
+# floats) and the few detector columns one view projects it to in L2 while all views go by.
+_TILE = 16
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _backproject(acc, proj_t, cos_t, sin_t, weight, xs, zs, y0, dy, sod, su, sv, u0, v0):
     """Add the views of ``proj_t`` to ``acc``.
@@ -245,52 +250,73 @@ def _backproject(acc, proj_t, cos_t, sin_t, weight, xs, zs, y0, dy, sod, su, sv,
     proj_t : (V, cols + 2, rows + 2) float32 filtered views, transposed, one zero pixel of
         padding on every side so that bilinear reads fade to zero past the detector edges.
     u0, v0 : principal point in padded pixel coordinates.
+
+    The inner loop is written so that LLVM vectorises it with gathers: whole-array indexing (a
+    view such as ``proj_t[k, ui]`` counts as an alias and disables numba's noalias flag), loop
+    bounds in closed form (a ``while`` that adjusts them blocks vectorisation) and a loop counter
+    that starts at 0.
     """
     n_x, n_z, n_y = acc.shape
     n_views, n_u, n_v = proj_t.shape
     u_hi = n_u - 1.0
-    v_hi = n_v - 1.0
-    for ix in prange(n_x):
-        x = xs[ix]
+    # Stop a hair before the last padded row so that float32 rounding of v cannot read past it.
+    v_hi = n_v - 1.0 - 1e-3
+    tiles_z = (n_z + _TILE - 1) // _TILE
+    n_tiles = ((n_x + _TILE - 1) // _TILE) * tiles_z
+    for tile in prange(n_tiles):
+        x_lo = (tile // tiles_z) * _TILE
+        z_lo = (tile % tiles_z) * _TILE
         for k in range(n_views):
             c = cos_t[k]
             s = sin_t[k]
             w = weight[k]
-            for iz in range(n_z):
-                z = zs[iz]
-                depth = s * x + c * z + sod
-                if depth <= 0.0:
-                    continue
-                inv = 1.0 / depth
-                u = u0 + (c * x - s * z) * inv * su
-                if u < 0.0 or u >= u_hi:
-                    continue
-                ui = int(u)
-                fu = u - ui
-                # The distance weight (SOD / depth)^2 of FDK, with the view's own interval.
-                wd = w * sod * sod * inv * inv
-                dv = dy * inv * sv
-                v_start = v0 + y0 * inv * sv
-                lo = max(0, int(math.ceil(-v_start / dv)))
-                hi = min(n_y, int(math.ceil((v_hi - v_start) / dv)))
-                while hi > lo and v_start + (hi - 1) * dv >= v_hi - 1e-3:
-                    hi -= 1
-                while lo < hi and v_start + lo * dv < 0.0:
-                    lo += 1
-                a0 = np.float32(wd * (1.0 - fu))
-                a1 = np.float32(wd * fu)
-                vs = np.float32(v_start)
-                dvf = np.float32(dv)
-                col0 = proj_t[k, ui]
-                col1 = proj_t[k, ui + 1]
-                row = acc[ix, iz]
-                for iy in range(lo, hi):
-                    v = vs + np.float32(iy) * dvf
-                    vi = int(v)
-                    fv = v - np.float32(vi)
-                    p0 = col0[vi] + fv * (col0[vi + 1] - col0[vi])
-                    p1 = col1[vi] + fv * (col1[vi + 1] - col1[vi])
-                    row[iy] += a0 * p0 + a1 * p1
+            for ix in range(x_lo, min(x_lo + _TILE, n_x)):
+                x = xs[ix]
+                for iz in range(z_lo, min(z_lo + _TILE, n_z)):
+                    z = zs[iz]
+                    depth = s * x + c * z + sod
+                    if depth <= 0.0:
+                        continue
+                    inv = 1.0 / depth
+                    u = u0 + (c * x - s * z) * inv * su
+                    if u < 0.0 or u >= u_hi:
+                        continue
+                    ui = int(u)
+                    fu = u - ui
+                    # The distance weight (SOD / depth)^2 of FDK, with the view's own interval.
+                    wd = w * sod * sod * inv * inv
+                    dv = dy * inv * sv
+                    v_start = v0 + y0 * inv * sv
+                    # Rows with 0 <= v < v_hi; v may come out a rounding error below 0, which
+                    # truncates to row 0 (a zero pad) and is harmless.
+                    lo = max(0, int(math.ceil(-v_start / dv)))
+                    hi = min(n_y, int(math.ceil((v_hi - v_start) / dv)))
+                    a0 = np.float32(wd * (1.0 - fu))
+                    a1 = np.float32(wd * fu)
+                    vs = np.float32(v_start)
+                    dvf = np.float32(dv)
+                    for t in range(hi - lo):
+                        iy = lo + t
+                        v = vs + np.float32(iy) * dvf
+                        vi = np.int32(v)
+                        fv = v - np.float32(vi)
+                        p00 = proj_t[k, ui, vi]
+                        p01 = proj_t[k, ui, vi + 1]
+                        p10 = proj_t[k, ui + 1, vi]
+                        p11 = proj_t[k, ui + 1, vi + 1]
+                        acc[ix, iz, iy] += a0 * (p00 + fv * (p01 - p00)) + a1 * (p10 + fv * (p11 - p10))
+
+
+@njit(parallel=True, cache=True)
+def _to_volume_layout(acc):
+    """(n_x, n_z, n_y) accumulator -> (n_y, n_z, n_x) volume, in parallel."""
+    n_x, n_z, n_y = acc.shape
+    out = np.empty((n_y, n_z, n_x), dtype=np.float32)
+    for iy in prange(n_y):
+        for iz in range(n_z):
+            for ix in range(n_x):
+                out[iy, iz, ix] = acc[ix, iz, iy]
+    return out
 
 
 def _filter_views(views: np.ndarray, pre_weight: np.ndarray, n_pad: int, response: np.ndarray,
@@ -382,4 +408,4 @@ def fdk(
                      geometry.u0_px + 1.0, geometry.v0_px + 1.0)
         if progress is not None:
             progress(part.stop - part.start)
-    return np.ascontiguousarray(acc.transpose(2, 1, 0))
+    return _to_volume_layout(acc)
