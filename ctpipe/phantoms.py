@@ -1,0 +1,575 @@
+"""Phantoms as data: YAML files of analytic primitives, seeded generators or a voxel array.
+
+A phantom file is validated as strictly as a pipeline file: unknown keys, wrong types and
+out-of-range values raise :class:`~ctpipe.errors.ConfigError` naming the YAML path, the value
+and what is allowed.
+
+Schema
+------
+::
+
+    name: granular                  # optional; default: the file name without .yaml
+    description: ...                # optional, one paragraph
+    units: mm                       # optional; only mm is allowed
+    objects:                        # a list of one-key mappings {kind: parameters}
+      - ellipsoid: {centre_mm: [x, y, z], semi_axes_mm: [a, b, c], rotation_deg: [rx, ry, rz],
+                    density_per_mm: 0.02}
+      - sphere:    {centre_mm: [x, y, z], radius_mm: r, density_per_mm: 0.02}
+      - cylinder:  {centre_mm: [x, y, z], radius_mm: r, height_mm: h, rotation_deg: [...],
+                    density_per_mm: 0.02}          # or radii_mm: [r_x, r_z] for an elliptic one
+      - box:       {centre_mm: [x, y, z], size_mm: [s_x, s_y, s_z], rotation_deg: [...],
+                    density_per_mm: 0.02}
+      - beads:                      # spheres in a cylinder (the paper's synthetic sample)
+          container: {radius_mm: 40, height_mm: 80, centre_mm: [0, 0, 0], density_per_mm: 0.01,
+                      wall_mm: 0, wall_density_per_mm: 0}
+          count: 300
+          radius_mm: [1.0, 3.0]          # uniform range of the bead radii
+          density_per_mm: [0.02, 0.06]   # uniform range of the bead material
+          min_gap_mm: 0.5                # between neighbouring beads (and the container)
+          seed: 1
+      - grains:                     # grains and voids in a cylinder: a granular/porous sample
+          container: {...}               # as for beads
+          count: 3000
+          size_mm: [1.5, 5.0]            # uniform range of each grain's longest diameter
+          aspect: [0.5, 1.0]             # the two shorter axes as fractions of the longest
+          density_per_mm: [0.02, 0.08]   # uniform range of the grain material
+          void_fraction: 0.25            # this fraction of the grains are empty pores
+          min_gap_mm: 0.2                # negative lets grains overlap loosely
+          seed: 7
+    voxels:                         # instead of objects: a voxel array
+      file: sample.npy              # .npy or .tif, relative to the YAML file; volume[iy, iz, ix]
+      voxel_size_mm: 0.5
+      centre_mm: [0, 0, 0]          # optional
+      scale: 1.0                    # optional factor to 1/mm
+
+Conventions
+-----------
+Positions are in the object frame of :mod:`ctpipe.volume` (``x`` lateral, ``y`` the rotation
+axis pointing down the detector rows, ``z`` towards the detector at angle 0), lengths in mm,
+densities are linear attenuation coefficients in 1/mm and *add* where objects overlap (a void
+is an object of negative density). ``centre_mm`` and ``rotation_deg`` default to zeros.
+
+``rotation_deg: [rx, ry, rz]`` is ``scipy.spatial.transform.Rotation.from_euler("xyz",
+[rx, ry, rz], degrees=True)``: extrinsic rotations about the object-frame ``x``, then ``y``,
+then ``z`` axes. Its matrix maps the shape's local axes to the object frame, as in
+:mod:`ctpipe.primitives`. A cylinder's own axis is its local ``y``, so an unrotated cylinder
+stands along the rotation axis; ``height_mm`` is its full length.
+
+Generators (``beads``, ``grains``) draw from ``numpy.random.default_rng(seed)`` only, so the
+same file always gives the same primitives. Their ``density_per_mm`` is the *material* of the
+bead or grain, which replaces the container's matrix (the primitive added is ``material -
+matrix``); a void is material 0. Beads and grains are placed whole inside the container's
+cavity, their bounding spheres at least ``min_gap_mm`` apart, so that the replacement is exact;
+with a negative gap the overlapping parts count twice. A container of density 0 is only a
+region: no primitive is emitted for it. ``wall_mm > 0`` adds a tube of ``wall_density_per_mm``
+around the cavity (outer radius ``radius_mm + wall_mm``, same height).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctpipe.config import check_keys, load_yaml
+from ctpipe.errors import ConfigError, InputError
+from ctpipe.primitives import KINDS, Primitives
+from ctpipe.stages import ParamSpec, check_value
+from ctpipe.volume import VolumeGrid
+
+__all__ = ["Phantom", "load_phantom", "parse_phantom", "list_phantoms", "OBJECT_KINDS", "rotation_from_deg"]
+
+_ELLIPSOID, _CYLINDER, _BOX = (KINDS.index(k) for k in ("ellipsoid", "cylinder", "box"))
+
+#: Object kinds a phantom's ``objects`` list accepts.
+OBJECT_KINDS = ("ellipsoid", "sphere", "cylinder", "box", "beads", "grains")
+
+
+@dataclass(frozen=True, eq=False)
+class Phantom:
+    """A validated phantom: analytic primitives or a voxel array, and its extent.
+
+    Attributes
+    ----------
+    name, description : str
+    primitives : Primitives or None
+        The analytic objects (None for a voxel phantom).
+    volume : ndarray of shape ``grid.shape`` = (n_y, n_z, n_x), float32, or None
+        Attenuation in 1/mm on ``grid`` (None for a primitive phantom).
+    grid : VolumeGrid or None
+    radius_mm : float
+        Largest distance of the object from the rotation axis (an upper bound, tight for
+        shapes centred on the axis).
+    half_height_mm : float
+        Largest ``|y|`` of the object: it lies within ``-half_height_mm <= y <= half_height_mm``.
+    source : str
+        The file it came from, or the YAML path it was parsed at.
+    """
+
+    name: str
+    description: str
+    primitives: Primitives | None
+    volume: np.ndarray | None
+    grid: VolumeGrid | None
+    radius_mm: float
+    half_height_mm: float
+    source: str = ""
+
+
+# ---------------------------------------------------------------------------------------------
+# Value checks
+
+
+_NUMBER = ParamSpec("", float, None, "")
+_POSITIVE = ParamSpec("", float, None, "", gt=0)
+_NON_NEGATIVE = ParamSpec("", float, None, "", ge=0)
+_SEED = ParamSpec("seed", int, None, "", ge=0)
+
+
+def _number(mapping: Mapping, key: str, path: str, spec: ParamSpec = _NUMBER, default: Any = None) -> float:
+    if key not in mapping:
+        if default is None:
+            raise ConfigError(f"{path}.{key}: missing; it is required")
+        return default
+    return check_value(spec, mapping[key], f"{path}.{key}")
+
+
+def _vector(mapping: Mapping, key: str, path: str, n: int, *, positive: bool = False,
+            default: tuple | None = None) -> np.ndarray:
+    if key not in mapping:
+        if default is None:
+            raise ConfigError(f"{path}.{key}: missing; it is required")
+        return np.asarray(default, dtype=np.float64)
+    value = mapping[key]
+    spec = ParamSpec("", tuple[float, ...], None, "", gt=0 if positive else None)
+    what = f"a list of {n} {'numbers > 0' if positive else 'numbers'}"
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise ConfigError(f"{path}.{key}: must be {what}, got {value!r}")
+    try:
+        check_value(spec, value, f"{path}.{key}")
+    except ConfigError:
+        raise ConfigError(f"{path}.{key}: must be {what}, got {value!r}") from None
+    return np.asarray(value, dtype=np.float64)
+
+
+def _range(mapping: Mapping, key: str, path: str, *, low: float | None = None, positive: bool = False) -> tuple:
+    """A ``[min, max]`` pair (a single number means both)."""
+    if key not in mapping:
+        raise ConfigError(f"{path}.{key}: missing; it is required")
+    value = mapping[key]
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value, value]
+    bound = "> 0" if positive else (f">= {low:g}" if low is not None else "")
+    what = f"a number or a list [min, max] of numbers {bound}".rstrip()
+    ok = isinstance(value, (list, tuple)) and len(value) == 2
+    if ok:
+        try:
+            check_value(ParamSpec("", tuple[float, ...], None, "", gt=0 if positive else None, ge=low), list(value), "")
+        except ConfigError:
+            ok = False
+    if not ok or value[0] > value[1]:
+        raise ConfigError(f"{path}.{key}: must be {what} with min <= max, got {mapping[key]!r}")
+    return float(value[0]), float(value[1])
+
+
+def rotation_from_deg(angles_deg) -> np.ndarray:
+    """Matrix of ``rotation_deg`` (see the module docstring), shape (3, 3), float64."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("xyz", np.asarray(angles_deg, dtype=np.float64), degrees=True).as_matrix()
+
+
+# ---------------------------------------------------------------------------------------------
+# Objects
+
+
+class _Builder:
+    """Collects primitives as lists of rows (kind, centre, half sizes, rotation, density)."""
+
+    def __init__(self) -> None:
+        self.kind: list[np.ndarray] = []
+        self.centre: list[np.ndarray] = []
+        self.half: list[np.ndarray] = []
+        self.rotation: list[np.ndarray] = []
+        self.density: list[np.ndarray] = []
+
+    def add(self, kind, centre, half, rotation, density) -> None:
+        kind = np.atleast_1d(np.asarray(kind, dtype=np.int32))
+        n = len(kind)
+        self.kind.append(kind)
+        self.centre.append(np.asarray(centre, dtype=np.float64).reshape(n, 3))
+        self.half.append(np.asarray(half, dtype=np.float64).reshape(n, 3))
+        self.rotation.append(np.asarray(rotation, dtype=np.float64).reshape(n, 3, 3))
+        self.density.append(np.asarray(density, dtype=np.float64).reshape(n))
+
+    def build(self) -> Primitives:
+        if not self.kind:
+            return Primitives.concatenate([])
+        return Primitives(np.concatenate(self.kind), np.concatenate(self.centre), np.concatenate(self.half),
+                          np.concatenate(self.rotation), np.concatenate(self.density))
+
+
+def _density(mapping: Mapping, path: str) -> float:
+    return _number(mapping, "density_per_mm", path)
+
+
+def _add_ellipsoid(builder: _Builder, p: Any, path: str) -> None:
+    check_keys(p, path, allowed=("centre_mm", "semi_axes_mm", "rotation_deg", "density_per_mm"),
+               required=("semi_axes_mm", "density_per_mm"))
+    builder.add(_ELLIPSOID, _vector(p, "centre_mm", path, 3, default=(0, 0, 0)),
+                _vector(p, "semi_axes_mm", path, 3, positive=True),
+                rotation_from_deg(_vector(p, "rotation_deg", path, 3, default=(0, 0, 0))), _density(p, path))
+
+
+def _add_sphere(builder: _Builder, p: Any, path: str) -> None:
+    check_keys(p, path, allowed=("centre_mm", "radius_mm", "density_per_mm"), required=("radius_mm", "density_per_mm"))
+    radius = _number(p, "radius_mm", path, _POSITIVE)
+    builder.add(_ELLIPSOID, _vector(p, "centre_mm", path, 3, default=(0, 0, 0)), [radius] * 3, np.eye(3),
+                _density(p, path))
+
+
+def _add_cylinder(builder: _Builder, p: Any, path: str) -> None:
+    check_keys(p, path, allowed=("centre_mm", "radius_mm", "radii_mm", "height_mm", "rotation_deg", "density_per_mm"),
+               required=("height_mm", "density_per_mm"))
+    if ("radius_mm" in p) == ("radii_mm" in p):
+        raise ConfigError(f"{path}: give exactly one of radius_mm (circular) or radii_mm [r_x, r_z] (elliptic)")
+    if "radius_mm" in p:
+        r_x = r_z = _number(p, "radius_mm", path, _POSITIVE)
+    else:
+        r_x, r_z = _vector(p, "radii_mm", path, 2, positive=True)
+    half_height = _number(p, "height_mm", path, _POSITIVE) / 2.0
+    builder.add(_CYLINDER, _vector(p, "centre_mm", path, 3, default=(0, 0, 0)), [r_x, half_height, r_z],
+                rotation_from_deg(_vector(p, "rotation_deg", path, 3, default=(0, 0, 0))), _density(p, path))
+
+
+def _add_box(builder: _Builder, p: Any, path: str) -> None:
+    check_keys(p, path, allowed=("centre_mm", "size_mm", "rotation_deg", "density_per_mm"),
+               required=("size_mm", "density_per_mm"))
+    builder.add(_BOX, _vector(p, "centre_mm", path, 3, default=(0, 0, 0)),
+                _vector(p, "size_mm", path, 3, positive=True) / 2.0,
+                rotation_from_deg(_vector(p, "rotation_deg", path, 3, default=(0, 0, 0))), _density(p, path))
+
+
+@dataclass(frozen=True)
+class _Container:
+    centre_mm: np.ndarray
+    radius_mm: float
+    height_mm: float
+    density_per_mm: float
+    wall_mm: float
+    wall_density_per_mm: float
+
+
+def _parse_container(value: Any, path: str) -> _Container:
+    check_keys(value, path, allowed=("centre_mm", "radius_mm", "height_mm", "density_per_mm", "wall_mm",
+                                     "wall_density_per_mm"), required=("radius_mm", "height_mm"))
+    return _Container(_vector(value, "centre_mm", path, 3, default=(0, 0, 0)),
+                      _number(value, "radius_mm", path, _POSITIVE), _number(value, "height_mm", path, _POSITIVE),
+                      _number(value, "density_per_mm", path, default=0.0),
+                      _number(value, "wall_mm", path, _NON_NEGATIVE, default=0.0),
+                      _number(value, "wall_density_per_mm", path, default=0.0))
+
+
+def _add_container(builder: _Builder, c: _Container) -> None:
+    half_height = c.height_mm / 2.0
+    if c.wall_mm > 0 and c.wall_density_per_mm != 0:
+        # A tube is the outer cylinder plus an inner one that cancels the wall material.
+        builder.add(_CYLINDER, c.centre_mm, [c.radius_mm + c.wall_mm, half_height, c.radius_mm + c.wall_mm], np.eye(3),
+                    c.wall_density_per_mm)
+        if c.density_per_mm - c.wall_density_per_mm != 0:
+            builder.add(_CYLINDER, c.centre_mm, [c.radius_mm, half_height, c.radius_mm], np.eye(3),
+                        c.density_per_mm - c.wall_density_per_mm)
+    elif c.density_per_mm != 0:
+        builder.add(_CYLINDER, c.centre_mm, [c.radius_mm, half_height, c.radius_mm], np.eye(3), c.density_per_mm)
+
+
+def _place(bounding_mm: np.ndarray, c: _Container, gap_mm: float, rng: np.random.Generator, path: str,
+           what: str) -> np.ndarray:
+    """Centres (N, 3) for spheres of radii ``bounding_mm`` inside the cavity, ``gap_mm`` apart.
+
+    Random sequential addition, largest first, with a hash grid for the neighbour test.
+    """
+    n = len(bounding_mm)
+    order = np.argsort(-bounding_mm, kind="stable")
+    centres = np.zeros((n, 3))
+    cell = 2.0 * float(bounding_mm.max()) + max(gap_mm, 0.0)
+    grid: dict[tuple[int, int, int], list[int]] = {}
+    max_tries = 2000
+    for placed, index in enumerate(order):
+        r = float(bounding_mm[index])
+        reach_r = c.radius_mm - r - max(gap_mm, 0.0)
+        reach_y = c.height_mm / 2.0 - r - max(gap_mm, 0.0)
+        if reach_r < 0 or reach_y < 0:
+            raise ConfigError(f"{path}: a {what} of bounding radius {r:g} mm does not fit in the container "
+                              f"(radius {c.radius_mm:g} mm, height {c.height_mm:g} mm)")
+        for _ in range(max_tries):
+            u, phi, y = rng.random(3)
+            rho = reach_r * math.sqrt(u)
+            p = c.centre_mm + np.array([rho * math.cos(2 * math.pi * phi), (2 * y - 1) * reach_y,
+                                        rho * math.sin(2 * math.pi * phi)])
+            key = tuple(int(k) for k in np.floor(p / cell))
+            clear = True
+            for dx in (-1, 0, 1):
+                for dy in (-1, 0, 1):
+                    for dz in (-1, 0, 1):
+                        for other in grid.get((key[0] + dx, key[1] + dy, key[2] + dz), ()):
+                            limit = r + bounding_mm[other] + gap_mm
+                            d = p - centres[other]
+                            if d @ d < limit * limit:
+                                clear = False
+                                break
+                        if not clear:
+                            break
+                    if not clear:
+                        break
+                if not clear:
+                    break
+            if clear:
+                centres[index] = p
+                grid.setdefault(key, []).append(index)
+                break
+        else:
+            raise ConfigError(f"{path}: placed only {placed} of {n} {what}s in the container; lower count or the "
+                              f"sizes, or let them overlap with a smaller (even negative) min_gap_mm")
+    return centres
+
+
+def _generator_common(p: Any, path: str) -> tuple[_Container, int, float, np.random.Generator]:
+    container = _parse_container(p["container"], f"{path}.container")
+    count = check_value(ParamSpec("count", int, None, "", ge=1, le=200_000), p["count"], f"{path}.count")
+    gap = _number(p, "min_gap_mm", path, default=0.0)
+    seed = check_value(_SEED, p["seed"], f"{path}.seed")
+    return container, count, gap, np.random.default_rng(seed)
+
+
+def _add_beads(builder: _Builder, p: Any, path: str) -> None:
+    check_keys(p, path, allowed=("container", "count", "radius_mm", "density_per_mm", "min_gap_mm", "seed"),
+               required=("container", "count", "radius_mm", "density_per_mm", "seed"))
+    container, count, gap, rng = _generator_common(p, path)
+    r_lo, r_hi = _range(p, "radius_mm", path, positive=True)
+    d_lo, d_hi = _range(p, "density_per_mm", path)
+    radii = rng.uniform(r_lo, r_hi, count)
+    material = rng.uniform(d_lo, d_hi, count)
+    centres = _place(radii, container, gap, rng, path, "bead")
+    _add_container(builder, container)
+    builder.add(np.full(count, _ELLIPSOID), centres, np.repeat(radii[:, None], 3, axis=1),
+                np.broadcast_to(np.eye(3), (count, 3, 3)), material - container.density_per_mm)
+
+
+def _add_grains(builder: _Builder, p: Any, path: str) -> None:
+    from scipy.spatial.transform import Rotation
+
+    check_keys(p, path, allowed=("container", "count", "size_mm", "aspect", "density_per_mm", "void_fraction",
+                                 "min_gap_mm", "seed"),
+               required=("container", "count", "size_mm", "density_per_mm", "seed"))
+    container, count, gap, rng = _generator_common(p, path)
+    s_lo, s_hi = _range(p, "size_mm", path, positive=True)
+    a_lo, a_hi = (1.0, 1.0) if "aspect" not in p else _range(p, "aspect", path, positive=True)
+    if a_hi > 1:
+        raise ConfigError(f"{path}.aspect: must be fractions in (0, 1] of the longest axis, got {p['aspect']!r}")
+    d_lo, d_hi = _range(p, "density_per_mm", path)
+    void_fraction = _number(p, "void_fraction", path, ParamSpec("", float, None, "", ge=0, le=1), default=0.0)
+    semi_major = rng.uniform(s_lo, s_hi, count) / 2.0
+    semi = semi_major[:, None] * np.column_stack([np.ones(count), rng.uniform(a_lo, a_hi, (count, 2))])
+    rotation = Rotation.random(count, random_state=rng).as_matrix().reshape(count, 3, 3)
+    material = rng.uniform(d_lo, d_hi, count)
+    material[rng.random(count) < void_fraction] = 0.0
+    centres = _place(semi_major, container, gap, rng, path, "grain")
+    _add_container(builder, container)
+    keep = material != container.density_per_mm  # a grain of the matrix material is invisible
+    builder.add(np.full(int(keep.sum()), _ELLIPSOID), centres[keep], semi[keep], rotation[keep],
+                material[keep] - container.density_per_mm)
+
+
+_OBJECT_BUILDERS = {"ellipsoid": _add_ellipsoid, "sphere": _add_sphere, "cylinder": _add_cylinder, "box": _add_box,
+                    "beads": _add_beads, "grains": _add_grains}
+
+
+def _parse_objects(value: Any, path: str) -> Primitives:
+    if not isinstance(value, list) or not value:
+        raise ConfigError(f"{path}: must be a non-empty list of one-key mappings {{kind: parameters}} with kind one "
+                          f"of {', '.join(OBJECT_KINDS)}, got {value!r}")
+    builder = _Builder()
+    for i, item in enumerate(value):
+        where = f"{path}[{i}]"
+        if not isinstance(item, Mapping) or len(item) != 1:
+            raise ConfigError(f"{where}: must be a one-key mapping {{kind: parameters}} with kind one of "
+                              f"{', '.join(OBJECT_KINDS)}, got {item!r}")
+        ((kind, params),) = item.items()
+        if kind not in _OBJECT_BUILDERS:
+            raise ConfigError(f"{where}.{kind}: unknown object kind; allowed: {', '.join(OBJECT_KINDS)}")
+        _OBJECT_BUILDERS[kind](builder, params, f"{where}.{kind}")
+    return builder.build()
+
+
+# ---------------------------------------------------------------------------------------------
+# Extent
+
+
+def _primitive_extent(p: Primitives) -> tuple[float, float]:
+    """``(radius_mm, half_height_mm)`` about the rotation axis of a set of primitives."""
+    if len(p) == 0:
+        return 0.0, 0.0
+    scaled = p.rotation * p.half_size_mm[:, None, :]  # columns: the local half axes in the object frame
+    ellipsoid, cylinder, box = (p.kind == k for k in (_ELLIPSOID, _CYLINDER, _BOX))
+    # Reach along y (exact per shape).
+    reach_y = np.empty(len(p))
+    reach_y[ellipsoid] = np.linalg.norm(scaled[ellipsoid, 1, :], axis=1)
+    reach_y[cylinder] = np.hypot(scaled[cylinder, 1, 0], scaled[cylinder, 1, 2]) + np.abs(scaled[cylinder, 1, 1])
+    reach_y[box] = np.abs(scaled[box, 1, :]).sum(axis=1)
+    half_height = float(np.max(np.abs(p.centre_mm[:, 1]) + reach_y))
+    # Distance from the axis: the largest of a convex function is at an extreme point.
+    radius = np.empty(len(p))
+    centre_xz = p.centre_mm[:, [0, 2]]
+    flat = scaled[:, [0, 2], :]  # (N, 2, 3): the local half axes projected on the x-z plane
+    # Ellipsoids: the centre's distance plus the projected ellipse's major semi-axis (exact when centred).
+    radius[ellipsoid] = (np.linalg.norm(centre_xz[ellipsoid], axis=1)
+                         + np.linalg.norm(flat[ellipsoid], ord=2, axis=(1, 2)))
+    if cylinder.any():
+        # Cylinders: both rim circles, sampled and widened by 1/cos(pi/n) so the bound stays an upper one.
+        n = 256
+        t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+        rim = np.stack([np.cos(t), np.zeros(n), np.sin(t)])  # (3, n)
+        pts = []
+        for sign in (-1.0, 1.0):
+            u = rim + np.array([[0.0], [sign], [0.0]])
+            pts.append(np.einsum("kij,jn->kin", flat[cylinder], u) + centre_xz[cylinder][:, :, None])
+        pts = np.concatenate(pts, axis=2)
+        radius[cylinder] = np.linalg.norm(pts, axis=1).max(axis=1) / math.cos(math.pi / n)
+    if box.any():
+        corners = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, 8).astype(float)
+        pts = np.einsum("kij,jn->kin", flat[box], corners) + centre_xz[box][:, :, None]
+        radius[box] = np.linalg.norm(pts, axis=1).max(axis=1)
+    return float(radius.max()), half_height
+
+
+def _voxel_extent(volume: np.ndarray, grid: VolumeGrid) -> tuple[float, float]:
+    iy, iz, ix = np.nonzero(volume)
+    if len(iy) == 0:
+        return 0.0, 0.0
+    x, y, z = grid.axis_mm("x")[ix], grid.axis_mm("y")[iy], grid.axis_mm("z")[iz]
+    half = grid.voxel_size_mm / 2.0
+    return float(np.max(np.hypot(x, z)) + half * math.sqrt(2.0)), float(np.max(np.abs(y)) + half)
+
+
+# ---------------------------------------------------------------------------------------------
+# Voxels
+
+
+def _parse_voxels(value: Any, path: str, base_dir: Path | None) -> tuple[np.ndarray, VolumeGrid]:
+    check_keys(value, path, allowed=("file", "voxel_size_mm", "centre_mm", "scale"), required=("file", "voxel_size_mm"))
+    name = value["file"]
+    if not isinstance(name, str) or not name.lower().endswith((".npy", ".tif", ".tiff")):
+        raise ConfigError(f"{path}.file: must be a .npy or .tif file name, got {name!r}")
+    file = Path(name)
+    if not file.is_absolute() and base_dir is not None:
+        file = base_dir / file
+    if not file.is_file():
+        raise InputError(f"{path}.file: {file}: no such file")
+    try:
+        if file.suffix.lower() == ".npy":
+            volume = np.load(file, allow_pickle=False)
+        else:
+            import tifffile
+
+            volume = tifffile.imread(file)
+    except (ValueError, OSError) as exc:
+        raise InputError(f"{path}.file: {file}: cannot be read: {exc}") from None
+    if volume.ndim != 3 or not np.issubdtype(volume.dtype, np.number) or np.iscomplexobj(volume):
+        raise InputError(f"{path}.file: {file}: must hold a real 3-D array volume[iy, iz, ix], "
+                         f"got {volume.dtype} of shape {volume.shape}")
+    scale = _number(value, "scale", path, default=1.0)
+    volume = (volume.astype(np.float64) * scale).astype(np.float32)
+    if not np.all(np.isfinite(volume)):
+        raise InputError(f"{path}.file: {file}: has NaN or infinite values")
+    n_y, n_z, n_x = volume.shape
+    grid = VolumeGrid(n_x, n_y, n_z, _number(value, "voxel_size_mm", path, _POSITIVE),
+                      tuple(_vector(value, "centre_mm", path, 3, default=(0, 0, 0))))
+    volume.flags.writeable = False
+    return volume, grid
+
+
+# ---------------------------------------------------------------------------------------------
+# Entry points
+
+
+def parse_phantom(mapping: Any, path: str = "phantom", base_dir: str | Path | None = None) -> Phantom:
+    """Validate a phantom mapping (see the module docstring).
+
+    Parameters
+    ----------
+    mapping : mapping
+        The parsed YAML.
+    path : str
+        YAML path prefix of error messages (usually the file name).
+    base_dir : path or None
+        Folder relative ``voxels.file`` names resolve against (default: the working directory).
+
+    Raises
+    ------
+    ConfigError
+        A key, type or value is not allowed; the message names its YAML path.
+    """
+    check_keys(mapping, path, allowed=("name", "description", "units", "objects", "voxels"))
+    name = check_value(ParamSpec("name", str, None, ""), mapping.get("name", "phantom"), f"{path}.name")
+    description = check_value(ParamSpec("description", str, None, ""), mapping.get("description", ""),
+                              f"{path}.description")
+    if mapping.get("units", "mm") != "mm":
+        raise ConfigError(f"{path}.units: must be 'mm', got {mapping['units']!r}")
+    if ("objects" in mapping) == ("voxels" in mapping):
+        raise ConfigError(f"{path}: give exactly one of objects (analytic primitives) or voxels (an array file)")
+    if "objects" in mapping:
+        primitives = _parse_objects(mapping["objects"], f"{path}.objects")
+        radius, half_height = _primitive_extent(primitives)
+        return Phantom(name, description.strip(), primitives, None, None, radius, half_height, path)
+    volume, grid = _parse_voxels(mapping["voxels"], f"{path}.voxels", None if base_dir is None else Path(base_dir))
+    radius, half_height = _voxel_extent(volume, grid)
+    return Phantom(name, description.strip(), None, volume, grid, radius, half_height, path)
+
+
+def _builtin_dir():
+    try:
+        return resources.files("ctpipe.phantoms_data")
+    except ModuleNotFoundError:
+        # An editable install made before phantoms/ was mapped to ctpipe.phantoms_data: the
+        # source checkout still has the folder next to the package.
+        return Path(__file__).resolve().parent.parent / "phantoms"
+
+
+def list_phantoms() -> list[str]:
+    """Names of the built-in phantoms (``phantoms/*.yaml``), sorted."""
+    return sorted(entry.name[: -len(".yaml")] for entry in _builtin_dir().iterdir() if entry.name.endswith(".yaml"))
+
+
+def load_phantom(name_or_path: str | Path) -> Phantom:
+    """Load a phantom by built-in name (``"granular"``) or from a YAML file.
+
+    A string that ends in ``.yaml``/``.yml``, contains a path separator or names an existing
+    file is read as a file; anything else must be a built-in name.
+
+    Raises
+    ------
+    ConfigError
+        Unknown built-in name (the message lists the built-in ones), or an invalid file.
+    """
+    text = str(name_or_path)
+    looks_like_file = isinstance(name_or_path, Path) or text.endswith((".yaml", ".yml")) or "/" in text or "\\" in text
+    if looks_like_file or Path(text).is_file():
+        file = Path(text)
+        mapping = load_yaml(file)
+        if isinstance(mapping, Mapping) and "name" not in mapping:
+            mapping = {"name": file.stem, **mapping}
+        return parse_phantom(mapping, path=str(file), base_dir=file.parent)
+    builtin = _builtin_dir() / f"{text}.yaml"
+    if not builtin.is_file():
+        raise ConfigError(f"phantom {text!r}: not a built-in phantom or a file; built-in: {', '.join(list_phantoms())}")
+    with resources.as_file(builtin) as file:
+        mapping = load_yaml(file)
+        if isinstance(mapping, Mapping) and "name" not in mapping:
+            mapping = {"name": text, **mapping}
+        return parse_phantom(mapping, path=f"{text}.yaml", base_dir=file.parent)
