@@ -1,0 +1,449 @@
+"""Scan folders (simulated or real projections with their geometry and angles) and scan specs.
+
+Scan folder
+-----------
+A folder with a ``scan.yaml`` and one TIFF per frame::
+
+    scan.yaml
+    projections/proj_00000.tif ...    # one 2-D image (rows, cols) per view, float32 or uint16
+    flats/flat_00000.tif ...          # optional: beam, no object
+    darks/dark_00000.tif ...          # optional: no beam
+
+``scan.yaml``::
+
+    format: ctpipe-scan/1
+    geometry:                         # the fields of ctpipe.geometry.Geometry, units in the names
+      source_to_object_mm: 190.0
+      source_to_detector_mm: 390.0
+      detector_cols: 512
+      detector_rows: 512
+      pixel_pitch_u_mm: 0.8
+      pixel_pitch_v_mm: 0.8
+      u0_px: 255.5                    # optional (null: the detector centre)
+      v0_px: 255.5
+    angles:
+      nominal_deg: [0.0, 1.0, ...]    # one per view, the commanded turntable angles
+      true_deg: [0.013, 0.987, ...]   # optional: the truth, when known (simulations)
+    projections:
+      values: line_integrals          # or intensities: raw counts, corrected with flats and darks
+      files: projections/proj_{index:05d}.tif   # a pattern with {index} (0, 1, ...) or a list of names
+      count: 360                      # with a pattern: how many files
+    flats: {files: flats/flat_{index:05d}.tif, count: 8}   # optional; required for intensities
+    darks: {files: [dark_a.tif, dark_b.tif]}                # optional
+    provenance: {...}                 # free-form: phantom, scan spec, seed, generator, dates
+    written_by: ctpipe 0.1.0          # optional, set by write_scan
+    written_utc: "2025-01-01T00:00:00+00:00"
+
+File names are relative to the folder. :func:`read_scan` returns the projections as float32
+line integrals, applying :func:`ctpipe.acquisition.log_transform` when they are intensities.
+A real scanner's export only needs a ``scan.yaml`` written next to its TIFFs.
+
+Scan spec
+---------
+What ``ctpipe simulate PHANTOM --scan SCAN.yaml`` acquires::
+
+    geometry: {...}                                  # as above
+    angles: {n_views: 360, range_deg: 360.0, start_deg: 0.0}   # see ctpipe.jitter.nominal_angles_deg
+    jitter: [{gaussian: {sigma_deg: 0.2}}, {jumps: {count: 3, size_deg: 1.0}}]   # ctpipe.jitter
+    noise: {photons_per_pixel: 100000, flat_frames: 8, dark_frames: 4, dark_counts: 100}
+                                                     # ctpipe.acquisition; null: exact line integrals
+    projector: {kind: analytic, supersample: 2, blur_px: 0.5}   # analytic or voxel
+    seed: 0
+
+``geometry`` and ``angles`` are required; ``jitter`` defaults to none, ``noise`` to null,
+``projector`` to ``{kind: analytic, supersample: 1, blur_px: 0}``, ``seed`` to 0.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+
+from ctpipe.acquisition import NoiseModel, log_transform, parse_noise
+from ctpipe.config import check_keys, load_yaml, parse_geometry
+from ctpipe.errors import ConfigError, InputError
+from ctpipe.geometry import Geometry
+from ctpipe.io import to_jsonable
+from ctpipe.jitter import Jitter, nominal_angles_deg, parse_jitter
+from ctpipe.stages import ParamSpec, check_value
+
+__all__ = ["AngleSpec", "ProjectorSpec", "ScanSpec", "parse_scan_spec", "load_scan_spec", "Scan", "read_scan",
+           "write_scan", "SCAN_FORMAT", "VALUE_KINDS"]
+
+#: The ``format`` value of a scan.yaml this version reads and writes.
+SCAN_FORMAT = "ctpipe-scan/1"
+#: What the projection files hold.
+VALUE_KINDS = ("line_integrals", "intensities")
+
+_PATTERNS = {"projections": "projections/proj_{index:05d}.tif", "flats": "flats/flat_{index:05d}.tif",
+             "darks": "darks/dark_{index:05d}.tif"}
+
+
+# ---------------------------------------------------------------------------------------------
+# Scan spec
+
+
+@dataclass(frozen=True)
+class AngleSpec:
+    """Nominal angles: ``n_views`` over ``range_deg`` from ``start_deg``."""
+
+    n_views: int
+    range_deg: float = 360.0
+    start_deg: float = 0.0
+
+    def nominal_angles_deg(self) -> np.ndarray:
+        """Shape (n_views,), float64; see :func:`ctpipe.jitter.nominal_angles_deg`."""
+        return nominal_angles_deg(self.n_views, self.range_deg, self.start_deg)
+
+    def to_dict(self) -> dict:
+        return {"n_views": self.n_views, "range_deg": self.range_deg, "start_deg": self.start_deg}
+
+
+@dataclass(frozen=True)
+class ProjectorSpec:
+    """How line integrals are computed: exact (``analytic``) or through a voxelised phantom."""
+
+    kind: Literal["analytic", "voxel"] = "analytic"
+    supersample: int = 1
+    blur_px: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "supersample": self.supersample, "blur_px": self.blur_px}
+
+
+@dataclass(frozen=True)
+class ScanSpec:
+    """A validated scan spec (see the module docstring)."""
+
+    geometry: Geometry
+    angles: AngleSpec
+    jitter: Jitter = field(default_factory=Jitter)
+    noise: NoiseModel | None = None
+    projector: ProjectorSpec = field(default_factory=ProjectorSpec)
+    seed: int = 0
+
+    @property
+    def n_views(self) -> int:
+        return self.angles.n_views
+
+    def nominal_angles_deg(self) -> np.ndarray:
+        """Commanded angles, shape (n_views,), float64, degrees."""
+        return self.angles.nominal_angles_deg()
+
+    def to_dict(self) -> dict:
+        """The mapping that parses back to this spec."""
+        return {"geometry": self.geometry.to_dict(), "angles": self.angles.to_dict(), "jitter": self.jitter.to_dict(),
+                "noise": None if self.noise is None else self.noise.to_dict(), "projector": self.projector.to_dict(),
+                "seed": self.seed}
+
+
+_ANGLE_FIELDS = {"n_views": ParamSpec("n_views", int, None, "", ge=1, le=100_000),
+                 "range_deg": ParamSpec("range_deg", float, 360.0, "", gt=0, le=36_000),
+                 "start_deg": ParamSpec("start_deg", float, 0.0, "")}
+_PROJECTOR_FIELDS = {"kind": ParamSpec("kind", Literal["analytic", "voxel"], "analytic", ""),
+                     "supersample": ParamSpec("supersample", int, 1, "", ge=1, le=16),
+                     "blur_px": ParamSpec("blur_px", float, 0.0, "", ge=0)}
+_SEED = ParamSpec("seed", int, 0, "", ge=0)
+
+
+def _fields(value: Any, path: str, table: dict[str, ParamSpec], required: tuple[str, ...] = ()) -> dict:
+    check_keys(value, path, allowed=tuple(table), required=required)
+    return {key: check_value(table[key], raw, f"{path}.{key}") for key, raw in value.items()}
+
+
+def parse_scan_spec(mapping: Any, path: str = "scan") -> ScanSpec:
+    """Validate a scan spec mapping; errors name the YAML path, the value and what is allowed."""
+    check_keys(mapping, path, allowed=("geometry", "angles", "jitter", "noise", "projector", "seed"),
+               required=("geometry", "angles"))
+    geometry = parse_geometry(mapping["geometry"], f"{path}.geometry")
+    angles = AngleSpec(**_fields(mapping["angles"], f"{path}.angles", _ANGLE_FIELDS, required=("n_views",)))
+    jitter = parse_jitter(mapping.get("jitter"), f"{path}.jitter")
+    noise = parse_noise(mapping.get("noise"), f"{path}.noise")
+    projector = ProjectorSpec(**_fields(mapping.get("projector") or {}, f"{path}.projector", _PROJECTOR_FIELDS))
+    seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
+    return ScanSpec(geometry, angles, jitter, noise, projector, seed)
+
+
+def load_scan_spec(path: str | Path) -> ScanSpec:
+    """Read and validate a scan spec YAML file."""
+    return parse_scan_spec(load_yaml(path), path=str(path))
+
+
+# ---------------------------------------------------------------------------------------------
+# Scan folder
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """A scan folder, read.
+
+    Attributes
+    ----------
+    projections : ndarray of shape (V, rows, cols), float32
+        Line integrals (``-log`` of the corrected intensities when the files hold intensities).
+    geometry : Geometry
+    nominal_angles_deg : ndarray of shape (V,), float64
+    true_angles_deg : ndarray of shape (V,), float64, or None
+    values : str
+        What the files hold: ``line_integrals`` or ``intensities``.
+    raw : ndarray of shape (V, rows, cols)
+        The projection files as stored (float32, uint16, ...).
+    flats, darks : ndarray of shape (F, rows, cols) or None
+        As stored.
+    provenance : dict
+    folder : Path
+    """
+
+    projections: np.ndarray
+    geometry: Geometry
+    nominal_angles_deg: np.ndarray
+    true_angles_deg: np.ndarray | None
+    values: str
+    raw: np.ndarray
+    flats: np.ndarray | None
+    darks: np.ndarray | None
+    provenance: dict
+    folder: Path
+
+
+def _angles(value: Any, path: str) -> np.ndarray:
+    spec = ParamSpec("", tuple[float, ...], None, "")
+    try:
+        return np.asarray(check_value(spec, value, path), dtype=np.float64)
+    except ConfigError:
+        raise ConfigError(f"{path}: must be a non-empty list of finite numbers (degrees), got "
+                          f"{value if not isinstance(value, list) else f'a list of {len(value)} items'!r}") from None
+
+
+def _file_names(value: Any, path: str, allowed: tuple[str, ...] = ("files", "count")) -> list[str]:
+    check_keys(value, path, allowed=allowed, required=("files",))
+    files = value["files"]
+    if isinstance(files, str):
+        if "{index" not in files:
+            raise ConfigError(f"{path}.files: a single name must be a pattern with {{index}}, e.g. "
+                              f"proj_{{index:05d}}.tif, got {files!r}")
+        if "count" not in value:
+            raise ConfigError(f"{path}.count: missing; a file pattern needs the number of files")
+        count = check_value(ParamSpec("count", int, None, "", ge=1), value["count"], f"{path}.count")
+        try:
+            return [files.format(index=i) for i in range(count)]
+        except (KeyError, IndexError, ValueError) as exc:
+            raise ConfigError(f"{path}.files: not a usable pattern ({exc}), got {files!r}") from None
+    if not isinstance(files, list) or not files or not all(isinstance(f, str) for f in files):
+        raise ConfigError(f"{path}.files: must be a pattern with {{index}} or a non-empty list of file names, "
+                          f"got {files!r}")
+    if "count" in value and value["count"] != len(files):
+        raise ConfigError(f"{path}.count: says {value['count']!r} but files lists {len(files)}")
+    return list(files)
+
+
+def _read_frames(folder: Path, names: list[str], shape: tuple[int, int], what: str) -> np.ndarray:
+    import tifffile
+
+    frames = None
+    for i, name in enumerate(names):
+        file = folder / name
+        if not file.is_file():
+            raise InputError(f"{file}: no such file ({what} {i} of {len(names)})")
+        try:
+            image = tifffile.imread(file)
+        except Exception as exc:  # tifffile raises several types for a damaged file
+            raise InputError(f"{file}: cannot be read as TIFF: {exc}") from None
+        if image.shape != shape:
+            raise InputError(f"{file}: must be a {shape[0]} x {shape[1]} image (rows x cols, from the geometry), "
+                             f"got shape {image.shape}")
+        if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
+            raise InputError(f"{file}: must hold real numbers, got {image.dtype}")
+        if frames is None:
+            frames = np.empty((len(names), *shape), image.dtype)
+        elif image.dtype != frames.dtype:
+            raise InputError(f"{file}: is {image.dtype} but the first {what} file is {frames.dtype}")
+        frames[i] = image
+    return frames
+
+
+def read_scan(folder: str | Path) -> Scan:
+    """Read a scan folder (see the module docstring).
+
+    Raises
+    ------
+    ConfigError
+        ``scan.yaml`` is malformed (the message names the YAML path).
+    InputError
+        Missing or unreadable files, shapes that disagree with the geometry, a count mismatch.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: not a folder")
+    source = folder / "scan.yaml"
+    if not source.is_file():
+        raise InputError(f"{folder}: not a scan folder (no scan.yaml)")
+    mapping = load_yaml(source)
+    path = str(source)
+    check_keys(mapping, path, allowed=("format", "geometry", "angles", "projections", "flats", "darks", "provenance",
+                                       "written_by", "written_utc"),
+               required=("format", "geometry", "angles", "projections"))
+    if mapping["format"] != SCAN_FORMAT:
+        raise ConfigError(f"{path}.format: must be {SCAN_FORMAT!r}, got {mapping['format']!r}")
+    geometry = parse_geometry(mapping["geometry"], f"{path}.geometry")
+    angles = check_keys(mapping["angles"], f"{path}.angles", allowed=("nominal_deg", "true_deg"),
+                        required=("nominal_deg",))
+    nominal = _angles(angles["nominal_deg"], f"{path}.angles.nominal_deg")
+    truth = None
+    if angles.get("true_deg") is not None:
+        truth = _angles(angles["true_deg"], f"{path}.angles.true_deg")
+        if len(truth) != len(nominal):
+            raise ConfigError(f"{path}.angles.true_deg: has {len(truth)} angles but nominal_deg has {len(nominal)}")
+    projections = mapping["projections"]
+    names = _file_names(projections, f"{path}.projections", allowed=("values", "files", "count"))
+    values = projections.get("values", "line_integrals")
+    if values not in VALUE_KINDS:
+        raise ConfigError(f"{path}.projections.values: must be one of {', '.join(VALUE_KINDS)}, got {values!r}")
+    if len(names) != len(nominal):
+        raise InputError(f"{path}: {len(names)} projection files but {len(nominal)} nominal angles; "
+                         f"there must be one angle for every projection")
+    frames = {}
+    for kind in ("flats", "darks"):
+        if mapping.get(kind) is not None:
+            frames[kind] = _read_frames(folder, _file_names(mapping[kind], f"{path}.{kind}"), geometry.shape, kind[:-1])
+    raw = _read_frames(folder, names, geometry.shape, "projection")
+    flats, darks = frames.get("flats"), frames.get("darks")
+    if values == "intensities":
+        if flats is None:
+            raise ConfigError(f"{path}.flats: missing; intensities need flat fields to be turned into line integrals")
+        line_integrals = log_transform(raw, flats, darks)
+    else:
+        line_integrals = raw.astype(np.float32, copy=False)
+    provenance = mapping.get("provenance") or {}
+    if not isinstance(provenance, Mapping):
+        raise ConfigError(f"{path}.provenance: must be a mapping, got {provenance!r}")
+    return Scan(line_integrals, geometry, nominal, truth, values, raw, flats, darks, dict(provenance), folder)
+
+
+def _check_stack(array, name: str, geometry: Geometry, count: int | None = None) -> np.ndarray:
+    array = np.asarray(array)
+    if array.ndim != 3 or array.shape[1:] != geometry.shape:
+        raise InputError(f"{name}: must have shape (frames, {geometry.detector_rows}, {geometry.detector_cols}) "
+                         f"to match the geometry, got {array.shape}")
+    if count is not None and len(array) != count:
+        raise InputError(f"{name}: there must be one angle for every projection; got {len(array)} projections "
+                         f"and {count} nominal angles")
+    if array.dtype == np.uint16 or array.dtype == np.float32:
+        return array
+    if np.issubdtype(array.dtype, np.floating):
+        return array.astype(np.float32)
+    raise InputError(f"{name}: must be float32 (or another float, stored as float32) or uint16, got {array.dtype}")
+
+
+def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angles_deg, true_angles_deg=None, *,
+               flats=None, darks=None, values: str = "line_integrals", provenance: Mapping | None = None,
+               overwrite: bool = False) -> Path:
+    """Write a scan folder atomically (see the module docstring).
+
+    Everything goes into a temporary sibling folder that is renamed into place at the end, so
+    a failure leaves neither a half-written ``folder`` nor the temporary one.
+
+    Parameters
+    ----------
+    folder : path
+        The scan folder; it must not exist or be empty, unless ``overwrite``.
+    projections : ndarray of shape (V, rows, cols), float32 or uint16
+        Other float dtypes are stored as float32.
+    geometry : Geometry
+    nominal_angles_deg, true_angles_deg : array of shape (V,), degrees
+        ``true_angles_deg`` may be None (unknown).
+    flats, darks : ndarray of shape (F, rows, cols), or None
+    values : {"line_integrals", "intensities"}
+        What ``projections`` holds; intensities need ``flats``.
+    provenance : mapping or None
+        Free-form, YAML-safe after numpy values become plain numbers.
+    overwrite : bool
+        Replace an existing non-empty ``folder``.
+
+    Returns
+    -------
+    Path of the folder.
+    """
+    import tifffile
+
+    import ctpipe
+
+    folder = Path(folder)
+    if values not in VALUE_KINDS:
+        raise InputError(f"values: must be one of {', '.join(VALUE_KINDS)}, got {values!r}")
+    if not isinstance(geometry, Geometry):
+        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
+    if nominal.ndim != 1 or not np.all(np.isfinite(nominal)):
+        raise InputError(f"nominal_angles_deg: must be a 1-D array of finite angles, got shape {nominal.shape}")
+    truth = None
+    if true_angles_deg is not None:
+        truth = np.asarray(true_angles_deg, dtype=np.float64)
+        if truth.shape != nominal.shape or not np.all(np.isfinite(truth)):
+            raise InputError(f"true_angles_deg: must be finite and have the shape of nominal_angles_deg "
+                             f"{nominal.shape}, got {truth.shape}")
+    projections = _check_stack(projections, "projections", geometry, len(nominal))
+    stacks = {"projections": projections}
+    for name, frames in (("flats", flats), ("darks", darks)):
+        if frames is not None:
+            stacks[name] = _check_stack(frames, name, geometry)
+    if values == "intensities" and flats is None:
+        raise InputError("flats: intensities need flat fields (values='intensities' without flats)")
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{folder}: exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise InputError(f"{folder}: exists and is not empty; choose another folder or overwrite")
+
+    document: dict[str, Any] = {"format": SCAN_FORMAT, "geometry": to_jsonable(geometry.to_dict()),
+                                "angles": {"nominal_deg": nominal.tolist(),
+                                           "true_deg": None if truth is None else truth.tolist()}}
+    for name, stack in stacks.items():
+        entry = {"files": _PATTERNS[name], "count": len(stack)}
+        document[name] = {"values": values, **entry} if name == "projections" else entry
+    document["provenance"] = to_jsonable(dict(provenance or {}))
+    document["written_by"] = f"ctpipe {ctpipe.__version__}"
+    document["written_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    try:
+        for name, stack in stacks.items():
+            for i, image in enumerate(stack):
+                file = tmp / _PATTERNS[name].format(index=i)
+                file.parent.mkdir(exist_ok=True)
+                tifffile.imwrite(file, image)
+        text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None, width=100)
+        (tmp / "scan.yaml").write_text(text, encoding="utf-8")
+        _swap_into_place(tmp, folder, overwrite)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+def _swap_into_place(tmp: Path, folder: Path, overwrite: bool) -> None:
+    if folder.is_dir() and not any(folder.iterdir()):
+        folder.rmdir()
+    if not folder.exists():
+        os.rename(tmp, folder)
+        return
+    if not overwrite:
+        raise InputError(f"{folder}: appeared while the scan was written; not overwriting it")
+    old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".old", dir=folder.parent))
+    old.rmdir()
+    os.rename(folder, old)
+    try:
+        os.rename(tmp, folder)
+    except BaseException:
+        os.rename(old, folder)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
