@@ -1,0 +1,542 @@
+"""Cone-beam forward projectors: exact line integrals through primitives, and a voxel projector.
+
+Geometry
+--------
+The frames of :mod:`ctpipe.geometry` and :mod:`ctpipe.volume`: an object point ``X`` is, in the
+view at turntable angle ``theta``, at ``X_cam = R(theta) X + (0, 0, SOD)`` with ``R`` of
+:func:`ctpipe.model.rotation_matrix`. The source is the camera origin, the detector the plane
+``z = SDD``, and the camera point ``(X, Y, Z)`` hits the pixel::
+
+    col = u0_px + (X / Z) * SDD / pixel_pitch_u_mm
+    row = v0_px + (Y / Z) * SDD / pixel_pitch_v_mm
+
+Pixel centres are at integer ``(col, row)``; the ray of a pixel runs from the source to its
+centre. In the object frame the source is ``S = -R^T (0, 0, SOD)`` and the ray direction of
+the camera vector ``d_cam = ((col - u0) pitch_u, (row - v0) pitch_v, SDD)`` is ``R^T d_cam``.
+
+Projections are float32 arrays ``(views, rows, cols)`` of line integrals: density (1/mm) times
+length (mm), integrated over the segment from the source to the detector.
+
+Voxel projector
+---------------
+Joseph's method: a ray is sampled on every voxel-centre plane across its dominant axis (the
+axis it advances fastest along) and the volume is interpolated bilinearly in the other two;
+each sample stands for the step length ``voxel * |d| / |d_dominant|``. The volume is copied into
+one zero-padded layout per dominant axis with that axis last (contiguous), so every ray reads
+four contiguous streams, and the zero pad makes the bilinear weights fade to zero past the grid
+without branches. :meth:`VoxelProjector.back` runs the same loops and scatters the same weights,
+so it is the exact transpose of :meth:`VoxelProjector.forward` (up to float32 rounding).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from ctpipe.errors import InputError
+from ctpipe.geometry import Geometry
+from ctpipe.primitives import Primitives, local_maps, unit_interval
+from ctpipe.volume import VolumeGrid
+
+__all__ = ["project_analytic", "VoxelProjector"]
+
+# Views per call of the analytic kernel: paces ``progress`` without starving the threads.
+_CHUNK_VIEWS = 16
+
+
+# --------------------------------------------------------------------------- validation
+
+def _check_geometry(geometry) -> Geometry:
+    if not isinstance(geometry, Geometry):
+        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    return geometry
+
+
+def _check_angles(angles_deg) -> np.ndarray:
+    angles = np.asarray(angles_deg)
+    if angles.ndim != 1 or angles.size == 0 or not np.issubdtype(angles.dtype, np.number) \
+            or np.iscomplexobj(angles):
+        raise InputError(f"angles_deg: must be a non-empty 1-D array of real numbers (degrees), got shape "
+                         f"{angles.shape} and dtype {angles.dtype}")
+    angles = angles.astype(np.float64)
+    if not np.all(np.isfinite(angles)):
+        raise InputError("angles_deg: must be finite, got NaN or infinite values")
+    return angles
+
+
+def _check_array(name: str, value, expected: tuple[int, ...], axes: str) -> np.ndarray:
+    array = np.asarray(value)
+    if not np.issubdtype(array.dtype, np.floating):
+        raise InputError(f"{name}: must be a float array, got dtype {array.dtype}")
+    if array.shape != expected:
+        raise InputError(f"{name}: must have shape {axes} = {expected}, got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise InputError(f"{name}: contains NaN or infinite values")
+    return np.ascontiguousarray(array, dtype=np.float32)
+
+
+def _check_int(name: str, value, low: int) -> int:
+    if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= low):
+        raise InputError(f"{name}: must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+# --------------------------------------------------------------------------- analytic projector
+
+@njit(parallel=True, fastmath=False, cache=True)
+def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density, sod, sdd, pu, pv, u0, v0, ss):
+    """Add the line integrals of every primitive to ``out`` (V, rows, cols), one view per thread.
+
+    corners : (N, 8, 3) object-frame corners of each primitive's oriented box; their perspective
+    images bound the pixels the primitive can cover (a convex set in front of the source maps
+    into the convex hull of its corners' images).
+    """
+    n_views, n_rows, n_cols = out.shape
+    n_prim = kind.shape[0]
+    inv_ss2 = 1.0 / (ss * ss)
+    for v in prange(n_views):
+        c = cos_t[v]
+        s = sin_t[v]
+        # Source S = -R^T (0, 0, SOD) in the object frame.
+        src0 = -s * sod
+        src2 = -c * sod
+        for n in range(n_prim):
+            col_lo = np.inf
+            col_hi = -np.inf
+            row_lo = np.inf
+            row_hi = -np.inf
+            behind = False
+            for k in range(8):
+                x = corners[n, k, 0]
+                y = corners[n, k, 1]
+                z = corners[n, k, 2]
+                depth = s * x + c * z + sod
+                if depth <= 1e-9 * sod:
+                    behind = True
+                    break
+                uu = u0 + (c * x - s * z) / depth * sdd / pu
+                vv = v0 + y / depth * sdd / pv
+                col_lo = min(col_lo, uu)
+                col_hi = max(col_hi, uu)
+                row_lo = min(row_lo, vv)
+                row_hi = max(row_hi, vv)
+            if behind:
+                c0, c1, r0, r1 = 0, n_cols - 1, 0, n_rows - 1
+            else:
+                # Sub-rays sit within half a pixel of the pixel centre.
+                c0 = int(math.floor(max(col_lo - 0.5, -1.0)))
+                c1 = int(math.ceil(min(col_hi + 0.5, float(n_cols))))
+                r0 = int(math.floor(max(row_lo - 0.5, -1.0)))
+                r1 = int(math.ceil(min(row_hi + 0.5, float(n_rows))))
+                c0 = max(c0, 0)
+                r0 = max(r0, 0)
+                c1 = min(c1, n_cols - 1)
+                r1 = min(r1, n_rows - 1)
+            if c0 > c1 or r0 > r1:
+                continue
+            m = maps[n]
+            # Unit-frame ray: a = M (S - centre), b = M R^T d_cam = A d_cam.
+            e0 = src0 - centre[n, 0]
+            e1 = -centre[n, 1]
+            e2 = src2 - centre[n, 2]
+            a0 = m[0, 0] * e0 + m[0, 1] * e1 + m[0, 2] * e2
+            a1 = m[1, 0] * e0 + m[1, 1] * e1 + m[1, 2] * e2
+            a2 = m[2, 0] * e0 + m[2, 1] * e1 + m[2, 2] * e2
+            # A = M R^T with R^T = [[c, 0, s], [0, 1, 0], [-s, 0, c]].
+            ax0 = m[0, 0] * c - m[0, 2] * s
+            ax1 = m[1, 0] * c - m[1, 2] * s
+            ax2 = m[2, 0] * c - m[2, 2] * s
+            ay0 = m[0, 1]
+            ay1 = m[1, 1]
+            ay2 = m[2, 1]
+            az0 = (m[0, 0] * s + m[0, 2] * c) * sdd
+            az1 = (m[1, 0] * s + m[1, 2] * c) * sdd
+            az2 = (m[2, 0] * s + m[2, 2] * c) * sdd
+            k_n = kind[n]
+            rho = density[n] * inv_ss2
+            for r in range(r0, r1 + 1):
+                for col in range(c0, c1 + 1):
+                    total = 0.0
+                    for jv in range(ss):
+                        dy = (r + (jv + 0.5) / ss - 0.5 - v0) * pv
+                        for ju in range(ss):
+                            dx = (col + (ju + 0.5) / ss - 0.5 - u0) * pu
+                            b0 = ax0 * dx + ay0 * dy + az0
+                            b1 = ax1 * dx + ay1 * dy + az1
+                            b2 = ax2 * dx + ay2 * dy + az2
+                            t_in, t_out = unit_interval(k_n, a0, a1, a2, b0, b1, b2)
+                            # Only the segment from the source (t = 0) to the detector (t = 1).
+                            t_in = max(t_in, 0.0)
+                            t_out = min(t_out, 1.0)
+                            if t_out > t_in:
+                                total += (t_out - t_in) * math.sqrt(dx * dx + dy * dy + sdd * sdd)
+                    if total != 0.0:
+                        out[v, r, col] += np.float32(rho * total)
+
+
+def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, supersample: int = 1,
+                     blur_px: float = 0.0, progress: Callable[[int], object] | None = None) -> np.ndarray:
+    """Exact line integrals through analytic primitives.
+
+    Every pixel integrates the ray from the source to its centre (or the mean of
+    ``supersample x supersample`` sub-rays spread evenly over the pixel) through each primitive in
+    closed form: the ray is mapped into the primitive's unit frame, where the chord is the
+    parameter gap ``t_out - t_in`` times the ray length. A primitive only visits the pixels inside
+    the perspective image of its oriented bounding box, so the cost is the pixels it covers.
+
+    Parameters
+    ----------
+    primitives : Primitives
+        Shapes in the object frame, densities in 1/mm (overlaps add).
+    geometry : Geometry
+    angles_deg : array_like of shape (V,)
+        Turntable angle of every view, degrees.
+    supersample : int
+        Sub-rays per pixel edge (>= 1); 1 is the ray through the pixel centre.
+    blur_px : float
+        Standard deviation in pixels of a Gaussian detector blur applied to every view
+        (``scipy.ndimage.gaussian_filter``, reflecting edges); 0 for none.
+    progress : callable, optional
+        Called with the number of views finished so far, after every chunk of views.
+
+    Returns
+    -------
+    ndarray of shape (V, detector_rows, detector_cols), float32
+        Line integrals (dimensionless: 1/mm times mm).
+    """
+    if not isinstance(primitives, Primitives):
+        raise InputError(f"primitives: must be a ctpipe.primitives.Primitives, got {type(primitives).__name__}")
+    geometry = _check_geometry(geometry)
+    angles = _check_angles(angles_deg)
+    supersample = _check_int("supersample", supersample, 1)
+    if not (isinstance(blur_px, (int, float, np.floating, np.integer)) and not isinstance(blur_px, bool)
+            and math.isfinite(blur_px) and blur_px >= 0):
+        raise InputError(f"blur_px: must be a finite number >= 0 (pixels, 0 = no blur), got {blur_px!r}")
+    if progress is not None and not callable(progress):
+        raise InputError(f"progress: must be a callable taking a number of views, or None, got {progress!r}")
+
+    out = np.zeros((angles.size, geometry.detector_rows, geometry.detector_cols), dtype=np.float32)
+    theta = np.deg2rad(angles)
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    # corner = centre + rotation @ (sign * half_size), shape (N, 8, 3).
+    corners = primitives.centre_mm[:, None, :] + np.einsum(
+        "nij,nkj->nki", primitives.rotation, signs[None, :, :] * primitives.half_size_mm[:, None, :])
+    args = (primitives.kind, primitives.centre_mm, local_maps(primitives), np.ascontiguousarray(corners),
+            primitives.density_per_mm, float(geometry.source_to_object_mm), float(geometry.source_to_detector_mm),
+            float(geometry.pixel_pitch_u_mm), float(geometry.pixel_pitch_v_mm), float(geometry.u0_px),
+            float(geometry.v0_px), supersample)
+    for start in range(0, angles.size, _CHUNK_VIEWS):
+        stop = min(start + _CHUNK_VIEWS, angles.size)
+        if len(primitives):
+            _project_primitives(out[start:stop], np.cos(theta[start:stop]), np.sin(theta[start:stop]), *args)
+        if blur_px > 0:
+            from scipy.ndimage import gaussian_filter
+
+            for k in range(start, stop):
+                out[k] = gaussian_filter(out[k], sigma=float(blur_px))
+        if progress is not None:
+            progress(stop)
+    return out
+
+
+# --------------------------------------------------------------------------- voxel projector
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _to_layouts(volume, vol_x, vol_z, vol_y, with_y):
+    """Copy ``volume[iy, iz, ix]`` into the padded stepping layouts.
+
+    vol_x : (n_y + 2, n_z + 2, n_x)  rays stepping along x, bilinear in (y, z)
+    vol_z : (n_y + 2, n_x + 2, n_z)  rays stepping along z, bilinear in (y, x)
+    vol_y : (n_z + 2, n_x + 2, n_y)  rays stepping along y, bilinear in (z, x); only if with_y
+    The pads must already be zero.
+    """
+    n_y, n_z, n_x = volume.shape
+    for iy in prange(n_y):
+        for iz in range(n_z):
+            for ix in range(n_x):
+                value = volume[iy, iz, ix]
+                vol_x[iy + 1, iz + 1, ix] = value
+                vol_z[iy + 1, ix + 1, iz] = value
+    if with_y:
+        for iz in prange(n_z):
+            for ix in range(n_x):
+                for iy in range(n_y):
+                    vol_y[iz + 1, ix + 1, iy] = volume[iy, iz, ix]
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _from_layouts(out, buf_x, buf_z, buf_y, with_y):
+    """``out[iy, iz, ix]`` = sum over buffers of the interior of every layout (the adjoint of
+    :func:`_to_layouts`, summed over the per-thread buffers)."""
+    n_y, n_z, n_x = out.shape
+    n_buf = buf_x.shape[0]
+    for iy in prange(n_y):
+        for iz in range(n_z):
+            for ix in range(n_x):
+                acc = np.float32(0.0)
+                for b in range(n_buf):
+                    acc += buf_x[b, iy + 1, iz + 1, ix] + buf_z[b, iy + 1, ix + 1, iz]
+                    if with_y:
+                        acc += buf_y[b, iz + 1, ix + 1, iy]
+                out[iy, iz, ix] = acc
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _range_within(k_lo, k_hi, f0, f1, upper):
+    """Narrow ``[k_lo, k_hi]`` to the ``k`` with ``0 <= f0 + k f1 <= upper``."""
+    if f1 == 0.0:
+        if f0 < 0.0 or f0 > upper:
+            return 1.0, 0.0
+        return k_lo, k_hi
+    k_a = -f0 / f1
+    k_b = (upper - f0) / f1
+    return max(k_lo, min(k_a, k_b)), min(k_hi, max(k_a, k_b))
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _ray_setup(s_a, s_p, s_q, d_a, d_p, d_q, n_a, n_p, n_q, norm, voxel):
+    """Joseph stepping of the ray ``index(t) = s + t d`` (voxel-index units, unpadded) along axis a.
+
+    Returns the integer plane range ``[k0, k1)``, the padded positions ``p = p0 + k dp`` and
+    ``q = q0 + k dq`` on plane ``k``, and the step length in mm.
+    """
+    dp = d_p / d_a
+    dq = d_q / d_a
+    p0 = s_p - s_a * dp + 1.0
+    q0 = s_q - s_a * dq + 1.0
+    # Planes between the source (t = 0) and the detector (t = 1), inside the grid.
+    k_lo = min(s_a, s_a + d_a)
+    k_hi = max(s_a, s_a + d_a)
+    k_lo = max(k_lo, 0.0)
+    k_hi = min(k_hi, n_a - 1.0)
+    # Padded positions in [0, n + 1]: outside that both bilinear neighbours are zero.
+    k_lo, k_hi = _range_within(k_lo, k_hi, p0, dp, n_p + 1.0)
+    k_lo, k_hi = _range_within(k_lo, k_hi, q0, dq, n_q + 1.0)
+    k0 = int(math.ceil(k_lo)) if k_lo <= k_hi else 0
+    k1 = int(math.floor(k_hi)) + 1 if k_lo <= k_hi else 0
+    # d_a is in voxels, so |d| (mm) / |d_a| is the mm advanced per plane.
+    step = norm / abs(d_a)
+    return k0, k1, p0, dp, q0, dq, step
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _ray_sum(vol, k0, k1, p0, dp, q0, dq, n_p, n_q):
+    acc = np.float32(0.0)
+    for k in range(k0, k1):
+        p = p0 + k * dp
+        q = q0 + k * dq
+        ip = min(max(int(p), 0), n_p)
+        iq = min(max(int(q), 0), n_q)
+        fp = np.float32(p - ip)
+        fq = np.float32(q - iq)
+        v00 = vol[ip, iq, k]
+        v01 = vol[ip, iq + 1, k]
+        v10 = vol[ip + 1, iq, k]
+        v11 = vol[ip + 1, iq + 1, k]
+        lo = v00 + fq * (v01 - v00)
+        hi = v10 + fq * (v11 - v10)
+        acc += lo + fp * (hi - lo)
+    return acc
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _ray_scatter(vol, value, k0, k1, p0, dp, q0, dq, n_p, n_q):
+    for k in range(k0, k1):
+        p = p0 + k * dp
+        q = q0 + k * dq
+        ip = min(max(int(p), 0), n_p)
+        iq = min(max(int(q), 0), n_q)
+        fp = np.float32(p - ip)
+        fq = np.float32(q - iq)
+        w_hi = value * fp
+        w_lo = value - w_hi
+        vol[ip, iq, k] += w_lo - w_lo * fq
+        vol[ip, iq + 1, k] += w_lo * fq
+        vol[ip + 1, iq, k] += w_hi - w_hi * fq
+        vol[ip + 1, iq + 1, k] += w_hi * fq
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel, row, col):
+    """Source and direction of a pixel's ray in voxel-index units (unpadded), and ``|d|`` in mm."""
+    dxc = (col - u0) * pu
+    dyc = (row - v0) * pv
+    d_x = c * dxc + s * sdd
+    d_y = dyc
+    d_z = -s * dxc + c * sdd
+    norm = math.sqrt(dxc * dxc + dyc * dyc + sdd * sdd)
+    inv = 1.0 / voxel
+    s_x = (-s * sod - origin[0]) * inv
+    s_y = (0.0 - origin[1]) * inv
+    s_z = (-c * sod - origin[2]) * inv
+    return s_x, s_y, s_z, d_x * inv, d_y * inv, d_z * inv, norm
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _forward(out, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y, n_z):
+    """Joseph line integrals of every pixel of every view into ``out`` (V, rows, cols); a view per thread."""
+    n_views, n_rows, n_cols = out.shape
+    for v in prange(n_views):
+        c = cos_t[v]
+        s = sin_t[v]
+        for row in range(n_rows):
+            for col in range(n_cols):
+                s_x, s_y, s_z, d_x, d_y, d_z, norm = _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel,
+                                                               row, col)
+                ax, ay, az = abs(d_x), abs(d_y), abs(d_z)
+                if ax >= az and ax >= ay:
+                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_x, s_y, s_z, d_x, d_y, d_z, n_x, n_y, n_z, norm,
+                                                              voxel)
+                    total = _ray_sum(vol_x, k0, k1, p0, dp, q0, dq, n_y, n_z)
+                elif az >= ay:
+                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_z, s_y, s_x, d_z, d_y, d_x, n_z, n_y, n_x, norm,
+                                                              voxel)
+                    total = _ray_sum(vol_z, k0, k1, p0, dp, q0, dq, n_y, n_x)
+                else:
+                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_y, s_z, s_x, d_y, d_z, d_x, n_y, n_z, n_x, norm,
+                                                              voxel)
+                    total = _ray_sum(vol_y, k0, k1, p0, dp, q0, dq, n_z, n_x)
+                out[v, row, col] = total * np.float32(step)
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _back(buf_x, buf_z, buf_y, proj, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y, n_z):
+    """Scatter every view with the weights of :func:`_forward`; buffer ``b`` takes views b, b + B, ..."""
+    n_views, n_rows, n_cols = proj.shape
+    n_buf = buf_x.shape[0]
+    for b in prange(n_buf):
+        bx = buf_x[b]
+        bz = buf_z[b]
+        by = buf_y[b]
+        for v in range(b, n_views, n_buf):
+            c = cos_t[v]
+            s = sin_t[v]
+            for row in range(n_rows):
+                for col in range(n_cols):
+                    value = proj[v, row, col]
+                    if value == 0.0:
+                        continue
+                    s_x, s_y, s_z, d_x, d_y, d_z, norm = _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel,
+                                                                   row, col)
+                    ax, ay, az = abs(d_x), abs(d_y), abs(d_z)
+                    if ax >= az and ax >= ay:
+                        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_x, s_y, s_z, d_x, d_y, d_z, n_x, n_y, n_z,
+                                                                  norm, voxel)
+                        _ray_scatter(bx, value * np.float32(step), k0, k1, p0, dp, q0, dq, n_y, n_z)
+                    elif az >= ay:
+                        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_z, s_y, s_x, d_z, d_y, d_x, n_z, n_y, n_x,
+                                                                  norm, voxel)
+                        _ray_scatter(bz, value * np.float32(step), k0, k1, p0, dp, q0, dq, n_y, n_x)
+                    else:
+                        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_y, s_z, s_x, d_y, d_z, d_x, n_y, n_z, n_x,
+                                                                  norm, voxel)
+                        _ray_scatter(by, value * np.float32(step), k0, k1, p0, dp, q0, dq, n_z, n_x)
+
+
+class VoxelProjector:
+    """Ray-driven Joseph projector of a voxel volume and its exact adjoint.
+
+    Parameters
+    ----------
+    geometry : Geometry
+        Detector and distances.
+    grid : VolumeGrid
+        Where the voxels of the volumes sit in the object frame.
+
+    Notes
+    -----
+    ``forward`` computes ``A x`` and ``back`` computes ``A^T y`` for the same matrix ``A``
+    (``<A x, y> = <x, A^T y>`` up to float32 rounding), which is what iterative reconstruction
+    needs; ``back`` is not a filtered backprojection (see :func:`ctpipe.fdk.fdk`). The forward
+    projection runs a view per thread; the back projection scatters into one volume buffer per
+    thread (memory: threads x 2 padded volumes).
+    """
+
+    def __init__(self, geometry: Geometry, grid: VolumeGrid) -> None:
+        self._geometry = _check_geometry(geometry)
+        if not isinstance(grid, VolumeGrid):
+            raise InputError(f"grid: must be a ctpipe.volume.VolumeGrid, got {type(grid).__name__}")
+        self._grid = grid
+        g = geometry
+        # A ray can advance fastest along y (the rotation axis) only when |dy| > max(|dx|, |dz|),
+        # which needs |dy| > SDD / sqrt(2); narrower cones never need the y layout.
+        reach_v = max(abs(g.v0_px), abs(g.detector_rows - 1 - g.v0_px)) * g.pixel_pitch_v_mm
+        self._with_y = reach_v * math.sqrt(2.0) >= g.source_to_detector_mm
+
+    @property
+    def geometry(self) -> Geometry:
+        return self._geometry
+
+    @property
+    def grid(self) -> VolumeGrid:
+        return self._grid
+
+    def _common(self, angles_deg):
+        g, grid = self._geometry, self._grid
+        theta = np.deg2rad(_check_angles(angles_deg))
+        return (np.cos(theta), np.sin(theta), float(g.source_to_object_mm), float(g.source_to_detector_mm),
+                float(g.pixel_pitch_u_mm), float(g.pixel_pitch_v_mm), float(g.u0_px), float(g.v0_px),
+                np.asarray(grid.origin_mm, dtype=np.float64), float(grid.voxel_size_mm), grid.n_x, grid.n_y, grid.n_z)
+
+    def _layout_shapes(self, n_buf: int):
+        n_y, n_z, n_x = self._grid.shape
+        y_shape = (n_buf, n_z + 2, n_x + 2, n_y) if self._with_y else (n_buf, 1, 1, 1)
+        return (n_buf, n_y + 2, n_z + 2, n_x), (n_buf, n_y + 2, n_x + 2, n_z), y_shape
+
+    def forward(self, volume: np.ndarray, angles_deg) -> np.ndarray:
+        """Line integrals of ``volume`` in the views at ``angles_deg``.
+
+        Parameters
+        ----------
+        volume : ndarray of shape grid.shape = (n_y, n_z, n_x), float
+            Density in 1/mm, indexed ``volume[iy, iz, ix]``.
+        angles_deg : array_like of shape (V,)
+            Turntable angles, degrees.
+
+        Returns
+        -------
+        ndarray of shape (V, detector_rows, detector_cols), float32
+            Line integrals (1/mm times mm).
+        """
+        volume = _check_array("volume", volume, self._grid.shape, "grid.shape (n_y, n_z, n_x)")
+        common = self._common(angles_deg)
+        shape_x, shape_z, shape_y = self._layout_shapes(1)
+        vol_x = np.zeros(shape_x[1:], dtype=np.float32)
+        vol_z = np.zeros(shape_z[1:], dtype=np.float32)
+        vol_y = np.zeros(shape_y[1:], dtype=np.float32)
+        _to_layouts(volume, vol_x, vol_z, vol_y, self._with_y)
+        out = np.empty((common[0].size, *self._geometry.shape), dtype=np.float32)
+        _forward(out, vol_x, vol_z, vol_y, *common)
+        return out
+
+    def back(self, projections: np.ndarray, angles_deg) -> np.ndarray:
+        """The adjoint of :meth:`forward`: scatter every line integral back along its ray.
+
+        Parameters
+        ----------
+        projections : ndarray of shape (V, detector_rows, detector_cols), float
+        angles_deg : array_like of shape (V,)
+            Turntable angles, degrees.
+
+        Returns
+        -------
+        ndarray of shape grid.shape = (n_y, n_z, n_x), float32
+            ``A^T projections``, in mm times the projection unit.
+        """
+        common = self._common(angles_deg)
+        expected = (common[0].size, *self._geometry.shape)
+        projections = _check_array("projections", projections, expected,
+                                   "(len(angles_deg), detector_rows, detector_cols)")
+        n_buf = max(1, min(numba.get_num_threads(), expected[0]))
+        shape_x, shape_z, shape_y = self._layout_shapes(n_buf)
+        buf_x = np.zeros(shape_x, dtype=np.float32)
+        buf_z = np.zeros(shape_z, dtype=np.float32)
+        buf_y = np.zeros(shape_y, dtype=np.float32)
+        _back(buf_x, buf_z, buf_y, projections, *common)
+        out = np.empty(self._grid.shape, dtype=np.float32)
+        _from_layouts(out, buf_x, buf_z, buf_y, self._with_y)
+        return out
