@@ -10,7 +10,7 @@ import numpy as np
 
 import cv2
 
-__all__ = ["detect_and_compute", "knn_match", "essential_pose", "version"]
+__all__ = ["available_detectors", "detect_and_compute", "knn_match", "essential_pose", "version"]
 
 _NORMS = {cv2.NORM_L2: "L2", cv2.NORM_L1: "L1", cv2.NORM_HAMMING: "HAMMING", cv2.NORM_HAMMING2: "HAMMING2"}
 _NORM_CODES = {name: code for code, name in _NORMS.items()}
@@ -20,33 +20,60 @@ _AKAZE_DESCRIPTOR = {"kaze": 3, "kaze_upright": 2, "mldb": 5, "mldb_upright": 4}
 _ORB_SCORE = {"harris": 0, "fast": 1}
 
 
+_FACTORIES = {"sift": "SIFT_create", "orb": "ORB_create", "akaze": "AKAZE_create", "brisk": "BRISK_create",
+              "kaze": "KAZE_create"}
+
+
 def version() -> str:
     return cv2.__version__
 
 
+def _factory(kind: str):
+    """The ``*_create`` function for ``kind`` wherever this build keeps it, or None.
+
+    OpenCV 4 has AKAZE, BRISK and KAZE in ``cv2``, OpenCV 5 contrib in ``cv2.xfeatures2d``, and a
+    plain (non-contrib) OpenCV 5 wheel installed over the contrib one has them in neither.
+    """
+    name = _FACTORIES[kind]
+    for module in (getattr(cv2, "xfeatures2d", None), cv2):
+        factory = getattr(module, name, None)
+        if factory is not None:
+            return factory
+    return None
+
+
+def available_detectors() -> list[str]:
+    """The OpenCV detectors this cv2 build can create."""
+    return [kind for kind in _FACTORIES if _factory(kind) is not None]
+
+
 def _create(kind: str, p: dict):
+    if kind not in _FACTORIES:
+        raise ValueError(f"unknown OpenCV detector {kind!r}; known: {', '.join(_FACTORIES)}")
+    create = _factory(kind)
+    if create is None:
+        raise RuntimeError(f"this OpenCV build ({cv2.__version__}) has no {_FACTORIES[kind]}; "
+                           "install opencv-contrib-python-headless and not opencv-python beside it")
     if kind == "sift":
-        return cv2.SIFT_create(nfeatures=p["n_features"], nOctaveLayers=p["n_octave_layers"],
-                               contrastThreshold=p["contrast_threshold"], edgeThreshold=p["edge_threshold"],
-                               sigma=p["sigma"])
+        return create(nfeatures=p["n_features"], nOctaveLayers=p["n_octave_layers"],
+                      contrastThreshold=p["contrast_threshold"], edgeThreshold=p["edge_threshold"], sigma=p["sigma"])
     if kind == "orb":
-        return cv2.ORB_create(nfeatures=p["n_features"], scaleFactor=p["scale_factor"], nlevels=p["n_levels"],
-                              edgeThreshold=p["edge_threshold"], firstLevel=p["first_level"], WTA_K=p["wta_k"],
-                              scoreType=_ORB_SCORE[p["score_type"]], patchSize=p["patch_size"],
-                              fastThreshold=p["fast_threshold"])
+        return create(nfeatures=p["n_features"], scaleFactor=p["scale_factor"], nlevels=p["n_levels"],
+                      edgeThreshold=p["edge_threshold"], firstLevel=p["first_level"], WTA_K=p["wta_k"],
+                      scoreType=_ORB_SCORE[p["score_type"]], patchSize=p["patch_size"],
+                      fastThreshold=p["fast_threshold"])
     if kind == "akaze":
-        return cv2.xfeatures2d.AKAZE_create(descriptor_type=_AKAZE_DESCRIPTOR[p["descriptor_type"]],
-                                            descriptor_size=p["descriptor_size"],
-                                            descriptor_channels=p["descriptor_channels"], threshold=p["threshold"],
-                                            nOctaves=p["n_octaves"], nOctaveLayers=p["n_octave_layers"],
-                                            diffusivity=_DIFFUSIVITY[p["diffusivity"]])
+        return create(descriptor_type=_AKAZE_DESCRIPTOR[p["descriptor_type"]], descriptor_size=p["descriptor_size"],
+                      descriptor_channels=p["descriptor_channels"], threshold=p["threshold"],
+                      nOctaves=p["n_octaves"], nOctaveLayers=p["n_octave_layers"],
+                      diffusivity=_DIFFUSIVITY[p["diffusivity"]])
     if kind == "brisk":
-        return cv2.xfeatures2d.BRISK_create(thresh=p["thresh"], octaves=p["octaves"], patternScale=p["pattern_scale"])
+        return create(thresh=p["thresh"], octaves=p["octaves"], patternScale=p["pattern_scale"])
     if kind == "kaze":
-        return cv2.xfeatures2d.KAZE_create(extended=p["extended"], upright=p["upright"], threshold=p["threshold"],
-                                           nOctaves=p["n_octaves"], nOctaveLayers=p["n_octave_layers"],
-                                           diffusivity=_DIFFUSIVITY[p["diffusivity"]])
-    raise ValueError(f"unknown OpenCV detector {kind!r}")
+        return create(extended=p["extended"], upright=p["upright"], threshold=p["threshold"],
+                      nOctaves=p["n_octaves"], nOctaveLayers=p["n_octave_layers"],
+                      diffusivity=_DIFFUSIVITY[p["diffusivity"]])
+    raise AssertionError(kind)
 
 
 def detect_and_compute(kind: str, params: dict, image_u8: np.ndarray) -> dict:

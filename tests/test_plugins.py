@@ -94,3 +94,16 @@ def test_stage_parameters_are_validated_on_construction():
 
     with pytest.raises(ConfigError, match=r"Ransac1ptEstimator.sampson_threshold: must be a number > 0, got -1"):
         Ransac1ptEstimator(sampson_threshold=-1)
+
+
+def test_opencv_detectors_missing_from_the_cv2_build_are_not_registered(monkeypatch):
+    # A plain opencv-python wheel installed over the contrib one has no KAZE/AKAZE/BRISK factories.
+    from ctpipe import _opencv
+
+    real = _opencv._factory
+    monkeypatch.setattr(_opencv, "_factory", lambda kind: None if kind == "kaze" else real(kind))
+    detectors = {info.name for info in get_registry() if info.kind == "detector"}
+    assert "kaze" not in detectors
+    assert {"sift", "orb"} <= detectors
+    with pytest.raises(RuntimeError, match="KAZE_create"):
+        _opencv._create("kaze", {})

@@ -95,8 +95,9 @@ class KazeDetector(_OpenCVDetector):
 
 @hookimpl
 def ctpipe_register_stages(registry) -> None:
-    registry.add_detector("sift", SiftDetector)
-    registry.add_detector("orb", OrbDetector)
-    registry.add_detector("akaze", AkazeDetector)
-    registry.add_detector("brisk", BriskDetector)
-    registry.add_detector("kaze", KazeDetector)
+    # Only what this cv2 build can create: a plain opencv-python wheel installed over the contrib
+    # one (mbirjax pulls it in) drops AKAZE, BRISK and KAZE, and a stage that cannot run is not offered.
+    available = set(_opencv.available_detectors())
+    for cls in (SiftDetector, OrbDetector, AkazeDetector, BriskDetector, KazeDetector):
+        if cls._opencv_name in available:
+            registry.add_detector(cls._opencv_name, cls)
