@@ -114,6 +114,20 @@ def _full_scan_step(theta_sorted: np.ndarray) -> float:
     return float(np.median(gaps)) if gaps.size else 2.0 * np.pi
 
 
+def _covers_full_circle(angles_rad: np.ndarray) -> bool:
+    """True when the views go all the way round: no circular gap wider than a few typical steps.
+
+    The span ``max - min`` alone misleads on real and jittered scans: a full turn whose stage
+    lost 2 deg to backlash spans 358 deg, yet leaves no wedge out, and Parker-weighting it as a
+    short scan would throw away most of its data.
+    """
+    wrapped = np.sort(np.mod(np.asarray(angles_rad, dtype=np.float64), 2.0 * np.pi))
+    if wrapped.size < 3:
+        return False
+    gaps = np.diff(np.concatenate([wrapped, [wrapped[0] + 2.0 * np.pi]]))
+    return float(gaps.max()) <= max(5.0 * float(np.median(gaps)), 1e-12)
+
+
 def view_weights(angles_rad: np.ndarray, *, full_scan: bool) -> np.ndarray:
     """Angular interval each view stands for, radians, shape (V,).
 
@@ -214,7 +228,7 @@ def _scan_weights(angles_rad: np.ndarray, geometry: Geometry, short_scan: bool |
     order = np.sort(angles_rad)
     span = float(order[-1] - order[0])
     step = _full_scan_step(order)
-    is_full = span >= 2.0 * np.pi - 1.5 * step
+    is_full = _covers_full_circle(angles_rad)
     use_parker = (not is_full) if short_scan is None else bool(short_scan)
     if not use_parker:
         intervals = view_weights(angles_rad, full_scan=True)
