@@ -32,10 +32,11 @@ def _factory(kind: str):
     """The ``*_create`` function for ``kind`` wherever this build keeps it, or None.
 
     OpenCV 4 has AKAZE, BRISK and KAZE in ``cv2``, OpenCV 5 contrib in ``cv2.xfeatures2d``, and a
-    plain (non-contrib) OpenCV 5 wheel installed over the contrib one has them in neither.
+    plain (non-contrib) OpenCV 5 wheel installed over the contrib one has them in neither. The main
+    namespace comes first: OpenCV 5 keeps a deprecated ``xfeatures2d.SIFT_create`` shim that warns.
     """
     name = _FACTORIES[kind]
-    for module in (getattr(cv2, "xfeatures2d", None), cv2):
+    for module in (cv2, getattr(cv2, "xfeatures2d", None)):
         factory = getattr(module, name, None)
         if factory is not None:
             return factory
