@@ -1,4 +1,4 @@
-"""Command line: ``ctpipe plugins | estimate | experiment synthetic``.
+"""Command line: ``ctpipe plugins | estimate | simulate | validate | experiment synthetic``.
 
 Errors caused by the user's input print one line ``ctpipe: error: ...`` on stderr and exit
 with status 2; nothing half-written is left behind.
@@ -7,13 +7,14 @@ with status 2; nothing half-written is left behind.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from ctpipe.errors import CtpipeError
+from ctpipe.errors import CtpipeError, InputError
 
 __all__ = ["main"]
 
@@ -50,19 +51,41 @@ def _cmd_estimate(args) -> int:
     from ctpipe.pipeline import Pipeline
 
     registry = _registry(args)
-    geometry_yaml = load_yaml(args.geometry)
-    if isinstance(geometry_yaml, dict) and set(geometry_yaml) == {"geometry"}:
-        geometry_yaml = geometry_yaml["geometry"]
-    geometry = parse_geometry(geometry_yaml)
     config = parse_pipeline(load_yaml(args.pipeline) if args.pipeline else None, registry)
-    projections = read_projections(args.projections)
+    source = Path(args.projections)
+    truth = None
+    if source.is_dir():
+        from ctpipe.scan import read_scan
+
+        scan = read_scan(source)
+        projections, geometry, truth = scan.projections, scan.geometry, scan.true_angles_deg
+        if args.geometry:
+            raise InputError(f"{source} is a scan folder with its own geometry in scan.yaml; drop --geometry")
+    else:
+        if not args.geometry:
+            raise InputError(f"{source}: a projection file needs --geometry GEOMETRY.yaml (or give a scan folder)")
+        geometry_yaml = load_yaml(args.geometry)
+        if isinstance(geometry_yaml, dict) and set(geometry_yaml) == {"geometry"}:
+            geometry_yaml = geometry_yaml["geometry"]
+        geometry = parse_geometry(geometry_yaml)
+        projections = read_projections(source)
     pipeline = Pipeline.from_config(config, registry=registry)
-    result = pipeline.run(projections, geometry)
+    with _progress(len(projections), "views", quiet=args.json) as advance:
+        result = pipeline.run(projections, geometry, progress=advance)
     report = {"pipeline": config.to_dict(), "geometry": geometry.to_dict(), **result.to_dict()}
+    header, columns = ["view", "angle_deg", "n_keypoints"], [result.angles_deg, result.n_keypoints]
+    if truth is not None:
+        from ctpipe.scoring import error_table, pair_errors_deg, view_errors_deg
+
+        errors = view_errors_deg(result.angles_deg, truth)
+        report["angle_errors"] = {
+            "views": error_table(errors),
+            "pairs": error_table(pair_errors_deg(result.pairs, result.pair_angles_deg, truth)),
+        }
+        header, columns = header + ["true_deg", "error_deg"], columns + [truth - truth[0], errors]
     if args.out:
         out = Path(args.out)
-        write_csv(out / "angles.csv", ["view", "angle_deg", "n_keypoints"],
-                  [[v, a, n] for v, (a, n) in enumerate(zip(result.angles_deg, result.n_keypoints))])
+        write_csv(out / "angles.csv", header, [[v, *row] for v, row in enumerate(zip(*columns))])
         write_json(out / "result.json", report)
     if args.json:
         print(json.dumps(to_jsonable(report), indent=2))
@@ -72,8 +95,57 @@ def _cmd_estimate(args) -> int:
               f"median {np.median(result.n_inliers):.0f} inliers of {np.median(result.n_matches):.0f} matches")
         for view, angle in enumerate(result.angles_deg):
             print(f"view {view:5d}  {angle:12.5f} deg")
+        if truth is not None:
+            table = report["angle_errors"]["views"]
+            print(f"against the true angles in scan.yaml: MAE {table['mae_deg']:.4f} deg, "
+                  f"max {table['max_deg']:.4f} deg ({table['estimated']}/{table['total']} views)")
         if failed:
             print(f"warning: {len(failed)} pairs failed, e.g. {failed[0]}", file=sys.stderr)
+    return 0
+
+
+def _cmd_simulate(args) -> int:
+    from ctpipe.phantoms import load_phantom
+    from ctpipe.scan import load_scan_spec
+    from ctpipe.simulate import simulate, write_simulated_scan
+
+    phantom = load_phantom(args.phantom)
+    spec = load_scan_spec(args.scan)
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.overwrite:
+        raise InputError(f"{out}: exists and is not empty; choose another --out or pass --overwrite")
+    seed = spec.seed if args.seed is None else args.seed
+    with _progress(spec.n_views, "views", quiet=False) as advance:
+        scan = simulate(phantom, spec, rng=np.random.default_rng(seed), progress=advance)
+    write_simulated_scan(out, scan, phantom=phantom, spec=spec, seed=seed, overwrite=args.overwrite)
+    offsets = scan.true_angles_deg - scan.nominal_angles_deg
+    print(f"{spec.n_views} views of {spec.geometry.detector_rows} x {spec.geometry.detector_cols} written to {out}; "
+          f"jitter: RMS {np.sqrt(np.mean(offsets**2)):.4f} deg, max |{np.max(np.abs(offsets)):.4f}| deg")
+    return 0
+
+
+def _cmd_validate(args) -> int:
+    from ctpipe.io import to_jsonable
+    from ctpipe.validate import load_validate_settings, run_validate, write_validate_outputs
+
+    registry = _registry(args)
+    settings = load_validate_settings(args.experiment, registry)
+    if args.seed is not None:
+        settings = dataclasses.replace(settings, seed=args.seed)
+
+    def progress(step: str, total: int):
+        return _progress(total, "views", quiet=args.json, description=step)
+
+    report = run_validate(settings, registry, progress=progress)
+    written = write_validate_outputs(report, args.out) if args.out else []
+    if args.json:
+        print(json.dumps(to_jsonable(report.to_dict()), indent=2))
+        return 0
+    for line in report.summary_lines():
+        print(line)
+    print("timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in report.timings_s.items()))
+    if written:
+        print(f"results in {args.out}: " + ", ".join(p.name for p in written))
     return 0
 
 
@@ -102,16 +174,20 @@ def _cmd_experiment_synthetic(args) -> int:
 
 
 class _progress:
-    """A tqdm bar on stderr when it is a terminal; silent otherwise."""
+    """A tqdm bar on stderr when it is a terminal; otherwise one line naming the step (if any)."""
 
-    def __init__(self, total: int, unit: str, quiet: bool = False) -> None:
-        self.total, self.unit, self.quiet, self.bar = total, unit, quiet, None
+    def __init__(self, total: int, unit: str, quiet: bool = False, description: str | None = None) -> None:
+        self.total, self.unit, self.quiet, self.description, self.bar = total, unit, quiet, description, None
 
     def __enter__(self):
-        if not self.quiet and sys.stderr.isatty():
+        if self.quiet:
+            return None
+        if sys.stderr.isatty():
             from tqdm import tqdm
 
-            self.bar = tqdm(total=self.total, unit=self.unit, file=sys.stderr, leave=False)
+            self.bar = tqdm(total=self.total, unit=self.unit, file=sys.stderr, leave=False, desc=self.description)
+        elif self.description:
+            print(f"ctpipe: {self.description}", file=sys.stderr, flush=True)
         return self.bar.update if self.bar is not None else None
 
     def __exit__(self, *exc) -> None:
@@ -143,13 +219,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(run=_cmd_plugins)
 
-    p = sub.add_parser("estimate", help="estimate per-view angles of a projection stack")
-    p.add_argument("projections", help="projection stack (views, rows, cols): .npy or multi-page .tif")
-    p.add_argument("--geometry", required=True, help="geometry YAML (keys: source_to_object_mm, ...)")
+    p = sub.add_parser("estimate", help="estimate per-view angles of a scan folder or a projection stack")
+    p.add_argument("projections", help="a scan folder (scan.yaml + TIFFs, as 'ctpipe simulate' writes) or a "
+                                       "projection stack (views, rows, cols): .npy or multi-page .tif")
+    p.add_argument("--geometry", help="geometry YAML (keys: source_to_object_mm, ...); only for a projection stack")
     p.add_argument("--pipeline", help="pipeline YAML (default: sift, brute-force, ransac-1pt, least-squares)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--out", help="directory for result.json and angles.csv")
     p.set_defaults(run=_cmd_estimate)
+
+    p = sub.add_parser("simulate", help="write a simulated scan folder of a phantom with known angle jitter")
+    p.add_argument("phantom", help="phantom YAML, or a built-in name such as granular or shepp-logan-3d")
+    p.add_argument("--scan", required=True, help="scan spec YAML: geometry, angles, jitter, noise, projector, seed")
+    p.add_argument("--out", required=True, help="scan folder to write (scan.yaml + projections/*.tif)")
+    p.add_argument("--seed", type=_int_at_least(0), help="random seed (default: the scan spec's)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing non-empty --out folder")
+    p.set_defaults(run=_cmd_simulate)
+
+    p = sub.add_parser("validate", help="simulate a jittered scan, estimate its angles, score the reconstructions")
+    p.add_argument("experiment", nargs="?", help="experiment YAML (default: the built-in ctpipe/data/validate.yaml)")
+    p.add_argument("--out", default="results/validate",
+                   help="directory for report.json, angles.csv and PNGs (default: results/validate)")
+    p.add_argument("--seed", type=_int_at_least(0), help="random seed (default: the experiment's)")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(run=_cmd_validate)
 
     p = sub.add_parser("experiment", help="run an experiment")
     experiments = p.add_subparsers(dest="experiment", required=True, parser_class=_Parser)

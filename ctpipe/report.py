@@ -98,3 +98,84 @@ def write_synthetic_outputs(report: SyntheticReport, out: str | Path) -> list[Pa
     for study, png in pictures.items():
         written.append(atomic_write(out / f"{study}_sweep.png", lambda h, png=png: h.write(png)))
     return written
+
+
+# --- ctpipe validate -------------------------------------------------------------------------
+
+
+def _figure_png(fig) -> bytes:
+    import matplotlib.pyplot as plt
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png")
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+def slices_png(volumes: dict[str, np.ndarray], reference: np.ndarray, *, axial_index: int, vertical_index: int,
+               title: str = "") -> bytes:
+    """Reconstructed slices side by side with their differences to ``reference``.
+
+    Parameters
+    ----------
+    volumes : dict of label -> ndarray of shape (n_y, n_z, n_x)
+        E.g. ``{"nominal angles": ..., "estimated angles": ..., "true angles": ...}``.
+    reference : ndarray of shape (n_y, n_z, n_x)
+        Shown in the first column; differences are ``volume - reference``.
+    axial_index, vertical_index : int
+        The axial slice ``[axial_index]`` (perpendicular to the rotation axis) and the vertical
+        slice ``[:, vertical_index, :]`` (through the axis) that are shown.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    columns = {"phantom": reference, **volumes}
+    low, high = np.percentile(reference, [0.5, 99.5])
+    spread = max(float(np.percentile(np.abs(np.stack(list(volumes.values())) - reference), 99.5)), 1e-12)
+    fig, axes = plt.subplots(4, len(columns), figsize=(3.1 * len(columns), 12.0), dpi=100, squeeze=False)
+    cuts = (("axial", lambda v: v[axial_index]), ("vertical", lambda v: v[:, vertical_index, :]))
+    for c, (label, volume) in enumerate(columns.items()):
+        for r, (cut, take) in enumerate(cuts):
+            ax = axes[2 * r, c]
+            ax.imshow(take(volume), cmap="gray", vmin=low, vmax=high, interpolation="nearest")
+            ax.set_title(f"{label}\n{cut} slice", fontsize=9)
+            ax = axes[2 * r + 1, c]
+            if label == "phantom":
+                ax.axis("off")
+                ax.text(0.5, 0.5, f"differences to the phantom\n(colour range +-{spread:.3g} /mm)", ha="center",
+                        va="center", fontsize=9, transform=ax.transAxes)
+                continue
+            ax.imshow(take(volume) - take(reference), cmap="RdBu_r", vmin=-spread, vmax=spread, interpolation="nearest")
+            ax.set_title(f"{label} - phantom", fontsize=9)
+        for ax in axes[:, c]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _figure_png(fig)
+
+
+def angle_errors_png(view_errors_deg: dict[str, np.ndarray], title: str = "") -> bytes:
+    """Per-view angle error (degrees) of each angle set against the truth, one line each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4.2), dpi=110)
+    for label, errors in view_errors_deg.items():
+        errors = np.asarray(errors, dtype=float)
+        mae = np.nanmean(np.abs(errors)) if np.isfinite(errors).any() else np.nan
+        ax.plot(np.arange(len(errors)), errors, lw=1, label=f"{label} (MAE {mae:.3g} deg)")
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_xlabel("view")
+    ax.set_ylabel("angle error (deg), common offset removed")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return _figure_png(fig)
