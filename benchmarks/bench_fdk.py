@@ -12,7 +12,8 @@ at least 1 mm from every ellipsoid surface). mbirjax has only a ramp filter, so 
 is printed for both its ``ram-lak`` window (same filter) and its default ``hann``. The numba
 JIT warm-up (compile, or load from numba's cache) is timed separately on a tiny problem first.
 
-Never fails on time. mbirjax comes with the ``bench`` extra (``pip install -e .[bench]``).
+Never fails on time. mbirjax comes with the ``bench`` extra; install it in its own virtual
+environment (``python -m venv .venv-bench && .venv-bench/bin/pip install -e .[bench]``).
 
     python benchmarks/bench_fdk.py [--quick] [--repeats 3] [--mbirjax-repeats 2] [--no-mbirjax]
 """
