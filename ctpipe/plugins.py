@@ -19,6 +19,7 @@ __all__ = ["BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "get_plugin_manager", "collec
 #: Modules holding ctpipe's own stages, registered by name like any other plugin.
 BUILTIN_PLUGINS: tuple[str, ...] = (
     "ctpipe.builtin.opencv_detectors",
+    "ctpipe.builtin.surf",
     "ctpipe.builtin.matchers",
     "ctpipe.builtin.estimators",
     "ctpipe.builtin.refiners",

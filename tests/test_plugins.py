@@ -85,7 +85,7 @@ def test_every_hook_has_a_test_and_a_docs_entry():
 
 
 def test_builtins_are_listed_in_one_tuple():
-    assert BUILTIN_PLUGINS == ("ctpipe.builtin.opencv_detectors", "ctpipe.builtin.matchers",
+    assert BUILTIN_PLUGINS == ("ctpipe.builtin.opencv_detectors", "ctpipe.builtin.surf", "ctpipe.builtin.matchers",
                                "ctpipe.builtin.estimators", "ctpipe.builtin.refiners")
 
 
