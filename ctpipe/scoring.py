@@ -22,6 +22,12 @@ correction is::
 
 1 when the estimated angles reconstruct as well as the true ones, 0 when no better than the
 nominal ones, negative when the correction hurts.
+
+Keypoints
+---------
+:func:`keypoint_agreement` compares a detector's keypoints with a reference set (e.g. OpenCV's
+SURF on the same image): recall and precision of positions within a radius and sizes within a
+relative tolerance, and for the matched pairs the angle difference and descriptor cosine.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ import numpy as np
 from ctpipe.errors import InputError
 
 __all__ = ["error_table", "view_errors_deg", "pair_errors_deg", "align_offset", "support_mask",
-           "volume_metrics", "recovery"]
+           "volume_metrics", "recovery", "keypoint_agreement"]
 
 
 def error_table(errors_deg, n_total: int | None = None) -> dict[str, float | int]:
@@ -165,3 +171,72 @@ def recovery(psnr_estimated: float, psnr_nominal: float, psnr_true: float) -> fl
     """Share of the PSNR gap between nominal and true angles the estimate closes (NaN if no gap)."""
     gap = psnr_true - psnr_nominal
     return (psnr_estimated - psnr_nominal) / gap if gap > 0 else math.nan
+
+
+def _nearest_compatible(xy_from, size_from, xy_to, size_to, radius_px, size_rtol, *, reference_is_from):
+    """For each keypoint in ``from``: the closest one in ``to`` within the radius whose size is
+    within ``size_rtol`` of the reference keypoint's size, or -1."""
+    from scipy.spatial import cKDTree
+
+    match = np.full(len(xy_from), -1, dtype=np.int64)
+    if len(xy_from) == 0 or len(xy_to) == 0:
+        return match
+    candidates = cKDTree(np.asarray(xy_to, np.float64)).query_ball_point(np.asarray(xy_from, np.float64), r=radius_px)
+    for i, near in enumerate(candidates):
+        if not near:
+            continue
+        near = np.asarray(near)
+        base = size_from[i] if reference_is_from else size_to[near]
+        near = near[np.abs(size_to[near] - size_from[i]) <= size_rtol * base]
+        if near.size:
+            distance = np.linalg.norm(xy_to[near] - xy_from[i], axis=1)
+            match[i] = near[np.argmin(distance)]
+    return match
+
+
+def keypoint_agreement(reference, features, *, radius_px: float = 0.5, size_rtol: float = 0.05) -> dict[str, float]:
+    """How closely ``features`` reproduce a reference keypoint set.
+
+    Parameters
+    ----------
+    reference : mapping
+        ``pt`` (N, 2) as (x=col, y=row), ``size`` (N,), ``angle`` (N,) degrees, ``descriptors``
+        (N, D): OpenCV's keypoint fields, as ``ctpipe detect`` and the SURF reference files hold them.
+    features : Features
+        The keypoints to judge.
+    radius_px, size_rtol : float
+        A reference keypoint is found when a keypoint lies within ``radius_px`` of it with a size
+        within ``size_rtol`` (relative) of its size.
+
+    Returns
+    -------
+    dict
+        ``recall`` (share of reference keypoints found), ``precision`` (share of ``features``
+        with a reference keypoint so near), ``median_angle_diff_deg`` (circular) and
+        ``median_descriptor_cosine`` over the found pairs, and the counts ``n_reference``,
+        ``n_features``.
+    """
+    ref_xy = np.asarray(reference["pt"], np.float64).reshape(-1, 2)
+    ref_size = np.asarray(reference["size"], np.float64)
+    xy = np.asarray(features.xy, np.float64)
+    size = np.asarray(features.size, np.float64)
+    found = _nearest_compatible(ref_xy, ref_size, xy, size, radius_px, size_rtol, reference_is_from=True)
+    back = _nearest_compatible(xy, size, ref_xy, ref_size, radius_px, size_rtol, reference_is_from=False)
+    hit = found >= 0
+    if hit.any():
+        diff = np.abs((np.asarray(features.angle_deg, np.float64)[found[hit]] - np.asarray(reference["angle"])[hit]
+                       + 180.0) % 360.0 - 180.0)
+        a = np.asarray(features.descriptors, np.float64)[found[hit]]
+        b = np.asarray(reference["descriptors"], np.float64)[hit]
+        cosine = np.sum(a * b, axis=1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-30)
+        median_angle, median_cosine = float(np.median(diff)), float(np.median(cosine))
+    else:
+        median_angle, median_cosine = math.nan, math.nan
+    return {
+        "recall": float(hit.mean()) if len(ref_xy) else math.nan,
+        "precision": float((back >= 0).mean()) if len(xy) else math.nan,
+        "median_angle_diff_deg": median_angle,
+        "median_descriptor_cosine": median_cosine,
+        "n_reference": int(len(ref_xy)),
+        "n_features": int(len(xy)),
+    }
