@@ -1,4 +1,4 @@
-"""Command line: ``ctpipe plugins | estimate | simulate | validate | experiment synthetic``.
+"""Command line: ``ctpipe plugins | estimate | detect | simulate | validate | experiment synthetic``.
 
 Errors caused by the user's input print one line ``ctpipe: error: ...`` on stderr and exit
 with status 2; nothing half-written is left behind.
@@ -9,12 +9,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
-from ctpipe.errors import CtpipeError, InputError
+from ctpipe.errors import ConfigError, CtpipeError, InputError
 
 __all__ = ["main"]
 
@@ -101,6 +103,56 @@ def _cmd_estimate(args) -> int:
                   f"max {table['max_deg']:.4f} deg ({table['estimated']}/{table['total']} views)")
         if failed:
             print(f"warning: {len(failed)} pairs failed, e.g. {failed[0]}", file=sys.stderr)
+    return 0
+
+
+def _cmd_detect(args) -> int:
+    from ctpipe.config import build_stage, parse_stage
+    from ctpipe.io import atomic_write, read_image, to_jsonable, write_keypoints
+
+    out = Path(args.out)
+    overlay = Path(args.overlay) if args.overlay else None
+    # Checked before the detector runs: a typo in a suffix should cost nothing, and writing
+    # keypoints to "kp.png" or a picture to "kp.npz" would only surprise later.
+    for flag, path, suffix in (("--out", out, ".npz"), ("--overlay", overlay, ".png")):
+        if path is not None and (path.suffix.lower() != suffix or path.is_dir()):
+            raise InputError(f"{flag} {path}: must be a {suffix} file name")
+    registry = _registry(args)
+    params = {}
+    for key, value in args.set:
+        if key == "name":
+            raise ConfigError("detector.name: choose the detector with --detector, not --set name=...")
+        if key in params:
+            raise ConfigError(f"detector.{key}: given twice with --set ({params[key]!r} and {value!r}); give it once")
+        params[key] = value
+    # The path pipeline YAML takes, so an unknown key or a bad value reads as it would in a config.
+    spec = parse_stage({"name": args.detector, **params}, "detector", registry, "detector")
+    detector = build_stage(spec, registry)
+    image = read_image(args.image)
+    start = time.perf_counter()
+    features = detector.detect(image)
+    seconds = time.perf_counter() - start
+    effective = detector.params()
+    # Render before writing anything, so a failure leaves neither file behind.
+    picture = None
+    if overlay is not None:
+        from ctpipe.report import keypoints_png
+
+        picture = keypoints_png(image, features, f"{args.detector}: {len(features)} keypoints")
+    write_keypoints(out, features, detector=args.detector, params=effective)
+    if picture is not None:
+        atomic_write(overlay, lambda handle: handle.write(picture))
+    outputs = {"out": str(out), "overlay": str(overlay) if overlay is not None else None}
+    if args.json:
+        report = {"detector": args.detector, "params": effective, "n_keypoints": len(features),
+                  "norm": features.norm, "image": {"path": str(args.image), "shape": list(image.shape),
+                                                   "dtype": str(image.dtype)},
+                  "seconds": seconds, "outputs": outputs}
+        print(json.dumps(to_jsonable(report), indent=2))
+    else:
+        written = ", ".join(str(p) for p in (out, overlay) if p is not None)
+        print(f"{args.detector}: {len(features)} keypoints on {image.shape[0]} x {image.shape[1]} ({image.dtype}) "
+              f"in {seconds:.3f} s -> {written}")
     return 0
 
 
@@ -209,6 +261,27 @@ def _int_at_least(minimum: int):
     return parse
 
 
+# YAML 1.1 (PyYAML) reads "1e-3" as a string; only "1.0e-3" is a float. On a command line
+# people type the former, so exponent notation without a dot is taken as the number it means.
+_EXPONENT = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$")
+
+
+def _key_value(text: str) -> tuple[str, object]:
+    """argparse type of ``--set``: ``key=value`` with the value parsed as YAML."""
+    import yaml
+
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"must be key=value (e.g. n_features=500), got {text!r}")
+    if _EXPONENT.match(raw.strip()):
+        return key, float(raw)
+    try:
+        return key, yaml.safe_load(raw)
+    except yaml.YAMLError:
+        raise argparse.ArgumentTypeError(f"{key}: value {raw!r} is not a YAML scalar or list") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ctpipe", description="Estimate the rotation angle of every view of a cone-beam CT scan.")
     parser.add_argument("--block-plugin", action="append", default=[], metavar="NAME",
@@ -227,6 +300,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--out", help="directory for result.json and angles.csv")
     p.set_defaults(run=_cmd_estimate)
+
+    p = sub.add_parser("detect", help="run one detector on one image: keypoints to .npz, optionally a picture",
+                       description="Run one registered detector on one 2-D image and write what it finds.")
+    p.add_argument("image", help="a 2-D grey-level image (rows, cols): .npy, .tif/.tiff or .png")
+    p.add_argument("--detector", required=True, metavar="NAME",
+                   help="a registered detector (see 'ctpipe plugins'), e.g. sift or orb")
+    p.add_argument("--set", action="append", default=[], type=_key_value, metavar="KEY=VALUE",
+                   help="a detector parameter, value read as YAML (n_features=500, upright=true); repeatable")
+    p.add_argument("--out", required=True, metavar="FILE.npz",
+                   help="keypoints and descriptors with OpenCV reference keys (pt, size, angle, response, "
+                        "octave, class_id, descriptors) plus norm, detector and params")
+    p.add_argument("--overlay", metavar="FILE.png",
+                   help="the image in grey with each keypoint as a circle of its size and a tick at its angle")
+    p.add_argument("--json", action="store_true", help="print a JSON summary instead of one line")
+    p.set_defaults(run=_cmd_detect)
 
     p = sub.add_parser("simulate", help="write a simulated scan folder of a phantom with known angle jitter")
     p.add_argument("phantom", help="phantom YAML, or a built-in name such as granular or shepp-logan-3d")

@@ -10,7 +10,7 @@ import numpy as np
 from ctpipe.experiments import SyntheticReport
 from ctpipe.io import atomic_write, write_csv, write_json
 
-__all__ = ["synthetic_table", "write_synthetic_outputs"]
+__all__ = ["synthetic_table", "write_synthetic_outputs", "keypoints_png"]
 
 _TITLES = {
     "angle": "rotation sweep, 30 inliers + 70 re-paired outliers, sigma 1e-4",
@@ -178,4 +178,76 @@ def angle_errors_png(view_errors_deg: dict[str, np.ndarray], title: str = "") ->
     if title:
         ax.set_title(title, fontsize=9)
     fig.tight_layout()
+    return _figure_png(fig)
+
+
+# --- ctpipe detect ---------------------------------------------------------------------------
+
+
+def keypoints_png(image: np.ndarray, features, title: str = "", *, scale: int | None = None,
+                  min_side_px: int = 768) -> bytes:
+    """The image in grey with every keypoint drawn as a circle and an orientation tick.
+
+    Parameters
+    ----------
+    image : ndarray of shape (rows, cols)
+        Shown as the OpenCV detectors see it: mapped linearly from its [min, max] to 8 bits
+        (:func:`ctpipe.images.to_uint8`).
+    features : ctpipe.data.Features
+        Each keypoint is a circle of diameter ``size`` pixels centred on ``xy`` (x=col, y=row,
+        pixel centres at integers) with a radius drawn at ``angle_deg``, measured from +x
+        towards +y in image coordinates (y down), OpenCV's convention; no tick where the
+        angle is NaN.
+    title : str
+        Written in the top-left corner (inside the picture, so it does not change the size).
+    scale : int, optional
+        Output pixels per image pixel. Default: the smallest integer that makes the longer
+        side at least ``min_side_px``, so the circles of small keypoints stay visible.
+    min_side_px : int
+        See ``scale``.
+
+    Returns
+    -------
+    bytes
+        A PNG of exactly ``(rows * scale, cols * scale)`` pixels.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import EllipseCollection, LineCollection
+
+    from ctpipe.images import to_uint8
+
+    grey = to_uint8(image)
+    rows, cols = grey.shape
+    if scale is None:
+        scale = max(1, -(-min_side_px // max(rows, cols)))
+    # One figure inch per 100 output pixels, and axes filling the figure, so one image pixel
+    # is exactly ``scale`` PNG pixels and keypoint coordinates map onto the picture unchanged.
+    dpi = 100
+    fig = plt.figure(figsize=(cols * scale / dpi, rows * scale / dpi), dpi=dpi)
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.imshow(grey, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+    ax.set_xlim(-0.5, cols - 0.5)
+    ax.set_ylim(rows - 0.5, -0.5)
+    ax.axis("off")
+    if len(features):
+        xy = np.asarray(features.xy, dtype=np.float64)
+        size = np.asarray(features.size, dtype=np.float64)
+        colour = (1.0, 0.85, 0.0, 0.9)
+        # units="xy": diameters in data units (image pixels), whatever the output scale.
+        ax.add_collection(EllipseCollection(size, size, np.zeros(len(size)), units="xy", offsets=xy,
+                                            offset_transform=ax.transData, facecolors="none",
+                                            edgecolors=[colour], linewidths=1.0))
+        angle = np.deg2rad(np.asarray(features.angle_deg, dtype=np.float64))
+        oriented = np.isfinite(angle)
+        # The y axis points down (imshow's origin "upper"), so +sin goes down the picture,
+        # as OpenCV's angles do; no flip needed.
+        tip = xy[oriented] + 0.5 * size[oriented, None] * np.stack([np.cos(angle[oriented]),
+                                                                   np.sin(angle[oriented])], axis=1)
+        ax.add_collection(LineCollection(np.stack([xy[oriented], tip], axis=1), colors=[colour], linewidths=1.0))
+    if title:
+        ax.text(0.01, 0.99, title, transform=ax.transAxes, ha="left", va="top", fontsize=9, color="white",
+                bbox={"facecolor": "black", "alpha": 0.6, "edgecolor": "none", "pad": 2})
     return _figure_png(fig)
