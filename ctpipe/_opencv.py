@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ctpipe.errors import InputError
+
 import cv2
 
 __all__ = ["available_detectors", "detect_and_compute", "knn_match", "essential_pose", "version"]
@@ -85,7 +87,14 @@ def detect_and_compute(kind: str, params: dict, image_u8: np.ndarray) -> dict:
     ``descriptors`` and ``norm`` (from the detector's ``defaultNorm()``).
     """
     detector = _create(kind, params)
-    keypoints, descriptors = detector.detectAndCompute(image_u8, None)
+    try:
+        keypoints, descriptors = detector.detectAndCompute(image_u8, None)
+    except cv2.error as error:
+        # OpenCV asserts instead of returning nothing on images too small for its pyramid
+        # (ORB on 1 x 1, BRISK on 2 x 2): the user's input, so one line, not a traceback.
+        reason = (getattr(error, "err", "") or str(error)).strip().splitlines()[-1]
+        raise InputError(f"image: {kind} cannot run on a {image_u8.shape[0]} x {image_u8.shape[1]} image "
+                         f"(OpenCV: {reason}); give it a larger image") from None
     norm = _NORMS[detector.defaultNorm()]
     n = len(keypoints)
     if descriptors is None:
