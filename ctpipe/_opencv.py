@@ -79,6 +79,21 @@ def _create(kind: str, p: dict):
     raise AssertionError(kind)
 
 
+def set_num_threads(n: int) -> None:
+    """Threads OpenCV may use (benchmarks pin it to 1 to compare single-thread speed)."""
+    cv2.setNumThreads(int(n))
+
+
+def raw_detect_and_compute(kind: str, params: dict):
+    """A function ``image_u8 -> (keypoints, descriptors)`` calling OpenCV directly.
+
+    For benchmarks that time OpenCV itself, without the conversion to plain arrays that
+    :func:`detect_and_compute` adds.
+    """
+    detector = _create(kind, params)
+    return lambda image_u8: detector.detectAndCompute(image_u8, None)
+
+
 def detect_and_compute(kind: str, params: dict, image_u8: np.ndarray) -> dict:
     """Run an OpenCV feature detector and return plain arrays.
 
