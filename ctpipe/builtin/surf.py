@@ -416,18 +416,13 @@ def _describe(image, sums, kp_x, kp_y, kp_size, upright, extended, apt, aptw, dw
                         tx = np.float32(patch[y, x + 1] - patch[y, x] + patch[y + 1, x + 1] - patch[y + 1, x]) * w
                         ty = np.float32(patch[y + 1, x] - patch[y, x] + patch[y + 1, x + 1] - patch[y, x + 1]) * w
                         if extended:
-                            if ty >= 0:
-                                vec[base + 0] += tx
-                                vec[base + 1] += abs(tx)
-                            else:
-                                vec[base + 2] += tx
-                                vec[base + 3] += abs(tx)
-                            if tx >= 0:
-                                vec[base + 4] += ty
-                                vec[base + 5] += abs(ty)
-                            else:
-                                vec[base + 6] += ty
-                                vec[base + 7] += abs(ty)
+                            # dx sums split by the sign of dy, and dy sums by the sign of dx.
+                            o = 0 if ty >= 0 else 2
+                            vec[base + o] += tx
+                            vec[base + o + 1] += abs(tx)
+                            o = 4 if tx >= 0 else 6
+                            vec[base + o] += ty
+                            vec[base + o + 1] += abs(ty)
                         else:
                             vec[base + 0] += tx
                             vec[base + 1] += ty
