@@ -10,7 +10,7 @@ import numpy as np
 from ctpipe.experiments import SyntheticReport
 from ctpipe.io import atomic_write, write_csv, write_json
 
-__all__ = ["synthetic_table", "write_synthetic_outputs", "keypoints_png"]
+__all__ = ["synthetic_table", "write_synthetic_outputs", "slices_png", "angle_errors_png", "keypoints_png"]
 
 _TITLES = {
     "angle": "rotation sweep, 30 inliers + 70 re-paired outliers, sigma 1e-4",
@@ -44,12 +44,25 @@ def synthetic_table(report: SyntheticReport, study: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _plot(report: SyntheticReport, study: str) -> bytes:
+def _pyplot():
+    """matplotlib.pyplot on the Agg backend: figures are rendered to PNG bytes, never shown."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def _figure_png(fig) -> bytes:
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png")
+    _pyplot().close(fig)
+    return buffer.getvalue()
+
+
+def _plot(report: SyntheticReport, study: str) -> bytes:
+    plt = _pyplot()
     result = report.studies[study]
     fig, ax = plt.subplots(figsize=(8, 4.8), dpi=110)
     x = np.asarray(result.values, dtype=float)
@@ -67,10 +80,7 @@ def _plot(report: SyntheticReport, study: str) -> bytes:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png")
-    plt.close(fig)
-    return buffer.getvalue()
+    return _figure_png(fig)
 
 
 def write_synthetic_outputs(report: SyntheticReport, out: str | Path) -> list[Path]:
@@ -103,15 +113,6 @@ def write_synthetic_outputs(report: SyntheticReport, out: str | Path) -> list[Pa
 # --- ctpipe validate -------------------------------------------------------------------------
 
 
-def _figure_png(fig) -> bytes:
-    import matplotlib.pyplot as plt
-
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png")
-    plt.close(fig)
-    return buffer.getvalue()
-
-
 def slices_png(volumes: dict[str, np.ndarray], reference: np.ndarray, *, axial_index: int, vertical_index: int,
                title: str = "") -> bytes:
     """Reconstructed slices side by side with their differences to ``reference``.
@@ -126,10 +127,7 @@ def slices_png(volumes: dict[str, np.ndarray], reference: np.ndarray, *, axial_i
         The axial slice ``[axial_index]`` (perpendicular to the rotation axis) and the vertical
         slice ``[:, vertical_index, :]`` (through the axis) that are shown.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     columns = {"phantom": reference, **volumes}
     low, high = np.percentile(reference, [0.5, 99.5])
@@ -160,10 +158,7 @@ def slices_png(volumes: dict[str, np.ndarray], reference: np.ndarray, *, axial_i
 
 def angle_errors_png(view_errors_deg: dict[str, np.ndarray], title: str = "") -> bytes:
     """Per-view angle error (degrees) of each angle set against the truth, one line each."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     fig, ax = plt.subplots(figsize=(9, 4.2), dpi=110)
     for label, errors in view_errors_deg.items():
@@ -211,10 +206,7 @@ def keypoints_png(image: np.ndarray, features, title: str = "", *, scale: int | 
     bytes
         A PNG of exactly ``(rows * scale, cols * scale)`` pixels.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
     from matplotlib.collections import EllipseCollection, LineCollection
 
     from ctpipe.images import to_uint8
