@@ -158,14 +158,13 @@ def _cmd_detect(args) -> int:
 
 def _cmd_simulate(args) -> int:
     from ctpipe.phantoms import load_phantom
-    from ctpipe.scan import load_scan_spec
+    from ctpipe.scan import check_scan_folder_free, load_scan_spec
     from ctpipe.simulate import simulate, write_simulated_scan
 
     phantom = load_phantom(args.phantom)
     spec = load_scan_spec(args.scan)
     out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.overwrite:
-        raise InputError(f"{out}: exists and is not empty; choose another --out or pass --overwrite")
+    check_scan_folder_free(out, overwrite=args.overwrite)
     seed = spec.seed if args.seed is None else args.seed
     with _progress(spec.n_views, "views", quiet=False) as advance:
         scan = simulate(phantom, spec, rng=np.random.default_rng(seed), progress=advance)

@@ -77,7 +77,7 @@ from ctpipe.jitter import Jitter, nominal_angles_deg, parse_jitter
 from ctpipe.stages import ParamSpec, check_value
 
 __all__ = ["AngleSpec", "ProjectorSpec", "ScanSpec", "parse_scan_spec", "load_scan_spec", "Scan", "read_scan",
-           "write_scan", "SCAN_FORMAT", "VALUE_KINDS"]
+           "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS"]
 
 #: The ``format`` value of a scan.yaml this version reads and writes.
 SCAN_FORMAT = "ctpipe-scan/1"
@@ -398,10 +398,7 @@ def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angl
             stacks[name] = _check_stack(frames, name, geometry)
     if values == "intensities" and flats is None:
         raise InputError("flats: intensities need flat fields (values='intensities' without flats)")
-    if folder.exists() and not folder.is_dir():
-        raise InputError(f"{folder}: exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise InputError(f"{folder}: exists and is not empty; choose another folder or overwrite")
+    check_scan_folder_free(folder, overwrite=overwrite)
 
     document: dict[str, Any] = {"format": SCAN_FORMAT, "geometry": to_jsonable(geometry.to_dict()),
                                 "angles": {"nominal_deg": nominal.tolist(),
@@ -428,6 +425,19 @@ def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angl
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return folder
+
+
+def check_scan_folder_free(folder: str | Path, *, overwrite: bool = False) -> None:
+    """Raise :class:`InputError` unless a scan can be written to ``folder``.
+
+    It must not exist, or be an empty folder, or ``overwrite`` must be set; callers that spend
+    time producing the scan call this first, so a refusal costs nothing.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{folder}: exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise InputError(f"{folder}: exists and is not empty; choose another folder or overwrite")
 
 
 def _swap_into_place(tmp: Path, folder: Path, overwrite: bool) -> None:

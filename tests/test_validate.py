@@ -199,3 +199,13 @@ def test_cli_validate_bad_yaml_exits_2_and_writes_nothing(tmp_path, text, messag
     assert code == 2 and out == ""
     assert err.startswith("ctpipe: error: ") and err.count("\n") == 1 and "Traceback" not in err
     assert not (tmp_path / "res").exists()
+
+
+def test_cli_simulate_refuses_an_out_that_is_a_file_before_projecting(tmp_path):
+    (tmp_path / "scan.yaml").write_text(yaml.safe_dump(SCAN))
+    (tmp_path / "taken").write_text("not a folder")
+    code, out, err = run_cli("simulate", "bead-cylinder", "--scan", str(tmp_path / "scan.yaml"),
+                             "--out", str(tmp_path / "taken"))
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert "taken: exists and is not a folder" in err
+    assert (tmp_path / "taken").read_text() == "not a folder"
