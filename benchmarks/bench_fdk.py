@@ -87,14 +87,26 @@ def mbirjax_recon(mbirjax, projections, geometry, grid, angles_deg, repeats):
     return times, np.ascontiguousarray(recon.transpose(2, 0, 1)[:, ::-1, :])
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="only the 128^3 size")
+def parse_args(description: str, quick_help: str) -> argparse.Namespace:
+    """The options every mbirjax-peer benchmark takes."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true", help=quick_help)
     parser.add_argument("--repeats", type=int, default=3, help="warm ctpipe runs per size (median)")
     parser.add_argument("--mbirjax-repeats", type=int, default=2,
                         help="mbirjax calls per size; the first includes JAX compilation")
     parser.add_argument("--no-mbirjax", action="store_true", help="skip the peer")
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+def print_peer_timing(call: str, peer_times: list[float], ours: float) -> None:
+    """mbirjax's first call (JAX compilation included), its best warm call, and the ratios to ctpipe."""
+    peer_warm = min(peer_times[1:]) if len(peer_times) > 1 else peer_times[0]
+    print(f"mbirjax {call} first call {peer_times[0]:7.2f} s (with JAX compile), warm {peer_warm:.2f} s")
+    print(f"ratio mbirjax warm / ctpipe warm: {peer_warm / ours:.1f}x (first call: {peer_times[0] / ours:.1f}x)")
+
+
+def main() -> None:
+    args = parse_args(__doc__.splitlines()[0], "only the 128^3 size")
 
     geometry, grid, angles = setup(16, 24)
     projections = project_ellipsoids(geometry, angles)
@@ -127,13 +139,9 @@ def main() -> None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             peer_times, peer = mbirjax_recon(mbirjax, projections, geometry, grid, angles, args.mbirjax_repeats)
-        peer_warm = min(peer_times[1:]) if len(peer_times) > 1 else peer_times[0]
+        print_peer_timing("direct_recon", peer_times, ours)
         rmse_peer = relative_rmse(peer, truth, interior)
-        print(f"mbirjax direct_recon first call {peer_times[0]:7.2f} s (with JAX compile), "
-              f"warm {peer_warm:.2f} s")
         print(f"mbirjax interior relative RMSE: {rmse_peer:.4f}")
-        print(f"ratio mbirjax warm / ctpipe warm: {peer_warm / ours:.1f}x "
-              f"(first call: {peer_times[0] / ours:.1f}x)")
         print(f"RMSE ctpipe / mbirjax: ram-lak {rmse_ramlak / rmse_peer:.3f}, hann {rmse_hann / rmse_peer:.3f} "
               "(<= 1.02 is 'same accuracy or better')")
 

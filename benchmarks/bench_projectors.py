@@ -20,7 +20,6 @@ the ``bench`` extra; install it in its own virtual environment (it brings about 
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -31,11 +30,12 @@ import numpy as np
 
 from ctpipe.geometry import Geometry
 from ctpipe.phantoms import load_phantom
+from ctpipe.plugins import get_registry
 from ctpipe.projectors import VoxelProjector, project_analytic
 from ctpipe.validate import load_validate_settings
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_fdk import SIZES, load_mbirjax, setup, time_call  # noqa: E402
+from bench_fdk import SIZES, load_mbirjax, parse_args, print_peer_timing, setup, time_call  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_fdk import phantom_volume  # noqa: E402
@@ -79,15 +79,13 @@ def bench_voxel(args) -> None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             peer_times, peer = mbirjax_forward(mbirjax, volume, geometry, grid, angles, args.mbirjax_repeats)
-        peer_warm = min(peer_times[1:]) if len(peer_times) > 1 else peer_times[0]
+        print_peer_timing("forward_project", peer_times, warm)
         difference = np.linalg.norm(ours - peer) / np.linalg.norm(peer)
-        print(f"mbirjax forward_project first call {peer_times[0]:7.2f} s (with JAX compile), warm {peer_warm:.2f} s")
-        print(f"ratio mbirjax warm / ctpipe warm: {peer_warm / warm:.1f}x (first call: {peer_times[0] / warm:.1f}x)")
         print(f"relative difference ctpipe vs mbirjax projections: {difference:.4f}")
 
 
 def bench_analytic(args) -> None:
-    settings = load_validate_settings(None, _registry())
+    settings = load_validate_settings(None, get_registry())
     geometry: Geometry = settings.scan.geometry
     phantom = load_phantom("granular")
     n_views = 8 if args.quick else 36
@@ -102,20 +100,8 @@ def bench_analytic(args) -> None:
         print(f"supersample {supersample}: {n_views / warm:7.1f} views/s  (warm median {warm:.2f} s for {n_views} views)")
 
 
-def _registry():
-    from ctpipe.plugins import get_registry
-
-    return get_registry()
-
-
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="only the 128^3 size and 8 analytic views")
-    parser.add_argument("--repeats", type=int, default=3, help="warm ctpipe runs (median)")
-    parser.add_argument("--mbirjax-repeats", type=int, default=2,
-                        help="mbirjax calls per size; the first includes JAX compilation")
-    parser.add_argument("--no-mbirjax", action="store_true", help="skip the peer")
-    args = parser.parse_args()
+    args = parse_args(__doc__.splitlines()[0], "only the 128^3 size and 8 analytic views")
     bench_voxel(args)
     bench_analytic(args)
 
