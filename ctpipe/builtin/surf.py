@@ -91,17 +91,6 @@ def _resize_pattern(src, old_size, new_size):
 
 
 @njit(cache=True)
-def _haar(sums, row, col, boxes, weights):
-    """calcHaarPattern: weighted box sums accumulated in double, returned as float32."""
-    d = 0.0
-    for k in range(boxes.shape[0]):
-        x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
-        box = sums[row + y0, col + x0] + sums[row + y1, col + x1] - sums[row + y1, col + x0] - sums[row + y0, col + x1]
-        d += np.float64(box) * np.float64(weights[k])
-    return np.float32(d)
-
-
-@njit(cache=True)
 def _flat_pattern(boxes, weights, width):
     """Box corners as offsets into the raveled integral image: OpenCV's SurfHF (p0..p3, w)."""
     offsets = np.empty((boxes.shape[0], 4), np.int64)
@@ -115,7 +104,9 @@ def _flat_pattern(boxes, weights, width):
 
 
 @njit(cache=True, inline="always")
-def _haar_flat(flat, origin, offsets, weights):
+def _haar(flat, origin, offsets, weights):
+    """calcHaarPattern: weighted box sums at ``origin`` of the raveled integral image,
+    accumulated in double and returned as float32."""
     d = 0.0
     for k in range(offsets.shape[0]):
         box = (flat[origin + offsets[k, 0]] + flat[origin + offsets[k, 3]]
@@ -144,9 +135,9 @@ def _hessian_layer(sums, size, step, det, trace):
         trace_row = trace[i + margin]
         for j in range(samples_j):
             origin = i * step * width + j * step
-            dxx = _haar_flat(flat, origin, dxx_o, dxx_w)
-            dyy = _haar_flat(flat, origin, dyy_o, dyy_w)
-            dxy = _haar_flat(flat, origin, dxy_o, dxy_w)
+            dxx = _haar(flat, origin, dxx_o, dxx_w)
+            dyy = _haar(flat, origin, dyy_o, dyy_w)
+            dxy = _haar(flat, origin, dxy_o, dxy_w)
             det_row[j + margin] = dxx * dyy - c081 * dxy * dxy
             trace_row[j + margin] = dxx + dyy
 
@@ -309,6 +300,7 @@ def _describe(image, sums, kp_x, kp_y, kp_size, upright, extended, apt, aptw, dw
     n_kp = kp_x.shape[0]
     rows, cols = image.shape
     sum_rows, sum_cols = sums.shape
+    flat = sums.ravel()
     n_ori = apt.shape[0]
     dsize = descriptors.shape[1]
     for k in prange(n_kp):
@@ -321,8 +313,8 @@ def _describe(image, sums, kp_x, kp_y, kp_size, upright, extended, apt, aptw, dw
             continue
         direction = np.float32(270.0)
         if not upright:
-            gx_b, gx_w = _resize_pattern(_GX, 4, grad_wav_size)
-            gy_b, gy_w = _resize_pattern(_GY, 4, grad_wav_size)
+            gx_o, gx_w = _flat_pattern(*_resize_pattern(_GX, 4, grad_wav_size), sum_cols)
+            gy_o, gy_w = _flat_pattern(*_resize_pattern(_GY, 4, grad_wav_size), sum_cols)
             xs = np.empty(n_ori, np.float32)
             ys = np.empty(n_ori, np.float32)
             ang = np.empty(n_ori, np.int64)
@@ -333,8 +325,8 @@ def _describe(image, sums, kp_x, kp_y, kp_size, upright, extended, apt, aptw, dw
                 y = _round(cy + np.float32(apt[kk, 1]) * s - half)
                 if y < 0 or y >= sum_rows - grad_wav_size or x < 0 or x >= sum_cols - grad_wav_size:
                     continue
-                vx = _haar(sums, y, x, gx_b, gx_w)
-                vy = _haar(sums, y, x, gy_b, gy_w)
+                vx = _haar(flat, y * sum_cols + x, gx_o, gx_w)
+                vy = _haar(flat, y * sum_cols + x, gy_o, gy_w)
                 xs[n_angle] = vx * aptw[kk]
                 ys[n_angle] = vy * aptw[kk]
                 ang[n_angle] = _round(_fast_atan2(ys[n_angle], xs[n_angle]))
@@ -482,7 +474,7 @@ def _detect(sums: np.ndarray, rows: int, cols: int, n_octaves: int, n_octave_lay
             dets.append(det)
             traces.append(trace)
         for layer in range(1, n_octave_layers + 1):
-            out = np.empty((max(det.size // 4, 1), 5), np.float32)
+            out = np.empty((max(dets[layer].size // 4, 1), 5), np.float32)
             n = _find_maxima(dets[layer - 1], dets[layer], dets[layer + 1], traces[layer], sizes[layer],
                              sizes[layer - 1], sizes[layer + 1], step, rows, cols, np.float32(threshold), out)
             rows_found = np.empty((n, 6), np.float32)
