@@ -6,11 +6,10 @@ wheels; keeping every ``cv2`` call here means such moves are absorbed in one pla
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from ctpipe.errors import InputError
-
-import cv2
 
 __all__ = ["available_detectors", "detect_and_compute", "knn_match", "essential_pose", "version"]
 

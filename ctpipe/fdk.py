@@ -374,8 +374,9 @@ def fdk(
     filter : str
         Window of the ramp filter, one of :data:`FILTERS`; ``"hann"`` trades resolution for noise.
     short_scan : bool or None
-        Parker-weight a short scan. ``None`` decides from the angles: a range shorter than 360 deg
-        minus about one step is a short scan, and must span at least 180 deg plus the fan angle.
+        Parker-weight a short scan. ``None`` decides from the angles: a scan whose views leave a
+        circular gap wider than five typical steps is a short scan, and must span at least 180 deg
+        plus the fan angle.
         ``False`` on a short range reconstructs it as a limited-angle scan without Parker weights.
     progress : callable, optional
         Called as ``progress(n)`` after every ``n`` views backprojected (e.g. ``tqdm.update``).

@@ -262,7 +262,6 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
     """Run the experiment; ``progress(step, total)`` returns a context manager yielding an ``advance(n)``."""
     from ctpipe.fdk import fdk
     from ctpipe.pipeline import Pipeline
-    from ctpipe.primitives import voxelise
     from ctpipe.scoring import (align_offset, error_table, pair_errors_deg, recovery, support_mask, view_errors_deg,
                                 volume_metrics)
     from ctpipe.simulate import simulate, voxelise_phantom
