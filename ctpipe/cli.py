@@ -56,6 +56,8 @@ def _cmd_estimate(args) -> int:
     config = parse_pipeline(load_yaml(args.pipeline) if args.pipeline else None, registry)
     source = Path(args.projections)
     truth = None
+    if not source.exists():
+        raise InputError(f"{source}: no such file or scan folder")
     if source.is_dir():
         from ctpipe.scan import read_scan
 

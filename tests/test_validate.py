@@ -209,3 +209,8 @@ def test_cli_simulate_refuses_an_out_that_is_a_file_before_projecting(tmp_path):
     assert code == 2 and out == "" and err.count("\n") == 1
     assert "taken: exists and is not a folder" in err
     assert (tmp_path / "taken").read_text() == "not a folder"
+
+
+def test_cli_estimate_of_a_missing_path_says_so_rather_than_asking_for_a_geometry(tmp_path):
+    code, _, err = run_cli("estimate", str(tmp_path / "nope"))
+    assert code == 2 and err.count("\n") == 1 and "nope: no such file or scan folder" in err
