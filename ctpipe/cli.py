@@ -55,7 +55,7 @@ def _cmd_estimate(args) -> int:
     registry = _registry(args)
     config = parse_pipeline(load_yaml(args.pipeline) if args.pipeline else None, registry)
     source = Path(args.projections)
-    truth = None
+    truth = nominal = None
     if not source.exists():
         raise InputError(f"{source}: no such file or scan folder")
     if source.is_dir():
@@ -63,6 +63,7 @@ def _cmd_estimate(args) -> int:
 
         scan = read_scan(source)
         projections, geometry, truth = scan.projections, scan.geometry, scan.true_angles_deg
+        nominal = scan.nominal_angles_deg
         if args.geometry:
             raise InputError(f"{source} is a scan folder with its own geometry in scan.yaml; drop --geometry")
     else:
@@ -75,7 +76,7 @@ def _cmd_estimate(args) -> int:
         projections = read_projections(source)
     pipeline = Pipeline.from_config(config, registry=registry)
     with _progress(len(projections), "views", quiet=args.json) as advance:
-        result = pipeline.run(projections, geometry, progress=advance)
+        result = pipeline.run(projections, geometry, nominal_angles_deg=nominal, progress=advance)
     report = {"pipeline": config.to_dict(), "geometry": geometry.to_dict(), **result.to_dict()}
     header, columns = ["view", "angle_deg", "n_keypoints"], [result.angles_deg, result.n_keypoints]
     if truth is not None:

@@ -9,7 +9,8 @@ A pipeline file::
     matcher: {name: brute-force, ratio: 0.8}
     estimator: {name: ransac-1pt, sampson_threshold: 8.0e-4}
     refiner: least-squares          # a bare name means default parameters
-    pairs: {baselines: [1]}         # view offsets: (i, i + k) for every k
+    pairs: {baselines: [1], loop_closure: true}   # view offsets: (i, i + k) for every k; a full
+                                    # turn (known from the nominal angles) also pairs across its seam
     # a kind left out gets DEFAULT_STAGES[kind]
     seed: 0
 """
@@ -149,14 +150,16 @@ class PipelineConfig:
     refiner: StageSpec
     baselines: tuple[int, ...] = (1,)
     seed: int | None = 0
+    loop_closure: bool = True
 
     def to_dict(self) -> dict:
         return {"detector": self.detector.to_dict(), "matcher": self.matcher.to_dict(),
                 "estimator": self.estimator.to_dict(), "refiner": self.refiner.to_dict(),
-                "pairs": {"baselines": list(self.baselines)}, "seed": self.seed}
+                "pairs": {"baselines": list(self.baselines), "loop_closure": self.loop_closure}, "seed": self.seed}
 
 
 _PAIRS_BASELINES = ParamSpec("baselines", tuple[int, ...], (1,), "view offsets", ge=1)
+_PAIRS_LOOP_CLOSURE = ParamSpec("loop_closure", bool, True, "pair the last views of a full turn with the first")
 _SEED = ParamSpec("seed", int | None, 0, "random seed", ge=0)
 
 
@@ -167,10 +170,11 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
     check_keys(mapping, path, allowed=("detector", "matcher", "estimator", "refiner", "pairs", "seed"))
     stages = {kind: parse_stage(mapping.get(kind, default), kind, registry, f"{path}.{kind}")
               for kind, default in DEFAULT_STAGES.items()}
-    pairs = check_keys(mapping.get("pairs", {}), f"{path}.pairs", allowed=("baselines",))
+    pairs = check_keys(mapping.get("pairs", {}), f"{path}.pairs", allowed=("baselines", "loop_closure"))
     baselines = check_value(_PAIRS_BASELINES, pairs.get("baselines", [1]), f"{path}.pairs.baselines")
+    loop_closure = check_value(_PAIRS_LOOP_CLOSURE, pairs.get("loop_closure", True), f"{path}.pairs.loop_closure")
     seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
-    return PipelineConfig(**stages, baselines=tuple(sorted(set(baselines))), seed=seed)
+    return PipelineConfig(**stages, baselines=tuple(sorted(set(baselines))), seed=seed, loop_closure=loop_closure)
 
 
 _GEOMETRY_FIELDS = {

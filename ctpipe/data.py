@@ -5,7 +5,8 @@ Arrays inside are never modified by a stage; a stage returns new containers.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -162,6 +163,12 @@ class ScanObservations:
     points_a, points_b : tuple of ndarray of shape (M_k, 2)
         Normalised coordinates of each pair's matches in its first and second view.
     estimates : tuple of PairEstimate or FailedEstimation, one per pair
+    nominal_angles_deg : ndarray of shape (V,), float64, or None
+        The angles the stage was commanded to (a starting point, and what tells a full turn,
+        whose seam pairs close the loop); None when unknown.
+    projections : ndarray of shape (V, rows, cols) or None
+        The images the features came from, for refiners that work on pixels (projection
+        matching); never modified.
     """
 
     geometry: Geometry
@@ -172,6 +179,8 @@ class ScanObservations:
     points_a: tuple[np.ndarray, ...]
     points_b: tuple[np.ndarray, ...]
     estimates: tuple[PairEstimate | FailedEstimation, ...]
+    nominal_angles_deg: np.ndarray | None = None
+    projections: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,7 +194,10 @@ class ScanSolution:
         connected to view 0 by successful pairs.
     pair_estimates : tuple of PairEstimate or FailedEstimation, one per pair
         The (refined) per-pair answers.
+    info : dict
+        What the refiner wants a user to see (counts, costs, iterations): plain JSON values.
     """
 
     angles_rad: np.ndarray
     pair_estimates: tuple[PairEstimate | FailedEstimation, ...]
+    info: dict[str, Any] = field(default_factory=dict)

@@ -6,7 +6,7 @@ import os
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +18,7 @@ from ctpipe.errors import EstimationError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
 from ctpipe.plugins import get_registry
+from ctpipe.solve.graph import view_pairs
 from ctpipe.registry import StageRegistry
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner
 
@@ -50,6 +51,8 @@ class ScanResult:
         not connected to view 0 by successful pairs.
     n_keypoints : ndarray of shape (V,), int64
     timings_s : dict
+    refiner_info : dict
+        What the refiner reported (see :attr:`ctpipe.data.ScanSolution.info`).
     """
 
     pairs: np.ndarray
@@ -62,6 +65,7 @@ class ScanResult:
     angles_deg: np.ndarray
     n_keypoints: np.ndarray
     timings_s: dict[str, float]
+    refiner_info: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -73,6 +77,7 @@ class ScanResult:
                                                   self.residuals, self.pair_status)
             ],
             "timings_s": self.timings_s,
+            "refiner": self.refiner_info,
         }
 
 
@@ -89,6 +94,7 @@ class Pipeline:
     refiner: Refiner
     baselines: tuple[int, ...] = (1,)
     seed: int | None = 0
+    loop_closure: bool = True
 
     @classmethod
     def from_config(cls, config: PipelineConfig | Mapping | str | Path | None = None, *,
@@ -100,7 +106,7 @@ class Pipeline:
         elif not isinstance(config, PipelineConfig):
             config = parse_pipeline(config, registry)
         return cls(*(build_stage(getattr(config, kind), registry) for kind in ("detector", "matcher", "estimator", "refiner")),
-                   baselines=config.baselines, seed=config.seed)
+                   baselines=config.baselines, seed=config.seed, loop_closure=config.loop_closure)
 
     def detect(self, projections: np.ndarray, *, progress: Callable[[int], None] | None = None) -> tuple[Features, ...]:
         """Features of every view (threads: OpenCV releases the GIL)."""
@@ -113,8 +119,8 @@ class Pipeline:
         with ThreadPoolExecutor(max_workers=min(len(projections), os.cpu_count() or 1)) as pool:
             return tuple(pool.map(one, range(len(projections))))
 
-    def run(self, projections: np.ndarray, geometry: Geometry, *, pairs: np.ndarray | None = None,
-            progress: Callable[[int], None] | None = None) -> ScanResult:
+    def run(self, projections: np.ndarray, geometry: Geometry, *, nominal_angles_deg=None,
+            pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None) -> ScanResult:
         """Estimate the angle of every view of a scan.
 
         Parameters
@@ -123,6 +129,9 @@ class Pipeline:
             uint8 or float images (float: e.g. ``-log`` line integrals); no NaN.
         geometry : Geometry
             Must match the projections' (rows, cols).
+        nominal_angles_deg : array_like of shape (V,), optional
+            The commanded angles. They tell a full turn (whose seam is then paired too, see
+            :func:`ctpipe.solve.view_pairs`) and give whole-scan refiners their start.
         pairs : ndarray of shape (P, 2), optional
             View pairs to estimate; default ``(i, i + k)`` for the configured baselines.
 
@@ -135,7 +144,11 @@ class Pipeline:
         """
         projections = _check_projections(projections, geometry)
         n_views = len(projections)
-        pairs = consecutive_pairs(n_views, self.baselines) if pairs is None else _check_pairs(pairs, n_views)
+        nominal = None if nominal_angles_deg is None else _check_nominal(nominal_angles_deg, n_views)
+        if pairs is None:
+            pairs = view_pairs(n_views, self.baselines, nominal, loop_closure=self.loop_closure)
+        else:
+            pairs = _check_pairs(pairs, n_views)
         if len(pairs) == 0:
             raise InputError(f"no view pairs: {n_views} views with baselines {list(self.baselines)}")
         timings = {}
@@ -156,7 +169,8 @@ class Pipeline:
         timings["estimate"] = time.perf_counter() - start
 
         observations = ScanObservations(geometry=geometry, n_views=n_views, features=features, pairs=pairs,
-                                        matches=matches, points_a=points_a, points_b=points_b, estimates=estimates)
+                                        matches=matches, points_a=points_a, points_b=points_b, estimates=estimates,
+                                        nominal_angles_deg=nominal, projections=projections)
         start = time.perf_counter()
         solution = self.refiner.refine(observations, rng=np.random.default_rng(seeds[-1]))
         timings["refine"] = time.perf_counter() - start
@@ -178,6 +192,7 @@ class Pipeline:
             angles_deg=np.rad2deg(solution.angles_rad),
             n_keypoints=np.array([len(f) for f in features], dtype=np.int64),
             timings_s=timings,
+            refiner_info=dict(solution.info),
         )
 
 
@@ -192,6 +207,18 @@ def _check_projections(projections, geometry: Geometry) -> np.ndarray:
                          f"{geometry.shape} (detector_rows, detector_cols)")
     check_image(projections.reshape(-1, projections.shape[-1]), name="projections")
     return projections
+
+
+def _check_nominal(nominal_angles_deg, n_views: int) -> np.ndarray:
+    nominal = np.asarray(nominal_angles_deg)
+    if nominal.shape != (n_views,) or not np.issubdtype(nominal.dtype, np.number) or np.iscomplexobj(nominal):
+        raise InputError(f"nominal_angles_deg: must be {n_views} real numbers, one per view, got shape "
+                         f"{nominal.shape} and dtype {nominal.dtype}")
+    nominal = nominal.astype(np.float64)
+    if not np.all(np.isfinite(nominal)):
+        raise InputError("nominal_angles_deg: must be finite, got NaN or infinite values")
+    nominal.flags.writeable = False
+    return nominal
 
 
 def _check_pairs(pairs, n_views: int) -> np.ndarray:

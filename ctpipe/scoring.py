@@ -89,10 +89,15 @@ def view_errors_deg(angles_deg, true_angles_deg) -> np.ndarray:
 
 
 def pair_errors_deg(pairs, pair_angles_deg, true_angles_deg) -> np.ndarray:
-    """Errors of pair angles ``est - (true_j - true_i)``, shape (P,); NaN where a pair failed."""
+    """Errors of pair angles ``est - (true_j - true_i)``, shape (P,); NaN where a pair failed.
+
+    Wrapped to [-180, 180): a pair across the seam of a full turn (view 359 to view 0) turns by
+    one step, not by -359 deg.
+    """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     truth = np.asarray(true_angles_deg, dtype=np.float64)
-    return np.asarray(pair_angles_deg, dtype=np.float64) - (truth[pairs[:, 1]] - truth[pairs[:, 0]])
+    error = np.asarray(pair_angles_deg, dtype=np.float64) - (truth[pairs[:, 1]] - truth[pairs[:, 0]])
+    return np.mod(error + 180.0, 360.0) - 180.0
 
 
 def align_offset(angles_deg, reference_deg, fallback_deg=None) -> tuple[np.ndarray, int]:

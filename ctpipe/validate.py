@@ -287,7 +287,7 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
     start = time.perf_counter()
     pipeline = Pipeline.from_config(settings.pipeline, registry=registry)
     with bar("estimating angles (detect)", n_views) as advance:
-        result = pipeline.run(jittered.projections, geometry, progress=advance)
+        result = pipeline.run(jittered.projections, geometry, nominal_angles_deg=nominal, progress=advance)
     timings["estimate"] = time.perf_counter() - start
 
     estimated_rel = result.angles_deg

@@ -14,6 +14,7 @@ from ctpipe.builtin.estimators import pair_estimate
 from ctpipe.data import PairEstimate, ScanObservations, ScanSolution
 from ctpipe.hookspecs import hookimpl
 from ctpipe.model import FailedEstimation, fit_angle
+from ctpipe.solve.graph import unwrap_pair_angles_deg
 from ctpipe.stages import Refiner, param
 
 
@@ -79,7 +80,8 @@ class LeastSquaresRefiner(Refiner):
             mask = estimate.inlier_mask
             alpha = fit_angle(q_a[mask], q_b[mask], objective=self.objective)
             refined.append(alpha if isinstance(alpha, FailedEstimation) else pair_estimate(alpha, mask, q_a, q_b))
-        angles = np.array([e.angle_rad if e else np.nan for e in refined])
+        angles = np.deg2rad(unwrap_pair_angles_deg(observations.pairs, np.rad2deg([e.angle_rad if e else np.nan for e in refined]),
+                                                   observations.nominal_angles_deg))
         weights = np.array([e.n_inliers if e else 0 for e in refined], dtype=np.float64)
         theta = chain_pair_angles(observations.n_views, observations.pairs, angles,
                                   weights if self.weighting == "inliers" else None)
