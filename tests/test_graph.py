@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from ctpipe.solve.graph import covers_full_turn, unwrap_pair_angles_deg, view_pairs
+from ctpipe.errors import InputError
+from ctpipe.solve.graph import LOSSES, covers_full_turn, solve_pair_graph, unwrap_pair_angles_deg, view_pairs
 
 
 def test_a_full_turn_is_recognised_from_its_nominal_angles():
@@ -46,3 +47,103 @@ def test_least_squares_closes_the_loop_with_the_seam_pairs():
     assert np.abs(err(closed) - np.median(err(closed))).max() < np.abs(err(open_) - np.median(err(open_))).max()
     with pytest.raises(Exception):
         unwrap_pair_angles_deg(pairs, pair_angles[:-1], nominal)
+
+
+def _ring(n_views, baselines, rng, jitter_deg=0.2):
+    nominal = np.arange(n_views) * 360.0 / n_views
+    truth = nominal + rng.normal(0.0, jitter_deg, n_views)
+    pairs = view_pairs(n_views, baselines, nominal)
+    exact = unwrap_pair_angles_deg(pairs, np.mod(truth[pairs[:, 1]] - truth[pairs[:, 0]] + 180.0, 360.0) - 180.0,
+                                   nominal)
+    return nominal, truth - truth[0], pairs, exact
+
+
+@pytest.mark.parametrize("loss", LOSSES)
+def test_noise_free_pairs_give_the_exact_angles_with_every_loss(loss):
+    _, truth, pairs, exact = _ring(90, (1, 2, 4), np.random.default_rng(1))
+    weights = np.random.default_rng(2).uniform(0.5, 2.0, len(pairs))
+    solution = solve_pair_graph(90, pairs, exact, weights, loss=loss, scale_deg=0.01)
+    np.testing.assert_allclose(solution.angles_deg, truth, atol=1e-9)
+    np.testing.assert_allclose(solution.residuals_deg, 0.0, atol=1e-9)
+    assert solution.converged
+
+
+def test_a_gross_outlier_pair_no_longer_drags_the_chain():
+    rng = np.random.default_rng(3)
+    _, truth, pairs, exact = _ring(120, (1, 2), rng)
+    measured = exact + rng.normal(0.0, 0.01, len(pairs))
+    bad = int(np.flatnonzero((pairs[:, 0] == 40) & (pairs[:, 1] == 41))[0])
+    without = solve_pair_graph(120, np.delete(pairs, bad, 0), np.delete(measured, bad), loss="linear").angles_deg
+    measured[bad] += 20.0                                     # a slipped pair
+    plain = solve_pair_graph(120, pairs, measured, loss="linear").angles_deg
+    assert np.abs(plain - without).max() > 3.0                # plain least squares spreads the 20 deg
+    for loss in ("soft-l1", "huber", "cauchy"):
+        solution = solve_pair_graph(120, pairs, measured, loss=loss, scale_deg=0.03)
+        # As if the pair were not there: soft-l1 and huber bound its pull to about scale_deg,
+        # cauchy's weight falls off fast enough to ignore it.
+        assert np.abs(solution.angles_deg - without).max() < (0.01 if loss == "cauchy" else 0.03), loss
+        assert solution.robust_weights[bad] < 0.01 < np.median(solution.robust_weights)
+
+
+def test_loop_closure_removes_the_linear_drift_of_a_biased_chain():
+    # Pair angles 3 % short, as the default scan's come out: chained, the error grows to 10 deg;
+    # the seam pair makes the ring add up to 360 deg and takes the drift out.
+    rng = np.random.default_rng(4)
+    nominal, truth, pairs, exact = _ring(360, (1,), rng)
+    wrapped = np.mod(exact + 180.0, 360.0) - 180.0             # as an estimator reports them
+    measured = unwrap_pair_angles_deg(pairs, 0.97 * wrapped + rng.normal(0.0, 0.005, len(pairs)), nominal)
+    seam = pairs[:, 1] < pairs[:, 0]
+    for loss in ("linear", "soft-l1"):
+        open_ = solve_pair_graph(360, pairs[~seam], measured[~seam], loss=loss).angles_deg - truth
+        closed = solve_pair_graph(360, pairs, measured, loss=loss, scale_deg=0.5).angles_deg - truth
+        assert np.abs(open_).max() > 9.0
+        assert np.abs(closed - np.median(closed)).max() < 0.05 * np.abs(open_).max(), loss
+
+
+def test_views_not_connected_to_view_0_get_nan_and_failed_pairs_are_ignored():
+    pairs = np.array([[0, 1], [1, 2], [3, 4], [2, 3]])
+    angles = np.array([1.0, 2.0, 4.0, np.nan])
+    solution = solve_pair_graph(6, pairs, angles)
+    np.testing.assert_allclose(solution.angles_deg[:3], [0.0, 1.0, 3.0], atol=1e-12)
+    assert np.isnan(solution.angles_deg[3:]).all()
+    assert np.isnan(solution.residuals_deg[2:]).all() and (solution.robust_weights[2:] == 0).all()
+    assert np.isnan(solve_pair_graph(3, np.zeros((0, 2), int), np.zeros(0)).angles_deg[1:]).all()
+
+
+def test_three_thousand_views_over_three_baselines_with_outliers():
+    rng = np.random.default_rng(5)
+    _, truth, pairs, exact = _ring(3000, (1, 2, 4), rng, jitter_deg=0.02)
+    measured = exact + rng.normal(0.0, 0.002, len(pairs))
+    bad = rng.choice(len(pairs), 30, replace=False)
+    measured[bad] += rng.choice([-1.0, 1.0], 30) * rng.uniform(2.0, 10.0, 30)
+    solution = solve_pair_graph(3000, pairs, measured, loss="soft-l1", scale_deg=0.005)
+    error = solution.angles_deg - truth
+    assert np.abs(error - np.median(error)).max() < 0.02
+    assert set(np.flatnonzero(solution.robust_weights < 0.1)) == set(bad)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"loss": "l1"}, "loss: 'l1' is not supported. Try one of ('linear', 'soft-l1', 'huber', 'cauchy')"),
+    ({"scale_deg": 0.0}, "scale_deg: must be a finite number > 0, got 0.0"),
+    ({"weights": -np.ones(2)}, "weights: must be 2 finite numbers >= 0"),
+])
+def test_bad_arguments_name_what_is_allowed(kwargs, message):
+    with pytest.raises(InputError) as info:
+        solve_pair_graph(3, np.array([[0, 1], [1, 2]]), np.array([1.0, 1.0]), **kwargs)
+    assert message in str(info.value)
+
+
+def test_the_least_squares_refiner_takes_a_loss_and_its_scale():
+    from ctpipe.config import parse_pipeline
+    from ctpipe.errors import ConfigError
+    from ctpipe.plugins import get_registry
+
+    registry = get_registry()
+    config = parse_pipeline({"refiner": {"name": "least-squares", "loss": "huber", "scale_deg": 0.1}}, registry)
+    assert dict(config.refiner.params) == {"loss": "huber", "scale_deg": 0.1}
+    with pytest.raises(ConfigError) as info:
+        parse_pipeline({"refiner": {"name": "least-squares", "loss": "l2"}}, registry)
+    assert "refiner.loss" in str(info.value) and "soft-l1" in str(info.value)
+    with pytest.raises(ConfigError) as info:
+        parse_pipeline({"refiner": {"name": "least-squares", "scale_deg": 0}}, registry)
+    assert "refiner.scale_deg" in str(info.value)

@@ -4,15 +4,30 @@ Views are taken in acquisition order. A full turn closes on itself: the last vie
 neighbours of the first ones, so pairing them ("loop closure") turns the chain of pair angles
 into a ring whose angles must add up to 360 deg, which removes the linear drift a chain
 accumulates.
+
+The per-view angles solve the pair equations ``theta[j] - theta[i] = alpha_ij`` in the least
+squares sense (:func:`chain_pair_angles`), or robustly (:func:`solve_pair_graph`): a pair whose
+angle is grossly wrong (matches on a repeated structure, a slipped estimate) then stops
+pulling the views around it once the other pairs through those views contradict it.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Literal
+
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import splu
 
 from ctpipe.errors import InputError
 
-__all__ = ["covers_full_turn", "view_pairs", "unwrap_pair_angles_deg"]
+__all__ = ["covers_full_turn", "view_pairs", "unwrap_pair_angles_deg", "chain_pair_angles", "solve_pair_graph",
+           "PairGraphSolution", "LOSSES"]
+
+#: Robust losses of :func:`solve_pair_graph`, as in ``scipy.optimize.least_squares``.
+LOSSES = ("linear", "soft-l1", "huber", "cauchy")
 
 
 def covers_full_turn(nominal_angles_deg) -> bool:
@@ -65,3 +80,181 @@ def unwrap_pair_angles_deg(pairs, pair_angles_deg, nominal_angles_deg=None) -> n
     nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
     expected = nominal[pairs[:, 1]] - nominal[pairs[:, 0]]
     return angles + 360.0 * np.round((expected - angles) / 360.0)
+
+
+@dataclass(frozen=True, eq=False)
+class PairGraphSolution:
+    """Per-view angles solved from pair angles (:func:`solve_pair_graph`).
+
+    Attributes
+    ----------
+    angles_deg : ndarray of shape (V,)
+        Angle of every view relative to view 0 (``angles_deg[0] == 0``); NaN for views not
+        connected to view 0 by usable pairs.
+    residuals_deg : ndarray of shape (P,)
+        ``theta[j] - theta[i] - alpha`` of every pair at the solution; NaN for pairs not used
+        (NaN angle, zero weight, or outside view 0's component).
+    robust_weights : ndarray of shape (P,)
+        The loss's final weight of every pair in [0, 1] (1: fully trusted, as in plain least
+        squares); 0 for pairs not used.
+    n_iterations : int
+        Reweighted solves after the first, plain one.
+    converged : bool
+        Whether the largest change of a view angle fell below the tolerance.
+    """
+
+    angles_deg: np.ndarray
+    residuals_deg: np.ndarray
+    robust_weights: np.ndarray
+    n_iterations: int
+    converged: bool
+
+
+def _robust_weights(residuals: np.ndarray, loss: str, scale: float) -> np.ndarray:
+    """IRLS weights ``rho'(z)`` with ``z = (r / scale)^2``: the losses of ``scipy.optimize.least_squares``."""
+    z = (residuals / scale) ** 2
+    if loss == "linear":
+        return np.ones_like(z)
+    if loss == "soft-l1":
+        return 1.0 / np.sqrt(1.0 + z)
+    if loss == "huber":
+        return np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1.0)))
+    return 1.0 / (1.0 + z)  # cauchy
+
+
+def _check_graph(n_views, pairs, angles, weights):
+    if not isinstance(n_views, (int, np.integer)) or isinstance(n_views, bool) or n_views < 1:
+        raise InputError(f"n_views: must be an integer >= 1, got {n_views!r}")
+    pairs = np.asarray(pairs)
+    if pairs.size == 0:
+        pairs = pairs.reshape(0, 2)
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or not np.issubdtype(pairs.dtype, np.integer):
+        raise InputError(f"pairs: must be an integer array of shape (P, 2), got {pairs.dtype} {pairs.shape}")
+    if pairs.size and (pairs.min() < 0 or pairs.max() >= n_views):
+        raise InputError(f"pairs: must index views 0..{n_views - 1}, got indices {pairs.min()}..{pairs.max()}")
+    angles = np.asarray(angles, dtype=np.float64).reshape(-1)
+    if len(angles) != len(pairs):
+        raise InputError(f"pair angles: must have one angle per pair ({len(pairs)}), got {len(angles)}")
+    w = np.ones(len(pairs)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    if len(w) != len(pairs) or np.any(w < 0) or not np.all(np.isfinite(w)):
+        raise InputError(f"weights: must be {len(pairs)} finite numbers >= 0, one per pair")
+    return pairs.astype(np.int64), angles, w
+
+
+def _solve(n_views: int, pairs: np.ndarray, angles: np.ndarray, w: np.ndarray, loss: str, scale: float,
+           max_iterations: int, tolerance: float) -> PairGraphSolution:
+    """Gauge ``theta[0] = 0``; angles in any unit, ``scale`` and ``tolerance`` in the same unit."""
+    theta = np.full(n_views, np.nan)
+    theta[0] = 0.0
+    residuals = np.full(len(pairs), np.nan)
+    robust = np.zeros(len(pairs))
+    usable = np.isfinite(angles) & (w > 0) & (pairs[:, 0] != pairs[:, 1])
+    if not usable.any():
+        return PairGraphSolution(theta, residuals, robust, 0, True)
+    used = pairs[usable]
+    graph = sp.coo_matrix((np.ones(len(used)), (used[:, 0], used[:, 1])), shape=(n_views, n_views))
+    _, labels = connected_components(graph, directed=False)
+    component = np.flatnonzero(labels == labels[0])
+    if component.size == 1:
+        return PairGraphSolution(theta, residuals, robust, 0, True)
+    position = np.full(n_views, -1)
+    position[component] = np.arange(component.size)
+    inside = usable & (position[pairs[:, 0]] >= 0) & (position[pairs[:, 1]] >= 0)
+    i, j = position[pairs[inside, 0]], position[pairs[inside, 1]]
+    alpha, prior = angles[inside], w[inside]
+    rows = np.arange(inside.sum())
+    # Incidence without view 0's column: the gauge theta[0] = 0 is built into the unknowns.
+    incidence = sp.csr_matrix((np.r_[-np.ones(rows.size), np.ones(rows.size)], (np.r_[rows, rows], np.r_[i, j])),
+                              shape=(rows.size, component.size))[:, 1:].tocsc()
+
+    def solve(weights: np.ndarray) -> np.ndarray:
+        weighted = incidence.multiply(weights[:, None]).tocsc()
+        normal = (incidence.T @ weighted).tocsc()
+        x = np.zeros(component.size)
+        x[1:] = splu(normal).solve(weighted.T @ alpha)
+        return x
+
+    weights = np.ones(rows.size)
+    x = solve(prior)
+    iterations, converged = 0, loss == "linear"
+    while not converged and iterations < max_iterations:
+        weights = _robust_weights(x[j] - x[i] - alpha, loss, scale)
+        previous, x = x, solve(prior * weights)
+        iterations += 1
+        converged = float(np.max(np.abs(x - previous))) <= tolerance
+    theta[component] = x
+    residuals[inside] = x[j] - x[i] - alpha
+    robust[inside] = _robust_weights(residuals[inside], loss, scale)
+    return PairGraphSolution(theta, residuals, robust, iterations, converged)
+
+
+def chain_pair_angles(n_views: int, pairs, angles_rad, weights=None) -> np.ndarray:
+    """Per-view angles from relative pair angles by weighted least squares on the view graph.
+
+    Solves ``min sum_k w_k (theta[j_k] - theta[i_k] - angles_rad[k])^2`` with ``theta[0] = 0``.
+    With consecutive pairs only this is the running sum. Pairs with a NaN angle are ignored;
+    views not connected to view 0 get NaN.
+
+    Parameters
+    ----------
+    n_views : int
+    pairs : ndarray of shape (P, 2), int
+    angles_rad : ndarray of shape (P,)
+        Unwrapped pair angles (:func:`unwrap_pair_angles_deg`), radians.
+    weights : ndarray of shape (P,), optional
+        Non-negative; 0 drops a pair.
+
+    Returns
+    -------
+    ndarray of shape (n_views,), radians
+    """
+    pairs, angles, w = _check_graph(n_views, pairs, angles_rad, weights)
+    return _solve(int(n_views), pairs, angles, w, "linear", 1.0, 0, 0.0).angles_deg
+
+
+def solve_pair_graph(n_views: int, pairs, pair_angles_deg, weights=None, *,
+                     loss: Literal["linear", "soft-l1", "huber", "cauchy"] = "soft-l1", scale_deg: float = 0.05,
+                     max_iterations: int = 100, tolerance_deg: float = 1e-7) -> PairGraphSolution:
+    """Per-view angles from pair angles with a robust loss, by iteratively reweighted least squares.
+
+    Minimises ``sum_k w_k rho((theta[j_k] - theta[i_k] - alpha_k)^2 / scale_deg^2)`` with
+    ``theta[0] = 0``, ``rho`` the loss of ``scipy.optimize.least_squares`` of that name
+    (``linear``: plain least squares). Each iteration solves the sparse normal equations of the
+    incidence system with the weights ``w_k rho'(z_k)`` of the previous residuals, starting
+    from the plain least-squares solution. Residuals much larger than ``scale_deg`` get a
+    weight ~ ``scale_deg / |r|`` (soft-l1, huber) or ~ ``(scale_deg / r)^2`` (cauchy), so a
+    gross outlier pair stops dragging its views once other pairs (other baselines, the seam of
+    a full turn) tie them.
+
+    Parameters
+    ----------
+    n_views : int
+    pairs : ndarray of shape (P, 2), int
+    pair_angles_deg : ndarray of shape (P,)
+        ``theta[j] - theta[i]`` measured, already unwrapped (:func:`unwrap_pair_angles_deg`);
+        NaN for failed pairs, which are ignored.
+    weights : ndarray of shape (P,), optional
+        Prior weight of each pair (e.g. its inlier count), >= 0; 0 drops a pair.
+    loss : {"soft-l1", "huber", "cauchy", "linear"}
+    scale_deg : float
+        Residual (degrees) up to which a pair counts as an inlier; > 0. About the spread of the
+        good pairs' errors.
+    max_iterations : int
+        Reweighted solves at most.
+    tolerance_deg : float
+        Stop when no view angle moves by more than this between iterations.
+
+    Returns
+    -------
+    PairGraphSolution
+        Views not connected to view 0 get NaN. Without any conflicting pair (a chain, or
+        noise-free pairs) the answer is the exact least-squares one.
+    """
+    if loss not in LOSSES:
+        raise InputError(f"loss: {loss!r} is not supported. Try one of {LOSSES}")
+    if not (isinstance(scale_deg, (int, float)) and np.isfinite(scale_deg) and scale_deg > 0):
+        raise InputError(f"scale_deg: must be a finite number > 0, got {scale_deg!r}")
+    if not isinstance(max_iterations, (int, np.integer)) or max_iterations < 0:
+        raise InputError(f"max_iterations: must be an integer >= 0, got {max_iterations!r}")
+    pairs, angles, w = _check_graph(n_views, pairs, pair_angles_deg, weights)
+    return _solve(int(n_views), pairs, angles, w, loss, float(scale_deg), int(max_iterations), float(tolerance_deg))
