@@ -23,6 +23,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "ctpipe.builtin.matchers",
     "ctpipe.builtin.estimators",
     "ctpipe.builtin.refiners",
+    "ctpipe.builtin.bundle",
 )
 
 #: Entry-point group third-party distributions advertise their plugins in.
