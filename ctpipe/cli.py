@@ -102,7 +102,7 @@ def _cmd_estimate(args) -> int:
             print(f"view {view:5d}  {angle:12.5f} deg")
         if truth is not None:
             table = report["angle_errors"]["views"]
-            print(f"against the true angles in scan.yaml: MAE {table['mae_deg']:.4f} deg, "
+            print(f"against the true angles in scan.yaml: RMS {table['rms_deg']:.4f} deg, MAE {table['mae_deg']:.4f} deg, "
                   f"max {table['max_deg']:.4f} deg ({table['estimated']}/{table['total']} views)")
         if failed:
             print(f"warning: {len(failed)} pairs failed, e.g. {failed[0]}", file=sys.stderr)

@@ -41,7 +41,8 @@ from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.volume import VolumeGrid
 
-__all__ = ["FILTERS", "fdk", "view_weights", "parker_weights", "ramp_filter"]
+__all__ = ["FILTERS", "fdk", "view_weights", "parker_weights", "ramp_filter", "covers_full_circle",
+           "short_scan_minimum_deg"]
 
 #: Apodisation windows of the ramp filter, from sharpest to smoothest.
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
@@ -107,6 +108,23 @@ def _fan_angles(geometry: Geometry) -> np.ndarray:
     """
     cols = np.arange(geometry.detector_cols)
     return np.arctan((cols - geometry.u0_px) * geometry.pixel_pitch_u_mm / geometry.source_to_detector_mm)
+
+
+def short_scan_minimum_deg(geometry: Geometry) -> float:
+    """The least angular range (degrees) a Parker-weighted short scan with ``geometry`` needs: 180 + fan angle.
+
+    The fan angle is twice the largest in-plane angle of a detector column from the central
+    ray (columns measured from ``u0_px``, so an off-centre detector has the wider side's fan).
+    """
+    return 180.0 + 2.0 * math.degrees(float(np.max(np.abs(_fan_angles(geometry)))))
+
+
+def covers_full_circle(angles_deg) -> bool:
+    """True when :func:`fdk` with ``short_scan=None`` treats these angles as a full scan.
+
+    See :func:`_covers_full_circle`: no circular gap wider than five typical steps.
+    """
+    return _covers_full_circle(np.deg2rad(np.asarray(angles_deg, dtype=np.float64)))
 
 
 def _full_scan_step(theta_sorted: np.ndarray) -> float:
@@ -224,7 +242,7 @@ def _validate(projections, geometry, angles_deg, grid, filter, short_scan, progr
 def _scan_weights(angles_rad: np.ndarray, geometry: Geometry, short_scan: bool | None):
     """Per-view intervals (V,) and per-(view, column) redundancy weights (V, cols) or None."""
     gamma = _fan_angles(geometry)
-    fan_deg = 2.0 * math.degrees(float(np.max(np.abs(gamma))))
+    minimum_deg = short_scan_minimum_deg(geometry)
     order = np.sort(angles_rad)
     span = float(order[-1] - order[0])
     step = _full_scan_step(order)
@@ -238,13 +256,12 @@ def _scan_weights(angles_rad: np.ndarray, geometry: Geometry, short_scan: bool |
             ends = np.argsort(angles_rad, kind="stable")[[0, -1]]
             intervals[ends] += 0.5 * step
         return 0.5 * intervals, None
-    minimum_deg = 180.0 + fan_deg
     if span >= 2.0 * np.pi:
         raise InputError(f"short_scan: True needs an angular range < 360 deg, got {math.degrees(span):.2f} deg")
     if math.degrees(span) < minimum_deg - 1e-6:
         raise InputError(
             f"angles_deg: a short scan needs an angular range of at least {minimum_deg:.2f} deg "
-            f"(180 + fan angle {fan_deg:.2f} deg), got {math.degrees(span):.2f} deg; "
+            f"(180 + fan angle {minimum_deg - 180.0:.2f} deg), got {math.degrees(span):.2f} deg; "
             "pass short_scan=False to reconstruct a limited-angle scan without Parker weights")
     delta = max(0.5 * (span - np.pi), float(np.max(np.abs(gamma))))
     redundancy = parker_weights(angles_rad - order[0], gamma, delta)

@@ -157,14 +157,16 @@ def slices_png(volumes: dict[str, np.ndarray], reference: np.ndarray, *, axial_i
 
 
 def angle_errors_png(view_errors_deg: dict[str, np.ndarray], title: str = "") -> bytes:
-    """Per-view angle error (degrees) of each angle set against the truth, one line each."""
+    """Per-view angle error (degrees) of each angle set against the truth, one line each (NaN: a gap)."""
     plt = _pyplot()
 
     fig, ax = plt.subplots(figsize=(9, 4.2), dpi=110)
     for label, errors in view_errors_deg.items():
         errors = np.asarray(errors, dtype=float)
-        mae = np.nanmean(np.abs(errors)) if np.isfinite(errors).any() else np.nan
-        ax.plot(np.arange(len(errors)), errors, lw=1, label=f"{label} (MAE {mae:.3g} deg)")
+        finite = errors[np.isfinite(errors)]
+        rms = np.sqrt(np.mean(finite**2)) if finite.size else np.nan
+        mae = np.mean(np.abs(finite)) if finite.size else np.nan
+        ax.plot(np.arange(len(errors)), errors, lw=1, label=f"{label} (RMS {rms:.3g}, MAE {mae:.3g} deg)")
     ax.axhline(0.0, color="k", lw=0.5)
     ax.set_xlabel("view")
     ax.set_ylabel("angle error (deg), common offset removed")

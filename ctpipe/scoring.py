@@ -56,21 +56,22 @@ def error_table(errors_deg, n_total: int | None = None) -> dict[str, float | int
     -------
     dict
         ``estimated``, ``total``, ``mae_deg``, ``std_deg`` (of the absolute errors),
-        ``min_deg``, ``q25_deg``, ``median_deg``, ``q75_deg``, ``max_deg``, and ``rmse_deg``,
-        ``bias_deg`` of the signed errors. NaN statistics when nothing was estimated.
+        ``min_deg``, ``q25_deg``, ``median_deg``, ``q75_deg``, ``max_deg``, and ``rms_deg``
+        (root mean square), ``bias_deg`` (mean) of the signed errors. NaN statistics when
+        nothing was estimated.
     """
     errors = np.asarray(errors_deg, dtype=np.float64).reshape(-1)
     finite = errors[np.isfinite(errors)]
     table: dict[str, float | int] = {"estimated": int(finite.size), "total": int(n_total if n_total is not None else errors.size)}
     if finite.size == 0:
         return table | {k: math.nan for k in ("mae_deg", "std_deg", "min_deg", "q25_deg", "median_deg", "q75_deg",
-                                               "max_deg", "rmse_deg", "bias_deg")}
+                                               "max_deg", "rms_deg", "bias_deg")}
     absolute = np.abs(finite)
     q25, median, q75 = np.percentile(absolute, [25, 50, 75])
     return table | {
         "mae_deg": float(absolute.mean()), "std_deg": float(absolute.std()), "min_deg": float(absolute.min()),
         "q25_deg": float(q25), "median_deg": float(median), "q75_deg": float(q75), "max_deg": float(absolute.max()),
-        "rmse_deg": float(np.sqrt(np.mean(finite**2))), "bias_deg": float(finite.mean()),
+        "rms_deg": float(np.sqrt(np.mean(finite**2))), "bias_deg": float(finite.mean()),
     }
 
 

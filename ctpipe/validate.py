@@ -13,6 +13,17 @@ One run:
    geometric error from discretisation), and reports the recovery
    ``(PSNR_est - PSNR_nominal) / (PSNR_true - PSNR_nominal)``, negative when the correction hurts.
 
+The per-view angle errors are reported for the nominal angles, the pipeline's angles
+(``estimated``) and ``pair-chained``: the consecutive pair angles summed along the scan by plain
+least squares without loop closure, what a pair-by-pair method gives, so a report shows what
+the whole-scan refiner gains.
+
+Whatever angles the pipeline returns (NaN views, a diverged span, views out of order), the
+run reconstructs and reports: views without an angle take their nominal one, the estimated
+angles are reconstructed with the nominal scan's full/short-scan decision, a reconstruction
+FDK refuses is scored as failed, and the verdict says what went wrong. Settings FDK or the
+simulation would refuse late are refused before the first projection (:func:`check_experiment`).
+
 An experiment file::
 
     phantom: granular                 # a built-in name or a phantom YAML path
@@ -30,6 +41,7 @@ The built-in default is ``ctpipe/data/validate.yaml``.
 
 from __future__ import annotations
 
+import math
 import platform
 import time
 from collections.abc import Callable, Mapping
@@ -48,8 +60,11 @@ from ctpipe.registry import StageRegistry
 from ctpipe.stages import ParamSpec, check_value
 from ctpipe.volume import VolumeGrid
 
-__all__ = ["ValidateSettings", "load_validate_settings", "parse_validate", "run_validate", "ValidateReport",
-           "bin_detector"]
+__all__ = ["ValidateSettings", "load_validate_settings", "parse_validate", "check_experiment", "run_validate",
+           "ValidateReport", "bin_detector", "binned_geometry", "pair_chained_deg", "estimate_problems"]
+
+#: Per-view angle sets of the report, in the order they are printed.
+VIEW_LABELS = ("nominal", "pair-chained", "estimated")
 
 Progress = Callable[[str, int], Any]
 
@@ -131,8 +146,58 @@ def parse_validate(mapping: Any, registry: StageRegistry, *, base_dir: Path | No
         raise ConfigError(f"{path}.reconstruction.detector_binning: must divide the detector size "
                           f"{geometry.detector_cols} x {geometry.detector_rows}, got {values['detector_binning']}")
     seed = check_value(ParamSpec("seed", int, 0, "", ge=0), mapping.get("seed", 0), f"{path}.seed")
-    return ValidateSettings(phantom_ref=phantom_ref, phantom=phantom, scan=scan, pipeline=pipeline,
-                            reconstruction=ReconstructionSettings(**values), seed=seed, source=source)
+    settings = ValidateSettings(phantom_ref=phantom_ref, phantom=phantom, scan=scan, pipeline=pipeline,
+                                reconstruction=ReconstructionSettings(**values), seed=seed, source=source)
+    check_experiment(settings, path=path)
+    return settings
+
+
+def check_experiment(settings: ValidateSettings, *, path: str = "experiment") -> None:
+    """Refuse, in milliseconds, what the simulation, the pipeline or FDK would only refuse late.
+
+    Checks that the jitter can be drawn for this many views (a ``jumps.count`` needs more
+    views), that the pipeline has view pairs to estimate, that a short scan (nominal angles not
+    covering a full circle) spans at least 180 deg + the fan angle of the reconstruction's
+    (binned) detector, also once jittered with the experiment's seed, and that the grid has
+    voxels inside the object.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the YAML path, the value and what is allowed.
+    """
+    from ctpipe.fdk import covers_full_circle, short_scan_minimum_deg
+    from ctpipe.scoring import support_mask
+    from ctpipe.solve.graph import view_pairs
+
+    scan = settings.scan
+    nominal = scan.nominal_angles_deg()
+    try:
+        # simulate() draws the jitter first from default_rng(seed): these are the true angles.
+        truth = nominal + scan.jitter.sample(nominal, np.random.default_rng(settings.seed))
+    except InputError as exc:
+        raise ConfigError(f"{path}.scan.jitter: cannot be drawn for {scan.n_views} views: {exc}") from None
+    pipeline = settings.pipeline
+    if scan.n_views < 2 or not len(view_pairs(scan.n_views, pipeline.baselines, nominal,
+                                              loop_closure=pipeline.loop_closure)):
+        raise ConfigError(f"{path}.scan.angles.n_views: the pipeline needs view pairs; baselines "
+                          f"{list(pipeline.baselines)} need more than {max(pipeline.baselines)} views, got {scan.n_views}")
+    geometry = binned_geometry(scan.geometry, settings.reconstruction.detector_binning)
+    if not covers_full_circle(nominal):
+        minimum = short_scan_minimum_deg(geometry)
+        span = float(np.ptp(nominal))
+        if span < minimum - 1e-6:
+            raise ConfigError(f"{path}.scan.angles.range_deg: a short scan must span at least {minimum:.2f} deg "
+                              f"(180 + fan angle {minimum - 180.0:.2f} deg of this geometry), got {span:g} deg")
+        if float(np.ptp(truth)) < minimum - 1e-6:
+            raise ConfigError(f"{path}.scan.jitter: the jittered angles (seed {settings.seed}) span "
+                              f"{float(np.ptp(truth)):.2f} deg, less than the {minimum:.2f} deg a short scan needs "
+                              f"(180 + fan angle); widen {path}.scan.angles.range_deg")
+    phantom = settings.phantom
+    try:
+        support_mask(_grid(settings), phantom.radius_mm, phantom.half_height_mm, margin_voxels=2.0)
+    except InputError as exc:
+        raise ConfigError(f"{path}.reconstruction.voxel_size_mm: the grid misses the object: {exc}") from None
 
 
 def load_validate_settings(path: str | Path | None, registry: StageRegistry) -> ValidateSettings:
@@ -154,11 +219,81 @@ def bin_detector(projections: np.ndarray, geometry: Geometry, factor: int) -> tu
         return projections, geometry
     v, rows, cols = projections.shape
     binned = projections.reshape(v, rows // factor, factor, cols // factor, factor).mean(axis=(2, 4), dtype=np.float32)
+    return binned.astype(np.float32), binned_geometry(geometry, factor)
+
+
+def binned_geometry(geometry: Geometry, factor: int) -> Geometry:
+    """The geometry of :func:`bin_detector`'s output: same rays, ``factor`` times coarser pixels."""
+    if factor == 1:
+        return geometry
     shift = (factor - 1) / 2.0
-    return binned.astype(np.float32), Geometry(
-        geometry.source_to_object_mm, geometry.source_to_detector_mm, cols // factor, rows // factor,
-        geometry.pixel_pitch_u_mm * factor, geometry.pixel_pitch_v_mm * factor,
-        (geometry.u0_px - shift) / factor, (geometry.v0_px - shift) / factor)
+    return Geometry(geometry.source_to_object_mm, geometry.source_to_detector_mm, geometry.detector_cols // factor,
+                    geometry.detector_rows // factor, geometry.pixel_pitch_u_mm * factor,
+                    geometry.pixel_pitch_v_mm * factor, (geometry.u0_px - shift) / factor,
+                    (geometry.v0_px - shift) / factor)
+
+
+def pair_chained_deg(pairs, pair_angles_deg, nominal_angles_deg) -> np.ndarray:
+    """View angles (degrees, view 0 = 0) from the consecutive pairs ``(i, i + 1)`` alone, chained.
+
+    Plain least squares on a chain is the running sum of the pair angles; no other baseline and
+    no seam pair (loop closure) enters. Views after a failed pair get NaN.
+
+    Parameters
+    ----------
+    pairs : ndarray of shape (P, 2), int
+    pair_angles_deg : ndarray of shape (P,)
+        As the pipeline returns them, in (-180, 180]; unwrapped here against the nominal angles.
+    nominal_angles_deg : ndarray of shape (V,)
+    """
+    from ctpipe.solve.graph import chain_pair_angles, unwrap_pair_angles_deg
+
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
+    consecutive = pairs[:, 1] - pairs[:, 0] == 1
+    angles = unwrap_pair_angles_deg(pairs[consecutive], np.asarray(pair_angles_deg)[consecutive], nominal)
+    return np.rad2deg(chain_pair_angles(len(nominal), pairs[consecutive], np.deg2rad(angles)))
+
+
+def estimate_problems(estimated_deg, true_deg, range_deg: float) -> list[str]:
+    """What is wrong with a set of estimated view angles, in words; empty when nothing stands out.
+
+    Looks at views without an angle, the span of the estimated angles against the true one
+    (off by more than a typical step and 1 deg: drift; by more than 10 % of the scan range:
+    divergence), and consecutive views whose order disagrees with the truth.
+
+    Parameters
+    ----------
+    estimated_deg : ndarray of shape (V,)
+        Relative to view 0, NaN where not estimated.
+    true_deg : ndarray of shape (V,)
+    range_deg : float
+        The scan's nominal range (360 for a full turn).
+    """
+    estimated = np.asarray(estimated_deg, dtype=np.float64)
+    truth = np.asarray(true_deg, dtype=np.float64)
+    n = estimated.size
+    known = np.isfinite(estimated)
+    if known.sum() <= 1:
+        return [f"the pipeline estimated no view angle ({n - int(known.sum())} of {n} views without one): "
+                "the estimated reconstruction uses the nominal angles"]
+    problems = []
+    if not known.all():
+        problems.append(f"{n - int(known.sum())} of {n} views have no estimated angle and keep their nominal one")
+    span, true_span = float(np.ptp(estimated[known])), float(np.ptp(truth[known]))
+    step = float(np.median(np.abs(np.diff(truth)))) if n > 1 else 0.0
+    if abs(span - true_span) > max(step, 1.0):
+        how = "the estimate diverged" if abs(span - true_span) > 0.1 * range_deg else \
+            f"the estimate drifts by {span - true_span:+.2f} deg over the scan"
+        problems.append(f"the estimated angles span {span:.0f} deg over a {range_deg:g} deg scan (the true angles "
+                        f"span {true_span:.1f} deg): {how}")
+    both = known[1:] & known[:-1]
+    turn, true_turn = np.diff(estimated)[both], np.diff(truth)[both]
+    wrong = int(np.count_nonzero(np.sign(turn) != np.sign(true_turn)))
+    if wrong:
+        problems.append(f"{wrong} of {int(both.sum())} consecutive view pairs turn the wrong way against the truth: "
+                        "the estimate reorders views")
+    return problems
 
 
 def _grid(settings: ValidateSettings) -> VolumeGrid:
@@ -187,16 +322,18 @@ class ValidateReport:
     view_errors: dict[str, np.ndarray]
     timings_s: dict[str, float]
     notes: list[str]
+    problems: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
 
     def summary_lines(self) -> list[str]:
         """A short plain-text account: the angle tables, the reconstruction scores, the verdict."""
         lines = []
         t = self.angle_tables
         lines.append("angle error per view (deg, common offset removed):")
-        for label in ("nominal", "estimated"):
+        for label in VIEW_LABELS:
             s = t["views"][label]
-            lines.append(f"  {label:<9}  {s['estimated']}/{s['total']} views  MAE {s['mae_deg']:.4f}  "
-                         f"median {s['median_deg']:.4f}  max {s['max_deg']:.4f}")
+            lines.append(f"  {label:<12}  {s['estimated']}/{s['total']} views  RMS {s['rms_deg']:.4f}  "
+                         f"MAE {s['mae_deg']:.4f}  median {s['median_deg']:.4f}  max {s['max_deg']:.4f}")
         s = t["pairs"]["estimated"]
         lines.append(f"angle error per pair (deg): {s['estimated']}/{s['total']} pairs  MAE {s['mae_deg']:.4f}  "
                      f"std {s['std_deg']:.4f}  min {s['min_deg']:.4f}  q25 {s['q25_deg']:.4f}  "
@@ -206,6 +343,9 @@ class ValidateReport:
                          " (inside the support):")
             for label in ("nominal", "estimated", "true"):
                 m = self.metrics[reference][label]
+                if label in self.failed:
+                    lines.append(f"  {label:<9}  failed: {self.failed[label]}")
+                    continue
                 lines.append(f"  {label:<9}  PSNR {m['psnr_db']:6.2f} dB  SSIM {m['ssim']:.4f}  "
                              f"relative RMSE {m['relative_rmse']:.4f}")
             lines.append(f"  recovery {self.recovery[reference]:+.3f}")
@@ -221,13 +361,19 @@ class ValidateReport:
         m = self.metrics["reference"]
         visible = m["true"]["psnr_db"] - m["nominal"]["psnr_db"]
         gain = m["estimated"]["psnr_db"] - m["nominal"]["psnr_db"]
+        wrong = "" if not self.problems else "; what went wrong: " + "; ".join(self.problems)
+        if "estimated" in self.failed:
+            head = (f"the jitter is visible (true angles {visible:+.2f} dB over the nominal ones)" if visible > 0 else
+                    f"the jitter is not visible at this grid (true angles {visible:+.2f} dB against the nominal ones)")
+            return (f"verdict: {head}; the estimated angles could not be reconstructed "
+                    f"({self.failed['estimated']}){wrong}")
         if not visible > 0:
             return (f"verdict: the jitter is not visible at this grid (true angles {visible:+.2f} dB against the "
-                    "nominal ones); the experiment cannot judge the correction")
+                    f"nominal ones); the experiment cannot judge the correction{wrong}")
         effect = "improve on" if gain > 0 else "are worse than"
         return (f"verdict: the jitter is visible (true angles {visible:+.2f} dB over the nominal ones); the estimated "
                 f"angles {effect} the nominal ones by {abs(gain):.2f} dB, recovering "
-                f"{100.0 * self.recovery['reference']:.0f} % of what the true angles gain")
+                f"{100.0 * self.recovery['reference']:.0f} % of what the true angles gain{wrong}")
 
     def to_dict(self) -> dict[str, Any]:
         import cv2
@@ -242,12 +388,13 @@ class ValidateReport:
             "settings": self.settings.to_dict(),
             "grid": self.grid.to_dict(),
             "angle_errors": self.angle_tables,
-            "reconstruction": {"metrics": self.metrics, "recovery": self.recovery},
+            "reconstruction": {"metrics": self.metrics, "recovery": self.recovery, "failed": self.failed},
             "pipeline": {"n_pairs": int(len(result.pairs)), "pairs_ok": int(sum(s == "ok" for s in result.pair_status)),
                          "median_inliers": float(np.median(result.n_inliers)),
                          "median_matches": float(np.median(result.n_matches)),
                          "median_keypoints": float(np.median(result.n_keypoints)),
-                         "timings_s": result.timings_s},
+                         "timings_s": result.timings_s, "refiner": result.refiner_info},
+            "estimate_problems": self.problems,
             "timings_s": self.timings_s,
             "verdict": self.verdict(),
             "notes": self.notes,
@@ -260,7 +407,7 @@ class ValidateReport:
 def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
                  progress: Callable[[str, int], Any] | None = None) -> ValidateReport:
     """Run the experiment; ``progress(step, total)`` returns a context manager yielding an ``advance(n)``."""
-    from ctpipe.fdk import fdk
+    from ctpipe.fdk import covers_full_circle, fdk
     from ctpipe.pipeline import Pipeline
     from ctpipe.scoring import (align_offset, error_table, pair_errors_deg, recovery, support_mask, view_errors_deg,
                                 volume_metrics)
@@ -269,6 +416,7 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
     def bar(step: str, total: int):
         return progress(step, total) if progress is not None else nullcontext(None)
 
+    check_experiment(settings)
     timings: dict[str, float] = {}
     notes: list[str] = []
     rng = np.random.default_rng(settings.seed)
@@ -295,7 +443,11 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
     nominal_aligned, _ = align_offset(nominal, truth)
     if n_filled:
         notes.append(f"{n_filled} views were not connected to view 0 by estimated pairs; they keep their nominal angle")
-    view_errors = {"nominal": view_errors_deg(nominal, truth), "estimated": view_errors_deg(estimated_rel, truth)}
+    problems = estimate_problems(estimated_rel, truth, scan.angles.range_deg)
+    view_errors = {"nominal": view_errors_deg(nominal, truth),
+                   "pair-chained": view_errors_deg(pair_chained_deg(result.pairs, result.pair_angles_deg, nominal),
+                                                   truth),
+                   "estimated": view_errors_deg(estimated_rel, truth)}
     pair_truth_errors = pair_errors_deg(result.pairs, result.pair_angles_deg, truth)
     nominal_pairs = nominal[result.pairs[:, 1]] - nominal[result.pairs[:, 0]]
     angle_tables = {
@@ -309,22 +461,34 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
     start = time.perf_counter()
     projections, recon_geometry = bin_detector(jittered.projections, geometry, binning)
     reference_projections, _ = bin_detector(reference_scan.projections, geometry, binning)
-    volumes = {}
+    volumes, failed = {}, {}
     angle_sets = {"nominal": nominal_aligned, "estimated": estimated, "true": truth}
+    # Every angle set is weighted as the nominal scan is (full or Parker short scan): a diverged
+    # estimate spanning more than a turn must not switch the estimated reconstruction's weighting.
+    short_scan = not covers_full_circle(nominal)
     with bar("reconstructing (FDK x 4)", 4 * n_views) as advance:
         for label, angles in angle_sets.items():
-            volumes[label] = fdk(projections, recon_geometry, angles, grid, filter=settings.reconstruction.filter,
-                                 progress=advance)
+            try:
+                volumes[label] = fdk(projections, recon_geometry, angles, grid, filter=settings.reconstruction.filter,
+                                     short_scan=short_scan, progress=advance)
+            except InputError as exc:
+                if label != "estimated":
+                    raise
+                failed[label] = f"FDK refused the estimated angles: {exc}"
+                if advance is not None:
+                    advance(n_views)
         reference_volume = fdk(reference_projections, recon_geometry, reference_scan.true_angles_deg, grid,
-                               filter=settings.reconstruction.filter, progress=advance)
+                               filter=settings.reconstruction.filter, short_scan=short_scan, progress=advance)
     timings["reconstruct"] = time.perf_counter() - start
 
     start = time.perf_counter()
     phantom_volume = voxelise_phantom(phantom, grid)
     mask = support_mask(grid, phantom.radius_mm, phantom.half_height_mm, margin_voxels=2.0)
+    unscored = {"rmse": math.nan, "relative_rmse": math.nan, "psnr_db": math.nan, "ssim": math.nan}
     metrics = {
-        "phantom": {label: volume_metrics(v, phantom_volume, mask) for label, v in volumes.items()},
-        "reference": {label: volume_metrics(v, reference_volume, mask) for label, v in volumes.items()},
+        name: {label: volume_metrics(volumes[label], target, mask) if label in volumes else dict(unscored)
+               for label in angle_sets}
+        for name, target in (("phantom", phantom_volume), ("reference", reference_volume))
     }
     gains = {ref: recovery(m["estimated"]["psnr_db"], m["nominal"]["psnr_db"], m["true"]["psnr_db"])
              for ref, m in metrics.items()}
@@ -336,7 +500,8 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
     return ValidateReport(settings=settings, grid=grid, nominal_deg=nominal, true_deg=truth, estimated_deg=estimated,
                           pipeline_result=result, volumes=volumes, phantom_volume=phantom_volume,
                           reference_volume=reference_volume, metrics=metrics, recovery=gains,
-                          angle_tables=angle_tables, view_errors=view_errors, timings_s=timings, notes=notes)
+                          angle_tables=angle_tables, view_errors=view_errors, timings_s=timings, notes=notes,
+                          problems=problems, failed=failed)
 
 
 def write_validate_outputs(report: ValidateReport, out: str | Path) -> list[Path]:
@@ -354,17 +519,19 @@ def write_validate_outputs(report: ValidateReport, out: str | Path) -> list[Path
     labels = {"nominal": "nominal angles", "estimated": "estimated angles", "true": "true angles"}
     volumes = {labels[k]: v for k, v in report.volumes.items()}
     slices = slices_png(volumes, report.phantom_volume, axial_index=grid.n_y // 3, vertical_index=grid.n_z // 2,
-                        title="FDK of the jittered scan; columns: phantom, nominal, estimated, true angles")
+                        title="FDK of the jittered scan; columns: phantom, " + ", ".join(volumes)
+                        + ("" if not report.failed else f" ({', '.join(report.failed)} failed)"))
     errors = angle_errors_png({"nominal angles": report.view_errors["nominal"],
-                               "estimated angles": report.view_errors["estimated"]},
+                               "pair-chained (consecutive pairs, no loop closure)": report.view_errors["pair-chained"],
+                               "estimated angles (whole-scan refiner)": report.view_errors["estimated"]},
                               title="per-view angle error against the truth")
-    rows = [[v, n, t, e, en, ee] for v, (n, t, e, en, ee) in enumerate(zip(
+    rows = [[v, n, t, e, en, ee, ec] for v, (n, t, e, en, ee, ec) in enumerate(zip(
         report.nominal_deg, report.true_deg, report.pipeline_result.angles_deg, report.view_errors["nominal"],
-        report.view_errors["estimated"]))]
+        report.view_errors["estimated"], report.view_errors["pair-chained"]))]
     return [
         write_json(out / "report.json", report.to_dict()),
         write_csv(out / "angles.csv", ["view", "nominal_deg", "true_deg", "estimated_relative_deg",
-                                       "nominal_error_deg", "estimated_error_deg"], rows),
+                                       "nominal_error_deg", "estimated_error_deg", "pair_chained_error_deg"], rows),
         atomic_write(out / "slices.png", lambda h: h.write(slices)),
         atomic_write(out / "angle_errors.png", lambda h: h.write(errors)),
     ]

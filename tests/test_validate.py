@@ -215,3 +215,174 @@ def test_cli_simulate_refuses_an_out_that_is_a_file_before_projecting(tmp_path):
 def test_cli_estimate_of_a_missing_path_says_so_rather_than_asking_for_a_geometry(tmp_path):
     code, _, err = run_cli("estimate", str(tmp_path / "nope"))
     assert code == 2 and err.count("\n") == 1 and "nope: no such file or scan folder" in err
+
+
+# --- a bad estimate is reported, never fatal ------------------------------------------------
+
+# 24 views on a 64^2 detector and a 24^3 grid: seconds, enough to reconstruct and score.
+TINY = {**EXPERIMENT, "scan": {**SCAN, "angles": {"n_views": 24, "range_deg": 360.0},
+                               "geometry": {**SCAN["geometry"], "detector_cols": 64, "detector_rows": 64,
+                                            "pixel_pitch_u_mm": 3.2, "pixel_pitch_v_mm": 3.2}},
+        "reconstruction": {"grid_size": 24, "detector_binning": 2}}
+
+
+def _fake_pipeline(monkeypatch, make_angles):
+    """Replace the pipeline's run by one that returns ``make_angles(nominal, truth)`` as the view
+    angles, with exact consecutive pair angles from the truth (so pair-chained is exact)."""
+    from ctpipe.pipeline import Pipeline, ScanResult
+    from ctpipe.solve.graph import view_pairs
+
+    seen = {}
+
+    def run(self, projections, geometry, *, nominal_angles_deg=None, pairs=None, progress=None):
+        nominal = np.asarray(nominal_angles_deg)
+        truth = seen["truth"]
+        pairs = view_pairs(len(nominal), (1,), nominal)
+        exact = np.mod(truth[pairs[:, 1]] - truth[pairs[:, 0]] + 180.0, 360.0) - 180.0
+        n = len(pairs)
+        return ScanResult(pairs=pairs, pair_angles_deg=exact, pair_inlier_masks=tuple(np.ones(5, bool) for _ in range(n)),
+                          n_matches=np.full(n, 5), n_inliers=np.full(n, 5), residuals=np.zeros(n),
+                          pair_status=("ok",) * n, angles_deg=make_angles(nominal, truth - truth[0]),
+                          n_keypoints=np.full(len(nominal), 9), timings_s={}, refiner_info={"fake": True})
+
+    import ctpipe.simulate as simulate_module
+
+    real_simulate = simulate_module.simulate
+
+    def simulate(phantom, spec, *, rng, jitter=True, progress=None):
+        scan = real_simulate(phantom, spec, rng=rng, jitter=jitter, progress=progress)
+        if jitter:
+            seen["truth"] = scan.true_angles_deg
+        return scan
+
+    monkeypatch.setattr(simulate_module, "simulate", simulate)
+    monkeypatch.setattr(Pipeline, "run", run)
+
+
+def _swap_views(nominal, truth):
+    angles = truth.copy()
+    angles[[5, 6]] = angles[[6, 5]]
+    angles[[15, 17]] = angles[[17, 15]]
+    return angles
+
+
+def _nan_views(nominal, truth):
+    angles = truth.copy()
+    angles[10:14] = np.nan
+    return angles
+
+
+@pytest.mark.parametrize("make_angles, expected", [
+    (lambda nominal, truth: truth * 411.0 / np.ptp(truth), "the estimated angles span 411 deg over a 360 deg scan"),
+    (_nan_views, "4 of 24 views have no estimated angle"),
+    (_swap_views, "turn the wrong way against the truth: the estimate reorders views"),
+    (lambda nominal, truth: np.full_like(truth, np.nan), "the pipeline estimated no view angle"),
+])
+def test_validate_reports_a_bad_estimate_instead_of_dying(monkeypatch, tmp_path, make_angles, expected):
+    _fake_pipeline(monkeypatch, make_angles)
+    registry = get_registry()
+    report = run_validate(parse_validate(TINY, registry), registry)
+    assert expected in report.verdict()
+    written = write_validate_outputs(report, tmp_path)
+    assert sorted(p.name for p in written) == ["angle_errors.png", "angles.csv", "report.json", "slices.png"]
+    data = json.loads((tmp_path / "report.json").read_text())
+    assert any(expected in problem for problem in data["estimate_problems"])
+    assert data["pipeline"]["refiner"] == {"fake": True}
+    assert data["reconstruction"]["metrics"]["reference"]["estimated"]["psnr_db"] is not None
+    # The consecutive pair angles are exact, so chaining them recovers the truth.
+    assert data["angle_errors"]["views"]["pair-chained"]["rms_deg"] < 1e-9
+
+
+def test_a_short_scan_whose_estimate_spans_more_than_a_turn_is_scored_as_failed(monkeypatch, tmp_path):
+    # The nominal short scan is Parker-weighted; the estimate, 2.2 times too wide, spans more
+    # than 360 deg, which a Parker-weighted reconstruction cannot take.
+    _fake_pipeline(monkeypatch, lambda nominal, truth: truth * 2.2)
+    registry = get_registry()
+    short = {**TINY, "scan": {**TINY["scan"], "angles": {"n_views": 24, "range_deg": 240.0}}}
+    report = run_validate(parse_validate(short, registry), registry)
+    assert "estimated" in report.failed and "estimated" not in report.volumes
+    assert "the estimated angles could not be reconstructed (FDK refused" in report.verdict()
+    assert "the estimate diverged" in report.verdict()
+    assert math.isnan(report.recovery["reference"])
+    write_validate_outputs(report, tmp_path)
+    data = json.loads((tmp_path / "report.json").read_text())
+    assert "short_scan" in data["reconstruction"]["failed"]["estimated"]
+    assert any("failed:" in line for line in report.summary_lines())
+
+
+def test_report_has_rms_pair_chained_and_the_refiner(report, tmp_path):
+    views = report.angle_tables["views"]
+    assert set(views) == {"nominal", "pair-chained", "estimated"}
+    for table in views.values():
+        assert table["rms_deg"] >= table["mae_deg"] > 0
+    # The default refiner closes the loop over baselines 1 and 2; chaining consecutive pairs
+    # without loop closure accumulates their errors.
+    assert views["estimated"]["rms_deg"] < views["pair-chained"]["rms_deg"]
+    assert report.pipeline_result.refiner_info["loss"] == "soft-l1"
+    lines = report.summary_lines()
+    assert any(line.strip().startswith("pair-chained") and "RMS" in line for line in lines)
+    write_validate_outputs(report, tmp_path)
+    data = json.loads((tmp_path / "report.json").read_text())
+    assert data["pipeline"]["refiner"]["pairs_used"] == 2 * 120
+    with open(tmp_path / "angles.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(rows[0]) == ["view", "nominal_deg", "true_deg", "estimated_relative_deg", "nominal_error_deg",
+                             "estimated_error_deg", "pair_chained_error_deg"]
+    chained = np.array([float(r["pair_chained_error_deg"] or "nan") for r in rows])
+    np.testing.assert_allclose(chained, report.view_errors["pair-chained"])
+
+
+def test_estimate_problems_are_empty_for_a_good_estimate():
+    from ctpipe.validate import estimate_problems
+
+    truth = np.arange(360) * 1.0 + np.random.default_rng(0).normal(0, 0.2, 360)
+    assert estimate_problems(truth + np.random.default_rng(1).normal(0, 0.05, 360), truth, 360.0) == []
+    drift = estimate_problems(truth * 0.97, truth, 360.0)
+    assert len(drift) == 1 and "drifts by -10.78 deg" in drift[0]
+
+
+# --- refused before the first projection ----------------------------------------------------
+
+# TINY reconstructs from 32 binned columns of 6.4 mm, the outermost 15.5 columns from the centre,
+# 300 mm from the source: a fan angle of 2 atan(15.5 x 6.4 / 300) = 36.59 deg.
+@pytest.mark.parametrize("change, message", [
+    ({"angles": {"n_views": 24, "range_deg": 150.0}},
+     "experiment.scan.angles.range_deg: a short scan must span at least 216.59 deg (180 + fan angle 36.59 deg "
+     "of this geometry), got 150 deg"),
+    ({"angles": {"n_views": 3, "range_deg": 360.0}, "jitter": [{"jumps": {"count": 5, "size_deg": 1.0}}]},
+     "experiment.scan.jitter: cannot be drawn for 3 views: jumps.count: 5 jumps need at least 6 views, got 3"),
+])
+def test_experiments_fdk_or_the_simulation_would_refuse_are_refused_at_parse_time(change, message):
+    with pytest.raises(ConfigError) as info:
+        parse_validate({**TINY, "scan": {**TINY["scan"], **change}}, get_registry())
+    assert str(info.value) == message
+
+
+def test_cli_refuses_a_150_deg_short_scan_before_simulating(tmp_path, monkeypatch, capsys):
+    import ctpipe.simulate
+    from ctpipe.cli import main
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("the experiment was simulated before it was checked")
+
+    monkeypatch.setattr(ctpipe.simulate, "simulate", no_simulation)
+    experiment = {**TINY, "scan": {**TINY["scan"], "angles": {"n_views": 24, "range_deg": 150.0}}}
+    (tmp_path / "e.yaml").write_text(yaml.safe_dump(experiment))
+    code = main(["validate", str(tmp_path / "e.yaml"), "--out", str(tmp_path / "res")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert "range_deg: a short scan must span at least 216.59 deg" in err and "got 150 deg" in err
+    assert not (tmp_path / "res").exists()
+
+
+def test_every_experiment_in_configs_experiments_parses_and_says_what_it_is():
+    from pathlib import Path
+
+    folder = Path(__file__).parents[1] / "configs" / "experiments"
+    experiments = sorted(folder.glob("*.yaml"))
+    assert len(experiments) >= 8
+    registry = get_registry()
+    for path in experiments:
+        settings = load_validate_settings(path, registry)       # includes check_experiment
+        assert settings.source == str(path)
+        assert path.read_text().startswith("# "), f"{path.name}: no comment header describing the experiment"
