@@ -32,7 +32,7 @@ class LeastSquaresRefiner(Refiner):
         "uniform", doc="weight of each pair when chaining: equal, or by its inlier count")
     loss: Literal["soft-l1", "huber", "cauchy", "linear"] = param(
         "soft-l1", doc="robust loss on pair residuals in the view graph (linear: plain least squares)")
-    scale_deg: float = param(0.05, doc="pair residual (deg) beyond which the robust loss down-weights a pair",
+    scale_deg: float = param(0.1, doc="pair residual (deg) beyond which the robust loss down-weights a pair",
                              gt=0, le=10)
 
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:

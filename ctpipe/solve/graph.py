@@ -213,7 +213,7 @@ def chain_pair_angles(n_views: int, pairs, angles_rad, weights=None) -> np.ndarr
 
 
 def solve_pair_graph(n_views: int, pairs, pair_angles_deg, weights=None, *,
-                     loss: Literal["linear", "soft-l1", "huber", "cauchy"] = "soft-l1", scale_deg: float = 0.05,
+                     loss: Literal["linear", "soft-l1", "huber", "cauchy"] = "soft-l1", scale_deg: float = 0.1,
                      max_iterations: int = 100, tolerance_deg: float = 1e-7) -> PairGraphSolution:
     """Per-view angles from pair angles with a robust loss, by iteratively reweighted least squares.
 
