@@ -22,7 +22,7 @@ class BundleAdjustmentRefiner(Refiner):
     loss_scale_px: float = param(0.5, doc="reprojection error (px) where the robust loss starts to flatten", gt=0)
     min_track_length: int = param(2, doc="drop tracks seen in fewer views", ge=2)
     outlier_threshold_px: float = param(0.8, doc="drop observations with a larger reprojection error (px)", gt=0)
-    extension_rounds: int = param(3, doc="rounds of guided track extension, each followed by an adjustment", ge=0)
+    extension_rounds: int = param(0, doc="rounds of guided track extension, each followed by an adjustment", ge=0)
     extension_radius_px: float = param(0.8, doc="largest distance (px) from a track's prediction to a keypoint it takes",
                                        gt=0)
     extension_window_views: int = param(8, doc="views beyond its observations a track is searched in per round", ge=1)

@@ -38,7 +38,7 @@ from ctpipe.data import ScanObservations
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.solve.camera import projection_jacobians
-from ctpipe.solve.graph import covers_full_turn, unwrap_pair_angles_deg
+from ctpipe.solve.graph import chain_pair_angles, covers_full_turn, unwrap_pair_angles_deg
 from ctpipe.solve.tracks import (Tracks, build_tracks, extend_tracks, static_tracks, triangulate_tracks,
                                  verified_match_distances)
 
@@ -406,7 +406,7 @@ class BundleSettings:
     loss_scale_px: float = 0.5
     min_track_length: int = 2
     outlier_threshold_px: float = 0.8
-    extension_rounds: int = 3
+    extension_rounds: int = 0
     extension_radius_px: float = 0.8
     extension_window_views: int = 8
     descriptor_quantile: float = 0.95
@@ -468,11 +468,9 @@ def pair_graph_angles(observations: ScanObservations) -> np.ndarray:
     """Per-view angles (rad, view 0 = 0) chained from the pair estimates, weighted by inliers.
 
     Pair angles are unwrapped against the nominal ones (seam pairs of a full turn), then solved
-    by least squares on the view graph (:func:`ctpipe.builtin.refiners.chain_pair_angles`);
+    by least squares on the view graph (:func:`ctpipe.solve.graph.chain_pair_angles`);
     views not connected to view 0 are NaN.
     """
-    from ctpipe.builtin.refiners import chain_pair_angles  # the view-graph solver lives with its refiner
-
     estimates = observations.estimates
     angles_deg = unwrap_pair_angles_deg(observations.pairs, np.rad2deg([e.angle_rad if e else np.nan for e in estimates]),
                                         observations.nominal_angles_deg)
