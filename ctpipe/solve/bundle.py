@@ -37,7 +37,7 @@ import scipy.sparse.linalg  # noqa: F401  (sp.linalg)
 from ctpipe.data import ScanObservations
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
-from ctpipe.solve.camera import projection_jacobians
+from ctpipe.solve.camera import _project, projection_jacobians
 from ctpipe.solve.graph import chain_pair_angles, covers_full_turn, unwrap_pair_angles_deg
 from ctpipe.solve.tracks import (Tracks, build_tracks, extend_tracks, static_tracks, triangulate_tracks,
                                  verified_match_distances)
@@ -136,10 +136,17 @@ class _Problem:
         self.obs_column = self.column[tracks.view]
 
     def evaluate(self, angles, points, detector_values):
+        """Residuals and their Jacobian blocks at a point of the parameter space."""
         geometry = dataclasses.replace(self.geometry, u0_px=float(detector_values[0]), v0_px=float(detector_values[1]))
         uv, d_angle, d_point, d_detector = projection_jacobians(points[self.tracks.track], angles[self.tracks.view],
                                                                 geometry, tilt_rad=float(detector_values[2]))
         return uv - self.tracks.xy_px, d_angle, d_point, d_detector[:, :, self.detector]
+
+    def residuals(self, angles, points, detector_values):
+        """Residuals only (a trial step is judged on its cost before any Jacobian is worth computing)."""
+        geometry = dataclasses.replace(self.geometry, u0_px=float(detector_values[0]), v0_px=float(detector_values[1]))
+        return _project(points[self.tracks.track], angles[self.tracks.view], geometry,
+                        float(detector_values[2])) - self.tracks.xy_px
 
     def cost(self, residuals) -> float:
         rho, _ = robust_loss(np.sum(residuals**2, axis=1), self.loss, self.scale)
@@ -155,11 +162,11 @@ class _Problem:
         blocks = {}
         blocks["C_aa"] = np.bincount(self.obs_column[free], np.sum(wa * d_angle, axis=1)[free], self.n_angles)
         blocks["g_a"] = np.bincount(self.obs_column[free], np.sum(wa * residuals, axis=1)[free], self.n_angles)
-        pp = np.einsum("nki,nkj->nij", wp, d_point).reshape(-1, 9)
+        pp = (wp[:, 0, :, None] * d_point[:, 0, None, :] + wp[:, 1, :, None] * d_point[:, 1, None, :]).reshape(-1, 9)
         blocks["P"] = np.stack([np.bincount(t.track, pp[:, k], n_t) for k in range(9)], axis=1).reshape(n_t, 3, 3)
-        gp = np.einsum("nki,nk->ni", wp, residuals)
+        gp = wp[:, 0, :] * residuals[:, :1] + wp[:, 1, :] * residuals[:, 1:]
         blocks["g_p"] = np.stack([np.bincount(t.track, gp[:, k], n_t) for k in range(3)], axis=1)
-        blocks["W_a"] = np.einsum("nk,nkj->nj", wa, d_point)  # (N, 3), one (view, track) each
+        blocks["W_a"] = wa[:, :1] * d_point[:, 0, :] + wa[:, 1:] * d_point[:, 1, :]  # (N, 3), one (view, track) each
         if self.n_detector:
             wd = d_detector * w[:, None, None]
             blocks["C_dd"] = np.einsum("nki,nkj->ij", wd, d_detector)
@@ -324,13 +331,14 @@ def bundle_adjust(tracks: Tracks, angles_rad, points_mm, geometry: Geometry, *, 
     detector_flags = (estimate_u0, estimate_v0, estimate_tilt)
     detector_values = np.array([geometry.u0_px, geometry.v0_px, tilt_rad], dtype=np.float64)
     problem = _Problem(tracks, geometry, free_view, detector_flags, loss, loss_scale_px)
-    residuals, *jacobians = problem.evaluate(angles, points, detector_values)
+    residuals = problem.residuals(angles, points, detector_values)
     cost = problem.cost(residuals)
     cost_initial = cost
     rms_initial = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1)))) if len(tracks) else 0.0
     damping, growth = 1e-4, 2.0
     iterations, converged = 0, len(tracks) == 0
     for _ in range(max_iterations if len(tracks) else 0):
+        residuals, *jacobians = problem.evaluate(angles, points, detector_values)
         blocks = problem.normal_blocks(residuals, *jacobians)
         accepted = False
         for _attempt in range(20):
@@ -340,7 +348,7 @@ def bundle_adjust(tracks: Tracks, angles_rad, points_mm, geometry: Geometry, *, 
             new_points = points + step_p
             new_detector = detector_values.copy()
             new_detector[problem.detector] += step_d
-            new_residuals, *new_jacobians = problem.evaluate(new_angles, new_points, new_detector)
+            new_residuals = problem.residuals(new_angles, new_points, new_detector)
             new_cost = problem.cost(new_residuals)
             predicted = problem.predicted_decrease(blocks, step_a, step_p, step_d, damping)
             if new_cost < cost:
@@ -357,7 +365,7 @@ def bundle_adjust(tracks: Tracks, angles_rad, points_mm, geometry: Geometry, *, 
         iterations += 1
         decrease = cost - new_cost
         angles, points, detector_values = new_angles, new_points, new_detector
-        residuals, jacobians, cost = new_residuals, new_jacobians, new_cost
+        residuals, cost = new_residuals, new_cost
         largest_step = float(np.max(np.abs(step_a), initial=0.0))
         if decrease <= tolerance * max(cost, 1e-300) or largest_step < 1e-3 * tolerance or cost < 1e-30:
             converged = True

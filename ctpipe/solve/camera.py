@@ -61,13 +61,19 @@ def project_points(points_mm, angles_rad, geometry: Geometry, *, tilt_rad: float
         ``(x=col, y=row)`` in pixels; NaN for points at or behind the source.
     """
     points, angles = _check_points(points_mm, angles_rad)
+    return _project(points, angles, geometry, tilt_rad, behind=np.nan)
+
+
+def _project(points: np.ndarray, angles: np.ndarray, geometry: Geometry, tilt_rad: float, *, behind=None) -> np.ndarray:
+    """The projection without checks; ``behind`` replaces points at or behind the source (None:
+    keep the formula's value, which a least-squares fit can still move back in front)."""
     c, s = np.cos(angles), np.sin(angles)
     px = c * points[:, 0] - s * points[:, 2]
-    pz = s * points[:, 0] + c * points[:, 2]
-    z = pz + geometry.source_to_object_mm
+    z = s * points[:, 0] + c * points[:, 2] + geometry.source_to_object_mm
     with np.errstate(divide="ignore", invalid="ignore"):
-        xn = np.where(z > 0, px / z, np.nan)
-        yn = np.where(z > 0, points[:, 1] / z, np.nan)
+        xn, yn = px / z, points[:, 1] / z
+    if behind is not None:
+        xn, yn = np.where(z > 0, xn, behind), np.where(z > 0, yn, behind)
     ct, st = np.cos(tilt_rad), np.sin(tilt_rad)
     f = _focal_px(geometry)
     return np.stack([geometry.u0_px + f[0] * (ct * xn - st * yn), geometry.v0_px + f[1] * (st * xn + ct * yn)], axis=1)
@@ -122,23 +128,17 @@ def projection_jacobians(points_mm, angles_rad, geometry: Geometry, *, tilt_rad:
     inv_z = 1.0 / (pz + geometry.source_to_object_mm)
     xn, yn = px * inv_z, py * inv_z
     n = len(points)
-    # d(xn, yn)/dP, shape (N, 2, 3).
-    dn_dp = np.zeros((n, 2, 3))
-    dn_dp[:, 0, 0] = inv_z
-    dn_dp[:, 0, 2] = -xn * inv_z
-    dn_dp[:, 1, 1] = inv_z
-    dn_dp[:, 1, 2] = -yn * inv_z
-    # dP/dtheta = (-P_z, 0, P_x); dP/dX = R(theta).
-    dn_dtheta = np.stack([(-pz - xn * px) * inv_z, -yn * px * inv_z], axis=1)
-    rot = np.zeros((n, 3, 3))
-    rot[:, 0, 0], rot[:, 0, 2], rot[:, 1, 1], rot[:, 2, 0], rot[:, 2, 2] = c, -s, 1.0, s, c
-    dn_dx = dn_dp @ rot
+    # d(xn, yn)/dtheta with dP/dtheta = (-P_z, 0, P_x); d(xn, yn)/dX = d(xn, yn)/dP R(theta), written out.
+    dxn_dtheta = (-pz - xn * px) * inv_z
+    dyn_dtheta = -yn * px * inv_z
+    dxn_dx = np.stack([(c - xn * s) * inv_z, np.zeros(n), (-s - xn * c) * inv_z], axis=1)
+    dyn_dx = np.stack([-yn * s * inv_z, inv_z, -yn * c * inv_z], axis=1)
     ct, st = np.cos(tilt_rad), np.sin(tilt_rad)
     f = _focal_px(geometry)
     m = np.array([[f[0] * ct, -f[0] * st], [f[1] * st, f[1] * ct]])
     uv = np.stack([geometry.u0_px + m[0, 0] * xn + m[0, 1] * yn, geometry.v0_px + m[1, 0] * xn + m[1, 1] * yn], axis=1)
-    d_angle = dn_dtheta @ m.T
-    d_point = np.einsum("ij,njk->nik", m, dn_dx)
+    d_angle = np.stack([m[0, 0] * dxn_dtheta + m[0, 1] * dyn_dtheta, m[1, 0] * dxn_dtheta + m[1, 1] * dyn_dtheta], axis=1)
+    d_point = np.stack([m[0, 0] * dxn_dx + m[0, 1] * dyn_dx, m[1, 0] * dxn_dx + m[1, 1] * dyn_dx], axis=1)
     d_detector = np.zeros((n, 2, 3))
     d_detector[:, 0, 0] = 1.0
     d_detector[:, 1, 1] = 1.0

@@ -46,7 +46,7 @@ class SyntheticScan:
 def synthetic_scan(n_views: int, n_points: int, *, rng: np.random.Generator | int | None = None,
                    geometry: Geometry | None = None, range_deg: float = 360.0, jitter_deg: float = 0.2,
                    track_length: tuple[int, int] = (3, 12), noise_px: float = 0.0, outlier_fraction: float = 0.0,
-                   n_static: int = 0, baselines=(1, 2)) -> SyntheticScan:
+                   n_static: int = 0, baselines=(1, 2), outliers_verified: bool = True) -> SyntheticScan:
     """Project random object points into a scan and match them like a pipeline would.
 
     Parameters
@@ -71,6 +71,9 @@ def synthetic_scan(n_views: int, n_points: int, *, rng: np.random.Generator | in
         Features at fixed image positions, seen and matched in every view.
     baselines : sequence of int
         View pairs ``(i, i + k)`` to match.
+    outliers_verified : bool
+        Wrong matches are flagged as inliers (they slipped through verification, the hard
+        case); False flags them as outliers, as a RANSAC that caught them would.
 
     Returns
     -------
@@ -130,6 +133,8 @@ def synthetic_scan(n_views: int, n_points: int, *, rng: np.random.Generator | in
         q_a = geometry.pixels_to_normalised(features[i].xy[index[:, 0]])
         q_b = geometry.pixels_to_normalised(features[j].xy[index[:, 1]])
         mask = np.ones(len(index), bool)
+        if n_wrong and not outliers_verified:
+            mask[wrong] = False
         matches.append(Matches(index, distance.astype(np.float32)))
         points_a.append(q_a)
         points_b.append(q_b)
