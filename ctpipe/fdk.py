@@ -441,3 +441,45 @@ def fdk(
         if progress is not None:
             progress(part.stop - part.start)
     return _to_volume_layout(acc)
+
+
+def bin_detector(projections: np.ndarray, geometry: Geometry, factor: int) -> tuple[np.ndarray, Geometry]:
+    """Average ``factor x factor`` pixel blocks; the geometry keeps describing the same rays.
+
+    Binned pixel ``k`` covers pixels ``factor k .. factor k + factor - 1``, centred at
+    ``factor k + (factor - 1) / 2``, so the principal point maps to ``(u0 - (factor - 1) / 2) / factor``.
+    Rows and columns beyond the last whole block are dropped (the principal point is unaffected).
+
+    Parameters
+    ----------
+    projections : ndarray of shape (V, rows, cols)
+    geometry : Geometry
+    factor : int
+        Block edge in pixels, >= 1.
+
+    Returns
+    -------
+    binned : ndarray of shape (V, rows // factor, cols // factor), float32
+    geometry : Geometry
+    """
+    if not (isinstance(factor, (int, np.integer)) and not isinstance(factor, bool) and factor >= 1):
+        raise InputError(f"factor: must be an integer >= 1, got {factor!r}")
+    if factor == 1:
+        return projections, geometry
+    v, rows, cols = projections.shape
+    if rows < factor or cols < factor:
+        raise InputError(f"factor: binning {factor} x {factor} needs a detector of at least that size, got {rows} x {cols}")
+    whole = projections[:, : rows - rows % factor, : cols - cols % factor]
+    binned = whole.reshape(v, rows // factor, factor, cols // factor, factor).mean(axis=(2, 4), dtype=np.float32)
+    return binned.astype(np.float32, copy=False), binned_geometry(geometry, factor)
+
+
+def binned_geometry(geometry: Geometry, factor: int) -> Geometry:
+    """The geometry of :func:`bin_detector`'s output: same rays, ``factor`` times coarser pixels."""
+    if factor == 1:
+        return geometry
+    shift = (factor - 1) / 2.0
+    return Geometry(geometry.source_to_object_mm, geometry.source_to_detector_mm, geometry.detector_cols // factor,
+                    geometry.detector_rows // factor, geometry.pixel_pitch_u_mm * factor,
+                    geometry.pixel_pitch_v_mm * factor, (geometry.u0_px - shift) / factor,
+                    (geometry.v0_px - shift) / factor)

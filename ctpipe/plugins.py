@@ -23,6 +23,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "ctpipe.builtin.matchers",
     "ctpipe.builtin.estimators",
     "ctpipe.builtin.refiners",
+    "ctpipe.builtin.projection_matching",
     "ctpipe.builtin.bundle",
 )
 

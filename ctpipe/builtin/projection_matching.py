@@ -1,0 +1,127 @@
+"""The projection-matching refiner: feature angles first, then every view against the reconstruction."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from ctpipe.data import ScanObservations, ScanSolution
+from ctpipe.fdk import FILTERS
+from ctpipe.hookspecs import hookimpl
+from ctpipe.solve.projection_matching import consistency_costs, projection_matching
+from ctpipe.stages import Refiner, param
+
+__all__ = ["ProjectionMatchingRefiner"]
+
+Filter = Literal[FILTERS]  # type: ignore[valid-type]
+
+
+def _start_refiner(name: str) -> Refiner:
+    if name == "bundle-adjustment":
+        from ctpipe.builtin.bundle import BundleAdjustmentRefiner
+
+        return BundleAdjustmentRefiner()
+    from ctpipe.builtin.refiners import LeastSquaresRefiner
+
+    return LeastSquaresRefiner(weighting="inliers")
+
+
+def _fill(angles_deg: np.ndarray, nominal_deg: np.ndarray | None) -> tuple[np.ndarray, int]:
+    """Views without a start angle take the nominal one (shifted onto the others), else a neighbour's."""
+    missing = ~np.isfinite(angles_deg)
+    if not missing.any():
+        return angles_deg, 0
+    if not (~missing).any():
+        return (np.zeros_like(angles_deg) if nominal_deg is None else nominal_deg - nominal_deg[0]), int(missing.sum())
+    if nominal_deg is not None:
+        offset = float(np.median(angles_deg[~missing] - nominal_deg[~missing]))
+        return np.where(missing, nominal_deg + offset, angles_deg), int(missing.sum())
+    views = np.arange(len(angles_deg))
+    return np.interp(views, views[~missing], angles_deg[~missing]), int(missing.sum())
+
+
+@dataclass(frozen=True)
+class ProjectionMatchingRefiner(Refiner):
+    """Whole-scan angles: features give the start, projection matching against the scan's own FDK pins every view.
+
+    The start (``least-squares``: the robust view graph with loop closure; or
+    ``bundle-adjustment``; or ``nominal``) has the capture range for slips of degrees; matching
+    each view against the reprojection of a reconstruction from all views then removes the drift
+    a chain of pairs accumulates (:mod:`ctpipe.solve.projection_matching`). With ``select``, the
+    nominal, start and matched angles are compared by how consistently they explain the
+    projections, and the best is returned, so a scan the matching cannot handle keeps its start.
+    Needs the projections (``ScanObservations.projections``); without them it returns the start.
+    """
+
+    start: Literal["least-squares", "bundle-adjustment", "nominal"] = param(
+        "least-squares", doc="where matching starts: a refiner's angles, or the nominal ones")
+    binning: tuple[int, ...] = param((4, 2), doc="detector binning of each level, coarse to fine", ge=1, le=64)
+    iterations: tuple[int, ...] = param((3, 2), doc="reconstruct-and-match rounds at each level", ge=0, le=50)
+    band_low_px: float = param(0.7, doc="fine edge of the band-pass (Gaussian sigma, binned pixels)", ge=0, le=16)
+    band_high_px: float = param(4.0, doc="coarse edge of the band-pass (Gaussian sigma, binned pixels)", gt=0, le=64)
+    max_voxels: int = param(192, doc="largest edge of the reconstruction grid", ge=16, le=1024)
+    filter: Filter = param("ram-lak", doc="FDK ramp-filter window for the reference volume")
+    max_step_deg: float = param(1.0, doc="largest change of one view's angle per iteration", gt=0, le=45)
+    select: bool = param(True, doc="keep whichever of nominal, start and matched angles fits the projections best")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        from ctpipe.errors import ConfigError
+
+        if len(self.binning) != len(self.iterations):
+            raise ConfigError(f"ProjectionMatchingRefiner.iterations: must give one count per binning level "
+                              f"({len(self.binning)}), got {list(self.iterations)}")
+        if not self.band_low_px < self.band_high_px:
+            raise ConfigError(f"ProjectionMatchingRefiner.band_low_px: must be below band_high_px "
+                              f"({self.band_high_px:g}), got {self.band_low_px:g}")
+
+    def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
+        nominal = observations.nominal_angles_deg
+        if self.start == "nominal" and nominal is not None:
+            start_solution = ScanSolution(np.deg2rad(nominal - nominal[0]), observations.estimates,
+                                          {"refiner": "nominal"})
+        else:
+            start_solution = _start_refiner("least-squares" if self.start == "nominal" else self.start).refine(
+                observations, rng=rng)
+        info = {"start": self.start, "start_info": dict(start_solution.info)}
+        start_deg, n_filled = _fill(np.rad2deg(start_solution.angles_rad), nominal)
+        info["views_filled"] = n_filled
+        projections = observations.projections
+        rows, cols = observations.geometry.shape
+        levels = [(b, n) for b, n in zip(self.binning, self.iterations) if min(rows, cols) // b >= 8]
+        if projections is None or not levels:
+            info["matching"] = ("skipped: no projections to match" if projections is None else
+                                f"skipped: every binning of {list(self.binning)} leaves fewer than 8 pixels of "
+                                f"the {rows} x {cols} detector")
+            return ScanSolution(np.deg2rad(start_deg - start_deg[0]), start_solution.pair_estimates, info)
+        # Match in the frame of the nominal angles, where the volume sits as the user expects.
+        if nominal is not None:
+            start_deg = start_deg + float(np.median(nominal - start_deg))
+        begin = time.perf_counter()
+        band = (self.band_low_px, self.band_high_px)
+        result = projection_matching(projections, observations.geometry, start_deg, binning=[b for b, _ in levels],
+                                     iterations=[n for _, n in levels], band_px=band, max_voxels=self.max_voxels,
+                                     filter=self.filter, max_step_deg=self.max_step_deg)
+        info["matching"] = {"levels": [{"binning": b, "iterations": n} for b, n in levels],
+                            "history": list(result.history), "stopped": result.stopped,
+                            "seconds": time.perf_counter() - begin}
+        chosen, angles = "matched", result.angles_deg
+        if self.select:
+            candidates = {"matched": result.angles_deg, "start": start_deg}
+            if nominal is not None:
+                candidates["nominal"] = np.asarray(nominal, dtype=np.float64)
+            costs = consistency_costs(projections, observations.geometry, candidates, binning=levels[0][0],
+                                      band_px=band, max_voxels=self.max_voxels, filter=self.filter)
+            chosen = min(costs, key=lambda name: (costs[name], name != "matched"))
+            angles = candidates[chosen]
+            info["consistency_cost"] = costs
+        info["chosen"] = chosen
+        return ScanSolution(np.deg2rad(angles - angles[0]), start_solution.pair_estimates, info)
+
+
+@hookimpl
+def ctpipe_register_stages(registry) -> None:
+    registry.add_refiner("projection-matching", ProjectionMatchingRefiner)

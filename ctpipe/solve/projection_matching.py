@@ -1,0 +1,292 @@
+"""Projection matching: every view's angle against a reconstruction of the scan itself.
+
+Pair estimates and feature tracks tie views to their neighbours; what they cannot pin is the
+slow drift of a long chain. A reconstruction from all views is a common reference instead:
+each view's angle is moved until the reprojection of the volume at that angle matches the
+measured projection, then the volume is rebuilt with the new angles, and so on. Every view
+is compared with the same object, so errors do not add up along the scan.
+
+One iteration, at one detector binning:
+
+1. ``V = FDK(P, theta)`` on a grid that covers the field of view (:func:`reconstruction_grid`);
+2. for each view, the reprojection ``A_k V`` at ``theta_k`` and its derivative with respect to
+   the angle, ``g_k = A_k D``, where ``D = z dV/dx - x dV/dz`` is the volume's change under a
+   turn of the table (:func:`tangential_derivative`; one extra projection, no finite
+   differences);
+3. both the residual ``r_k = P_k - A_k V`` and ``g_k`` are band-passed (:func:`band_pass`, a
+   difference of Gaussians) before the Gauss-Newton step ``delta_k = <g_k, r_k> / <g_k, g_k>``.
+
+The band-pass is what makes it work. FDK of a wide cone leaves low-frequency errors in the
+volume (cupping, the ends of a tall object) whose reprojections differ from the data by ~10 %,
+and those differences correlate with ``g_k``: without the filter the step of every view is off by
+tenths of a degree even at the true angles. The finest detail is cut as well, since the grid
+cannot hold it. What remains, edges of a few pixels, moves with the angle and is reproduced by
+the volume. The steps are capped (``max_step_deg``) and their mean is removed (a common turn of
+all views only turns the volume). Levels run coarse to fine: a coarse binning has the capture
+range for slips of a degree or more, a fine one the precision.
+
+Measured on ``ctpipe validate``'s default scan (360 views, 0.2 deg jitter plus three 1 deg
+jumps, per-view RMS 0.57 deg from the nominal angles): 0.05 deg after three iterations at
+binning 4, 0.033 deg after three more at binning 2. At the true angles a step moves the views by
+~0.04 deg RMS (binning 4): that is the method's floor here, set by the volume's imperfection;
+views on either side of a wide gap between neighbours pull towards their nearer neighbours.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from ctpipe.errors import InputError
+from ctpipe.fdk import FILTERS, bin_detector, fdk
+from ctpipe.geometry import Geometry
+from ctpipe.volume import VolumeGrid
+
+__all__ = ["ProjectionMatchingResult", "projection_matching", "consistency_costs", "reconstruction_grid",
+           "tangential_derivative", "band_pass", "as_line_integrals"]
+
+# Views reprojected at a time: bounds the memory of the reprojections to a few chunks' worth.
+_CHUNK_VIEWS = 32
+
+
+@dataclass(frozen=True, eq=False)
+class ProjectionMatchingResult:
+    """What :func:`projection_matching` found.
+
+    Attributes
+    ----------
+    angles_deg : ndarray of shape (V,)
+        The matched angles, in the frame of the start angles (same mean).
+    history : tuple of dict
+        One entry per iteration: ``binning``, ``iteration``, ``step_rms_deg``, ``step_max_deg``,
+        ``cost`` (band-passed residual energy relative to the data's, before the step) and
+        ``seconds``.
+    stopped : str
+        Empty when every level ran; otherwise why matching stopped early.
+    """
+
+    angles_deg: np.ndarray
+    history: tuple[dict, ...]
+    stopped: str = ""
+
+
+def reconstruction_grid(geometry: Geometry, max_voxels: int) -> VolumeGrid:
+    """A grid over the field of view: the cylinder every view sees, and its full height.
+
+    The cylinder's radius is ``SOD sin(fan half-angle)``; its height reaches the top and bottom
+    rays at the far side of the cylinder. Voxels are the detector pixel at the axis
+    (``pitch * SOD / SDD``), or larger so that no edge exceeds ``max_voxels``.
+    """
+    g = geometry
+    half_u = max(g.u0_px + 0.5, g.detector_cols - 0.5 - g.u0_px) * g.pixel_pitch_u_mm
+    half_v = max(g.v0_px + 0.5, g.detector_rows - 0.5 - g.v0_px) * g.pixel_pitch_v_mm
+    radius = g.source_to_object_mm * math.sin(math.atan(half_u / g.source_to_detector_mm))
+    half_height = half_v * (g.source_to_object_mm + radius) / g.source_to_detector_mm
+    voxel = min(g.pixel_pitch_u_mm, g.pixel_pitch_v_mm) * g.source_to_object_mm / g.source_to_detector_mm
+    voxel = max(voxel, 2.0 * radius / max_voxels, 2.0 * half_height / max_voxels)
+    n_xz = max(int(math.ceil(2.0 * radius / voxel)), 8)
+    n_y = max(int(math.ceil(2.0 * half_height / voxel)), 8)
+    return VolumeGrid(n_xz, n_y, n_xz, voxel)
+
+
+def tangential_derivative(volume: np.ndarray, grid: VolumeGrid) -> np.ndarray:
+    """The change of ``volume`` per degree of turntable angle, float32 of ``grid.shape``.
+
+    Turning the table by ``+delta`` shows the object turned by ``R(delta)``: the volume seen is
+    ``V(R(delta)^-1 X)``, whose derivative at 0 is ``z dV/dx - x dV/dz`` (per radian). Its
+    projection at ``theta`` is the derivative of the projection with respect to ``theta``.
+    """
+    dv_dz = np.gradient(volume, grid.voxel_size_mm, axis=1)
+    dv_dx = np.gradient(volume, grid.voxel_size_mm, axis=2)
+    x = grid.axis_mm("x").astype(np.float32)[None, None, :]
+    z = grid.axis_mm("z").astype(np.float32)[None, :, None]
+    return (np.float32(math.pi / 180.0) * (z * dv_dx - x * dv_dz)).astype(np.float32)
+
+
+def band_pass(images: np.ndarray, low_px: float, high_px: float) -> np.ndarray:
+    """Difference of Gaussians over the last two axes: detail between ``low_px`` and ``high_px``.
+
+    ``gaussian(low_px) - gaussian(high_px)``; ``low_px = 0`` keeps the finest detail.
+    """
+    images = np.asarray(images, dtype=np.float32)
+    sigma = (0,) * (images.ndim - 2)
+    fine = gaussian_filter(images, sigma + (low_px, low_px)) if low_px > 0 else images
+    return fine - gaussian_filter(images, sigma + (high_px, high_px))
+
+
+def as_line_integrals(projections: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Projections as line integrals (dark object on a bright field is taken as intensities).
+
+    Returns the array (float32) and whether it was converted. Intensities are recognised by a
+    border brighter than the centre and turned into ``-log(I / I_flat)`` with ``I_flat`` the
+    99.5th percentile of each view.
+    """
+    p = np.asarray(projections, dtype=np.float32)
+    _, rows, cols = p.shape
+    border = np.concatenate([p[:, :, : max(cols // 16, 1)].ravel(), p[:, :, -max(cols // 16, 1):].ravel()])
+    centre = p[:, rows // 4: rows - rows // 4, cols // 4: cols - cols // 4]
+    if not float(np.median(border)) > float(np.median(centre)):
+        return p, False
+    flat = np.percentile(p.reshape(len(p), -1), 99.5, axis=1).astype(np.float32)
+    floor = np.float32(1e-6) * np.maximum(flat, np.float32(1e-30))
+    ratio = np.maximum(p, floor[:, None, None]) / np.maximum(flat, np.float32(1e-30))[:, None, None]
+    return np.maximum(-np.log(ratio), 0.0).astype(np.float32), True
+
+
+class _Level:
+    """One binning: the binned data, its band-passed copy, the grid and the projector."""
+
+    def __init__(self, projections: np.ndarray, geometry: Geometry, binning: int, max_voxels: int,
+                 band_px: tuple[float, float], filter: str) -> None:
+        from ctpipe.projectors import VoxelProjector
+
+        self.binning = binning
+        self.data, self.geometry = bin_detector(projections, geometry, binning)
+        self.data = np.ascontiguousarray(self.data, dtype=np.float32)
+        self.grid = reconstruction_grid(self.geometry, max_voxels)
+        self.projector = VoxelProjector(self.geometry, self.grid)
+        self.band_px = band_px
+        self.filter = filter
+        self.filtered = band_pass(self.data, *band_px)
+        self.data_energy = float(np.einsum("vij,vij->", self.filtered, self.filtered, dtype=np.float64))
+
+    def steps(self, angles_deg: np.ndarray, *, with_steps: bool = True) -> tuple[np.ndarray, float]:
+        """Gauss-Newton step of every view (degrees) and the relative residual energy."""
+        volume = fdk(self.data, self.geometry, angles_deg, self.grid, filter=self.filter)
+        derivative = tangential_derivative(volume, self.grid) if with_steps else None
+        numerator = np.zeros(len(angles_deg))
+        denominator = np.zeros(len(angles_deg))
+        residual_energy = 0.0
+        for start in range(0, len(angles_deg), _CHUNK_VIEWS):
+            part = slice(start, min(start + _CHUNK_VIEWS, len(angles_deg)))
+            residual = self.filtered[part] - band_pass(self.projector.forward(volume, angles_deg[part]), *self.band_px)
+            residual_energy += float(np.einsum("vij,vij->", residual, residual, dtype=np.float64))
+            if with_steps:
+                slope = band_pass(self.projector.forward(derivative, angles_deg[part]), *self.band_px)
+                numerator[part] = np.einsum("vij,vij->v", slope, residual, dtype=np.float64)
+                denominator[part] = np.einsum("vij,vij->v", slope, slope, dtype=np.float64)
+        informative = denominator > 1e-12 * max(float(denominator.max(initial=0.0)), 1e-300)
+        step = np.where(informative, numerator / np.where(informative, denominator, 1.0), 0.0)
+        return step, residual_energy / max(self.data_energy, 1e-300)
+
+
+def _check(projections, geometry, angles_deg, binning, iterations, band_px, max_voxels, filter, max_step_deg):
+    if not isinstance(geometry, Geometry):
+        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    p = np.asarray(projections)
+    if p.ndim != 3 or p.shape[1:] != geometry.shape or not np.issubdtype(p.dtype, np.number):
+        raise InputError(f"projections: must be a real array of shape (views, {geometry.detector_rows}, "
+                         f"{geometry.detector_cols}), got {p.dtype} {p.shape}")
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    if angles.shape != (len(p),) or not np.all(np.isfinite(angles)):
+        raise InputError(f"angles_deg: must be {len(p)} finite angles, one per view, got shape {angles.shape}")
+    if len(binning) != len(iterations) or not binning:
+        raise InputError(f"binning and iterations: must be non-empty and of one length, got {list(binning)} and "
+                         f"{list(iterations)}")
+    for b in binning:
+        if not (isinstance(b, (int, np.integer)) and 1 <= b <= min(geometry.shape) // 8):
+            raise InputError(f"binning: each factor must be an integer from 1 to {min(geometry.shape) // 8} "
+                             f"(at least 8 binned pixels a side), got {b!r}")
+    low, high = band_px
+    if not (0 <= low < high):
+        raise InputError(f"band_px: must be (low, high) with 0 <= low < high, got {band_px!r}")
+    if filter not in FILTERS:
+        raise InputError(f"filter: {filter!r} is not supported. Try one of {FILTERS}")
+    if not max_step_deg > 0 or not max_voxels >= 8:
+        raise InputError(f"max_step_deg must be > 0 and max_voxels >= 8, got {max_step_deg!r} and {max_voxels!r}")
+    return angles
+
+
+def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg, *, binning=(4, 2),
+                        iterations=(3, 2), band_px: tuple[float, float] = (0.7, 4.0), max_voxels: int = 192,
+                        filter: str = "ram-lak", max_step_deg: float = 1.0,
+                        progress: Callable[[int], object] | None = None) -> ProjectionMatchingResult:
+    """Refine every view's angle against the scan's own reconstruction (see the module docstring).
+
+    Parameters
+    ----------
+    projections : ndarray of shape (V, rows, cols)
+        Line integrals (or intensities, see :func:`as_line_integrals`).
+    geometry : Geometry
+    angles_deg : array_like of shape (V,)
+        Start angles, degrees: the nominal ones, or better a whole-scan feature estimate.
+    binning : sequence of int
+        Detector binning of each level, coarse to fine.
+    iterations : sequence of int
+        Reconstruct-and-match rounds at each level.
+    band_px : (float, float)
+        Difference-of-Gaussians band in binned pixels: the sigmas of the fine and coarse blur.
+    max_voxels : int
+        Largest grid edge; bounds time and memory at fine levels.
+    filter : str
+        FDK ramp-filter window (:data:`ctpipe.fdk.FILTERS`); the sharp ``ram-lak`` matches best.
+    max_step_deg : float
+        Largest change of a view's angle in one iteration.
+    progress : callable, optional
+        Called with 1 after every iteration.
+
+    Returns
+    -------
+    ProjectionMatchingResult
+        Stops early (keeping the last good angles and saying why in ``stopped``) if the angles
+        leave what FDK can reconstruct, e.g. a short scan shrinking below 180 deg + fan.
+    """
+    binning, iterations = tuple(binning), tuple(iterations)
+    angles = _check(projections, geometry, angles_deg, binning, iterations, band_px, max_voxels, filter, max_step_deg)
+    data, _ = as_line_integrals(projections)
+    history: list[dict] = []
+    for factor, count in zip(binning, iterations):
+        level = _Level(data, geometry, int(factor), int(max_voxels), band_px, filter)
+        for iteration in range(int(count)):
+            start = time.perf_counter()
+            try:
+                step, cost = level.steps(angles)
+            except InputError as exc:
+                return ProjectionMatchingResult(angles, tuple(history), f"binning {factor}, iteration {iteration}: {exc}")
+            step = np.clip(step, -max_step_deg, max_step_deg)
+            step -= step.mean()
+            angles = angles + step
+            history.append({"binning": int(factor), "iteration": iteration, "cost": cost,
+                            "step_rms_deg": float(np.sqrt(np.mean(step ** 2))),
+                            "step_max_deg": float(np.abs(step).max()), "seconds": time.perf_counter() - start})
+            if progress is not None:
+                progress(1)
+    return ProjectionMatchingResult(angles, tuple(history))
+
+
+def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: dict[str, np.ndarray], *,
+                      binning: int = 4, band_px: tuple[float, float] = (0.7, 4.0), max_voxels: int = 192,
+                      filter: str = "ram-lak") -> dict[str, float]:
+    """How well each candidate set of angles explains the projections: reconstruct, reproject, compare.
+
+    The band-passed residual energy relative to the data's (0 for perfectly consistent data),
+    at one coarse binning. Wrong angles blur and smear the volume, so its reprojections miss the
+    data; the lower the cost, the more consistent the angles. Used to choose between candidate
+    angle sets (nominal, feature-based, projection-matched) without knowing the truth. A
+    candidate FDK cannot reconstruct (NaN angles, a short scan below 180 deg + fan) costs inf.
+
+    Parameters
+    ----------
+    candidates : dict of str to ndarray of shape (V,)
+        Angle sets in degrees, by name.
+
+    Returns
+    -------
+    dict of str to float
+    """
+    data, _ = as_line_integrals(projections)
+    level = _Level(data, geometry, int(binning), int(max_voxels), band_px, filter)
+    costs = {}
+    for name, angles in candidates.items():
+        angles = np.asarray(angles, dtype=np.float64)
+        try:
+            _check(projections, geometry, angles, (binning,), (1,), band_px, max_voxels, filter, 1.0)
+            costs[name] = level.steps(angles, with_steps=False)[1]
+        except InputError:
+            costs[name] = math.inf
+    return costs

@@ -1,0 +1,139 @@
+"""Projection matching: the derivative it steps along, and angles recovered on a small simulated scan."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ctpipe.builtin.projection_matching import ProjectionMatchingRefiner
+from ctpipe.errors import ConfigError, InputError
+from ctpipe.fdk import fdk
+from ctpipe.geometry import Geometry
+from ctpipe.phantoms import load_phantom
+from ctpipe.projectors import VoxelProjector
+from ctpipe.scan import parse_scan_spec
+from ctpipe.scoring import view_errors_deg
+from ctpipe.simulate import simulate
+from ctpipe.solve.projection_matching import (as_line_integrals, band_pass, consistency_costs, projection_matching,
+                                              reconstruction_grid, tangential_derivative)
+from ctpipe.testing import check_refiner
+
+SCAN = {
+    "geometry": {"source_to_object_mm": 130.0, "source_to_detector_mm": 300.0, "detector_cols": 128,
+                 "detector_rows": 128, "pixel_pitch_u_mm": 1.6, "pixel_pitch_v_mm": 1.6},
+    "angles": {"n_views": 120, "range_deg": 360.0},
+    "jitter": [{"gaussian": {"sigma_deg": 0.4}}, {"jumps": {"count": 2, "size_deg": 1.5}}],
+    "noise": {"photons_per_pixel": 100000, "flat_frames": 4, "dark_frames": 2, "dark_counts": 100},
+    "projector": {"kind": "analytic", "supersample": 1, "blur_px": 0.5},
+    "seed": 1,
+}
+
+
+def rms(angles_deg, truth_deg) -> float:
+    return float(np.sqrt(np.mean(view_errors_deg(angles_deg, truth_deg) ** 2)))
+
+
+@pytest.fixture(scope="module")
+def scan():
+    return simulate(load_phantom("bead-cylinder"), parse_scan_spec(SCAN), rng=np.random.default_rng(5))
+
+
+def test_the_projected_tangential_derivative_is_the_derivative_of_the_projection():
+    geometry = Geometry(130.0, 300.0, 64, 64, 1.6, 1.6)
+    grid = reconstruction_grid(geometry, 48)
+    rng = np.random.default_rng(0)
+    volume = np.zeros(grid.shape, np.float32)
+    volume[10:-10, 12:-12, 12:-12] = rng.uniform(0, 1, (grid.n_y - 20, grid.n_z - 24, grid.n_x - 24))
+    from scipy.ndimage import gaussian_filter
+
+    volume = gaussian_filter(volume, 2.0).astype(np.float32)
+    projector = VoxelProjector(geometry, grid)
+    angles = np.array([0.0, 33.0, 101.0])
+    eps = 0.05
+    finite = (projector.forward(volume, angles + eps) - projector.forward(volume, angles - eps)) / (2 * eps)
+    analytic = projector.forward(tangential_derivative(volume, grid), angles)
+    # Same sign and scale (a turn of +delta is +delta in ctpipe's convention), up to discretisation.
+    ratio = float(np.sum(finite * analytic) / np.sum(analytic * analytic))
+    assert ratio == pytest.approx(1.0, abs=0.1)
+    assert np.corrcoef(finite.ravel(), analytic.ravel())[0, 1] > 0.95
+
+
+def test_the_grid_covers_the_field_of_view_and_respects_max_voxels():
+    geometry = Geometry(150.0, 390.0, 512, 512, 0.8, 0.8)
+    grid = reconstruction_grid(geometry, 192)
+    radius = 150.0 * np.sin(np.arctan(256 * 0.8 / 390.0))
+    assert grid.n_x == grid.n_z <= 192 and grid.n_y <= 192
+    assert grid.n_x * grid.voxel_size_mm >= 2 * radius
+    fine = reconstruction_grid(geometry, 4096)
+    assert fine.voxel_size_mm == pytest.approx(0.8 * 150.0 / 390.0)
+
+
+def test_band_pass_removes_constants_and_keeps_edges():
+    image = np.zeros((1, 64, 64), np.float32)
+    image[0, :, 32:] = 1.0
+    out = band_pass(image + 5.0, 0.7, 4.0)
+    assert abs(float(out[0, 32, 5])) < 1e-4 and abs(float(out[0, 32, 60])) < 1e-4
+    assert float(np.abs(out[0, 32, 28:36]).max()) > 0.1
+
+
+def test_intensities_are_recognised_and_turned_into_line_integrals(scan):
+    line = scan.projections[:3]
+    same, converted = as_line_integrals(line)
+    assert not converted and np.array_equal(same, line)
+    intensities = 1000.0 * np.exp(-line)
+    back, converted = as_line_integrals(intensities)
+    assert converted
+    inside = line > 0.2
+    np.testing.assert_allclose(back[inside], line[inside], atol=0.05)
+
+
+def test_projection_matching_recovers_the_jitter_from_the_nominal_angles(scan):
+    nominal, truth = scan.nominal_angles_deg, scan.true_angles_deg
+    before = rms(nominal, truth)
+    result = projection_matching(scan.projections, scan.geometry, nominal, binning=(2, 1), iterations=(3, 2),
+                                 max_voxels=96)
+    after = rms(result.angles_deg, truth)
+    assert before > 0.4
+    assert after < 0.1 * before, (before, after)
+    assert result.stopped == "" and len(result.history) == 5
+    assert result.history[0]["cost"] > result.history[-1]["cost"]
+    costs = consistency_costs(scan.projections, scan.geometry, {"nominal": nominal, "matched": result.angles_deg,
+                                                                "nan": np.full_like(nominal, np.nan)}, binning=2,
+                              max_voxels=96)
+    assert costs["matched"] < costs["nominal"] and costs["nan"] == np.inf
+
+
+def test_projection_matching_says_what_is_wrong_with_its_arguments(scan):
+    with pytest.raises(InputError, match="angles_deg: must be 120 finite angles"):
+        projection_matching(scan.projections, scan.geometry, scan.nominal_angles_deg[:5])
+    with pytest.raises(InputError, match="binning: each factor must be an integer from 1 to 16"):
+        projection_matching(scan.projections, scan.geometry, scan.nominal_angles_deg, binning=(32,), iterations=(1,))
+    with pytest.raises(InputError, match="band_px"):
+        projection_matching(scan.projections, scan.geometry, scan.nominal_angles_deg, band_px=(4.0, 1.0))
+
+
+def test_the_refiner_passes_the_conformance_check_and_returns_its_start_without_projections():
+    solution = check_refiner(ProjectionMatchingRefiner())
+    assert solution.info["matching"].startswith("skipped: no projections")
+
+
+def test_the_refiner_rejects_levels_that_do_not_line_up():
+    with pytest.raises(ConfigError, match="one count per binning level"):
+        ProjectionMatchingRefiner(binning=(4, 2), iterations=(3,))
+    with pytest.raises(ConfigError, match="band_low_px: must be below band_high_px"):
+        ProjectionMatchingRefiner(band_low_px=5.0, band_high_px=4.0)
+
+
+def test_the_pipeline_with_projection_matching_beats_the_nominal_angles_by_far(scan):
+    from ctpipe.pipeline import Pipeline
+
+    pipeline = Pipeline.from_config({
+        "estimator": {"name": "ransac-1pt", "hypotheses": "all", "scoring": "msac", "sampson_threshold": 3.0e-3},
+        "refiner": {"name": "projection-matching", "binning": [2, 1], "iterations": [3, 2], "max_voxels": 96},
+        "pairs": {"baselines": [1, 2]},
+    })
+    result = pipeline.run(scan.projections, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg)
+    truth = scan.true_angles_deg
+    assert rms(result.angles_deg, truth) < 0.1 * rms(scan.nominal_angles_deg, truth)
+    assert result.refiner_info["chosen"] == "matched"
+    assert set(result.refiner_info["consistency_cost"]) == {"matched", "start", "nominal"}
