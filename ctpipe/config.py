@@ -34,12 +34,13 @@ __all__ = ["load_yaml", "StageSpec", "PipelineConfig", "parse_pipeline", "parse_
 
 #: Stage used for a kind the pipeline file does not mention. The estimator's Sampson threshold
 #: is the paper's real-data one (8e-4, about 2 px at 0.4 mm pitch and 1 m SDD); the stage's own
-#: default (0.01) is the paper's synthetic setting, some 25 px on such a detector.
+#: default (0.01) is the paper's synthetic setting, some 25 px on such a detector. The refiner is
+#: the whole-scan one: pair angles alone drift along a scan (see docs/wholescan.md).
 DEFAULT_STAGES = {
     "detector": {"name": "sift"},
     "matcher": {"name": "brute-force", "ratio": 0.8, "mutual": True},
     "estimator": {"name": "ransac-1pt", "sampson_threshold": 8e-4},
-    "refiner": {"name": "least-squares"},
+    "refiner": {"name": "projection-matching"},
 }
 
 

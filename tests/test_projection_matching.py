@@ -62,7 +62,7 @@ def test_the_grid_covers_the_field_of_view_and_respects_max_voxels():
     geometry = Geometry(150.0, 390.0, 512, 512, 0.8, 0.8)
     grid = reconstruction_grid(geometry, 192)
     radius = 150.0 * np.sin(np.arctan(256 * 0.8 / 390.0))
-    assert grid.n_x == grid.n_z <= 192 and grid.n_y <= 192
+    assert grid.n_x == grid.n_z <= 192 and grid.n_y <= 2 * 192
     assert grid.n_x * grid.voxel_size_mm >= 2 * radius
     fine = reconstruction_grid(geometry, 4096)
     assert fine.voxel_size_mm == pytest.approx(0.8 * 150.0 / 390.0)

@@ -66,6 +66,8 @@ class ProjectionMatchingRefiner(Refiner):
     filter: Filter = param("ram-lak", doc="FDK ramp-filter window for the reference volume")
     max_step_deg: float = param(1.0, doc="largest change of one view's angle per iteration", gt=0, le=45)
     select: bool = param(True, doc="keep whichever of nominal, start and matched angles fits the projections best")
+    min_views: int = param(32, doc="fewest views worth reconstructing a reference from; fewer keep the start",
+                           ge=8, le=100000)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -92,10 +94,13 @@ class ProjectionMatchingRefiner(Refiner):
         projections = observations.projections
         rows, cols = observations.geometry.shape
         levels = [(b, n) for b, n in zip(self.binning, self.iterations) if min(rows, cols) // b >= 8]
-        if projections is None or not levels:
-            info["matching"] = ("skipped: no projections to match" if projections is None else
-                                f"skipped: every binning of {list(self.binning)} leaves fewer than 8 pixels of "
-                                f"the {rows} x {cols} detector")
+        skip = ("skipped: no projections to match" if projections is None else
+                f"skipped: every binning of {list(self.binning)} leaves fewer than 8 pixels of the {rows} x {cols} "
+                "detector" if not levels else
+                f"skipped: {observations.n_views} views are too few to reconstruct a reference from (min_views "
+                f"{self.min_views})" if observations.n_views < self.min_views else "")
+        if skip:
+            info["matching"] = skip
             return ScanSolution(np.deg2rad(start_deg - start_deg[0]), start_solution.pair_estimates, info)
         # Match in the frame of the nominal angles, where the volume sits as the user expects.
         if nominal is not None:

@@ -80,7 +80,8 @@ def reconstruction_grid(geometry: Geometry, max_voxels: int) -> VolumeGrid:
 
     The cylinder's radius is ``SOD sin(fan half-angle)``; its height reaches the top and bottom
     rays at the far side of the cylinder. Voxels are the detector pixel at the axis
-    (``pitch * SOD / SDD``), or larger so that no edge exceeds ``max_voxels``.
+    (``pitch * SOD / SDD``), or larger so that the cylinder's diameter takes at most
+    ``max_voxels``; the height takes what it needs, up to twice that.
     """
     g = geometry
     half_u = max(g.u0_px + 0.5, g.detector_cols - 0.5 - g.u0_px) * g.pixel_pitch_u_mm
@@ -88,7 +89,7 @@ def reconstruction_grid(geometry: Geometry, max_voxels: int) -> VolumeGrid:
     radius = g.source_to_object_mm * math.sin(math.atan(half_u / g.source_to_detector_mm))
     half_height = half_v * (g.source_to_object_mm + radius) / g.source_to_detector_mm
     voxel = min(g.pixel_pitch_u_mm, g.pixel_pitch_v_mm) * g.source_to_object_mm / g.source_to_detector_mm
-    voxel = max(voxel, 2.0 * radius / max_voxels, 2.0 * half_height / max_voxels)
+    voxel = max(voxel, 2.0 * radius / max_voxels, half_height / max_voxels)
     n_xz = max(int(math.ceil(2.0 * radius / voxel)), 8)
     n_y = max(int(math.ceil(2.0 * half_height / voxel)), 8)
     return VolumeGrid(n_xz, n_y, n_xz, voxel)
