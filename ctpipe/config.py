@@ -11,6 +11,8 @@ A pipeline file::
     refiner: least-squares          # a bare name means default parameters
     pairs: {baselines: [1], loop_closure: true}   # view offsets: (i, i + k) for every k; a full
                                     # turn (known from the nominal angles) also pairs across its seam
+    preprocess: {static_background: auto}   # detect on views less their per-pixel median
+                                    # (auto: when the nominal angles span >= 180 deg); on, off
     # a kind left out gets DEFAULT_STAGES[kind]
     seed: 0
 """
@@ -20,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 
@@ -152,15 +154,19 @@ class PipelineConfig:
     baselines: tuple[int, ...] = (1,)
     seed: int | None = 0
     loop_closure: bool = True
+    static_background: str = "auto"
 
     def to_dict(self) -> dict:
         return {"detector": self.detector.to_dict(), "matcher": self.matcher.to_dict(),
                 "estimator": self.estimator.to_dict(), "refiner": self.refiner.to_dict(),
-                "pairs": {"baselines": list(self.baselines), "loop_closure": self.loop_closure}, "seed": self.seed}
+                "pairs": {"baselines": list(self.baselines), "loop_closure": self.loop_closure},
+                "preprocess": {"static_background": self.static_background}, "seed": self.seed}
 
 
 _PAIRS_BASELINES = ParamSpec("baselines", tuple[int, ...], (1,), "view offsets", ge=1)
 _PAIRS_LOOP_CLOSURE = ParamSpec("loop_closure", bool, True, "pair the last views of a full turn with the first")
+_STATIC_BACKGROUND = ParamSpec("static_background", Literal["auto", "on", "off"], "auto",
+                               "subtract the per-pixel median over the views before detection")
 _SEED = ParamSpec("seed", int | None, 0, "random seed", ge=0)
 
 
@@ -168,14 +174,18 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
     """Validate a pipeline mapping (see the module docstring) against ``registry``."""
     if mapping is None:
         mapping = {}
-    check_keys(mapping, path, allowed=("detector", "matcher", "estimator", "refiner", "pairs", "seed"))
+    check_keys(mapping, path, allowed=("detector", "matcher", "estimator", "refiner", "pairs", "preprocess", "seed"))
     stages = {kind: parse_stage(mapping.get(kind, default), kind, registry, f"{path}.{kind}")
               for kind, default in DEFAULT_STAGES.items()}
     pairs = check_keys(mapping.get("pairs", {}), f"{path}.pairs", allowed=("baselines", "loop_closure"))
     baselines = check_value(_PAIRS_BASELINES, pairs.get("baselines", [1]), f"{path}.pairs.baselines")
     loop_closure = check_value(_PAIRS_LOOP_CLOSURE, pairs.get("loop_closure", True), f"{path}.pairs.loop_closure")
+    preprocess = check_keys(mapping.get("preprocess", {}) or {}, f"{path}.preprocess", allowed=("static_background",))
+    static_background = check_value(_STATIC_BACKGROUND, preprocess.get("static_background", "auto"),
+                                    f"{path}.preprocess.static_background")
     seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
-    return PipelineConfig(**stages, baselines=tuple(sorted(set(baselines))), seed=seed, loop_closure=loop_closure)
+    return PipelineConfig(**stages, baselines=tuple(sorted(set(baselines))), seed=seed, loop_closure=loop_closure,
+                          static_background=static_background)
 
 
 _GEOMETRY_FIELDS = {

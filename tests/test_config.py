@@ -29,7 +29,7 @@ def test_defaults_and_bare_names():
     ("detector: {name: surff}", "pipeline.detector.name: unknown detector 'surff'; registered detectors: akaze, brisk"),
     ("detector: {n_features: 3}", "pipeline.detector.name: missing; registered detectors: akaze"),
     ("matcher: [1, 2]", "pipeline.matcher: must be a matcher name or a mapping"),
-    ("colour: red", "pipeline.colour: unknown key; allowed: detector, matcher, estimator, refiner, pairs, seed"),
+    ("colour: red", "pipeline.colour: unknown key; allowed: detector, matcher, estimator, refiner, pairs, preprocess, seed"),
     ("pairs: {baselines: [0]}", "pipeline.pairs.baselines: must be a non-empty list of integers >= 1, got [0]"),
     ("seed: -3", "pipeline.seed: must be an integer >= 0 or null, got -3"),
     ("[1, 2", "p.yaml: not valid YAML at line 1"),

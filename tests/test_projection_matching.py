@@ -137,3 +137,33 @@ def test_the_pipeline_with_projection_matching_beats_the_nominal_angles_by_far(s
     assert rms(result.angles_deg, truth) < 0.1 * rms(scan.nominal_angles_deg, truth)
     assert result.refiner_info["chosen"] == "matched"
     assert set(result.refiner_info["consistency_cost"]) == {"matched", "start", "nominal"}
+
+
+def test_removing_the_static_background_takes_the_container_out_of_the_pair_angles(scan):
+    from ctpipe.pipeline import Pipeline
+    from ctpipe.scoring import pair_errors_deg
+
+    def bias_percent(static_background):
+        pipeline = Pipeline.from_config({
+            "estimator": {"name": "ransac-1pt", "hypotheses": "all", "scoring": "msac", "sampson_threshold": 3.0e-3},
+            "refiner": {"name": "least-squares"}, "preprocess": {"static_background": static_background}})
+        result = pipeline.run(scan.projections, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg)
+        errors = pair_errors_deg(result.pairs, result.pair_angles_deg, scan.true_angles_deg)
+        return 100.0 * float(np.nanmean(errors)) / 3.0, result.static_background_removed
+
+    off, removed_off = bias_percent("off")
+    on, removed_on = bias_percent("auto")          # a full turn: auto removes it
+    assert (removed_off, removed_on) == (False, True)
+    # The container's static profile holds the features' localisation back: pairs come out short.
+    assert off < -3.0 and abs(on) < 0.6 * abs(off), (off, on)
+
+
+def test_auto_keeps_the_background_without_nominal_angles_or_on_a_narrow_range(bead_scan):
+    from ctpipe.pipeline import Pipeline
+
+    projections, geometry, truth = bead_scan
+    pipeline = Pipeline.from_config({"refiner": {"name": "least-squares"}})
+    assert not pipeline.run(projections, geometry).static_background_removed
+    assert not pipeline.run(projections, geometry, nominal_angles_deg=truth).static_background_removed
+    with pytest.raises(InputError, match="static_background: must be one of"):
+        Pipeline(pipeline.detector, pipeline.matcher, pipeline.estimator, pipeline.refiner, static_background="yes")

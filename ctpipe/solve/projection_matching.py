@@ -176,6 +176,34 @@ class _Level:
         return step, residual_energy / max(self.data_energy, 1e-300)
 
 
+def _extrapolate_slow_modes(step: np.ndarray, previous: np.ndarray, theta_rad: np.ndarray,
+                            harmonics: int = 4, max_ratio: float = 0.9) -> np.ndarray:
+    """Aitken extrapolation of the slowly converging low harmonics of the angle steps.
+
+    A turn-periodic warp of the angles ``a cos(k theta) + b sin(k theta)`` of low order ``k`` is
+    nearly an affine stretch of the object, which the reconstruction absorbs: matching removes
+    only a fraction ``1 - rho`` of it per iteration, so successive steps in that mode shrink
+    geometrically by ``rho``. The rest of the series is ``step * rho / (1 - rho)``; it is added
+    for each harmonic whose ratio is in (0, ``max_ratio``] and whose steps agree in direction.
+    """
+    columns = [np.ones_like(theta_rad)]
+    for k in range(1, harmonics + 1):
+        columns += [np.cos(k * theta_rad), np.sin(k * theta_rad)]
+    basis = np.stack(columns, axis=1)
+    coeffs, *_ = np.linalg.lstsq(basis, np.stack([step, previous], axis=1), rcond=None)
+    extra = np.zeros_like(step)
+    for k in range(1, harmonics + 1):
+        now, before = coeffs[2 * k - 1: 2 * k + 1, 0], coeffs[2 * k - 1: 2 * k + 1, 1]
+        energy = float(before @ before)
+        if energy <= 0.0:
+            continue
+        rho = float(now @ before) / energy
+        cosine = float(now @ before) / max(float(np.sqrt(energy * (now @ now))), 1e-300)
+        if 0.0 < rho <= max_ratio and cosine > 0.8:
+            extra += basis[:, 2 * k - 1: 2 * k + 1] @ now * (rho / (1.0 - rho))
+    return extra
+
+
 def _check(projections, geometry, angles_deg, binning, iterations, band_px, max_voxels, filter, max_step_deg):
     if not isinstance(geometry, Geometry):
         raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
@@ -243,6 +271,7 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
     history: list[dict] = []
     for factor, count in zip(binning, iterations):
         level = _Level(data, geometry, int(factor), int(max_voxels), band_px, filter)
+        previous = None
         for iteration in range(int(count)):
             start = time.perf_counter()
             try:
@@ -251,7 +280,9 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
                 return ProjectionMatchingResult(angles, tuple(history), f"binning {factor}, iteration {iteration}: {exc}")
             step = np.clip(step, -max_step_deg, max_step_deg)
             step -= step.mean()
-            angles = angles + step
+            extra = _extrapolate_slow_modes(step, previous, np.deg2rad(angles)) if previous is not None else 0.0
+            previous = step
+            angles = angles + step + extra
             history.append({"binning": int(factor), "iteration": iteration, "cost": cost,
                             "step_rms_deg": float(np.sqrt(np.mean(step ** 2))),
                             "step_max_deg": float(np.abs(step).max()), "seconds": time.perf_counter() - start})
