@@ -169,6 +169,10 @@ class ScanObservations:
     projections : ndarray of shape (V, rows, cols) or None
         The images the features came from, for refiners that work on pixels (projection
         matching); never modified.
+    timings_s : dict
+        Seconds spent detecting, matching and estimating.
+    static_background_removed : bool
+        Whether features were detected on the views less the scan's static part.
     """
 
     geometry: Geometry
@@ -181,6 +185,8 @@ class ScanObservations:
     estimates: tuple[PairEstimate | FailedEstimation, ...]
     nominal_angles_deg: np.ndarray | None = None
     projections: np.ndarray | None = None
+    timings_s: dict[str, float] = field(default_factory=dict)
+    static_background_removed: bool = False
 
 
 @dataclass(frozen=True, eq=False)

@@ -133,7 +133,7 @@ class Pipeline:
 
     def run(self, projections: np.ndarray, geometry: Geometry, *, nominal_angles_deg=None,
             pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None) -> ScanResult:
-        """Estimate the angle of every view of a scan.
+        """Estimate the angle of every view of a scan: :meth:`observe`, then :meth:`refine`.
 
         Parameters
         ----------
@@ -153,6 +153,15 @@ class Pipeline:
             Wrong shapes/dtypes, NaN pixels, pairs out of range.
         EstimationError
             When not a single pair could be estimated.
+        """
+        return self.refine(self.observe(projections, geometry, nominal_angles_deg=nominal_angles_deg, pairs=pairs,
+                                        progress=progress))
+
+    def observe(self, projections: np.ndarray, geometry: Geometry, *, nominal_angles_deg=None,
+                pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None) -> ScanObservations:
+        """Detect, match and estimate every pair: what a refiner works from (arguments as :meth:`run`).
+
+        Several refiners can then be compared on the same observations with :meth:`refine`.
         """
         projections = _check_projections(projections, geometry)
         n_views = len(projections)
@@ -176,26 +185,32 @@ class Pipeline:
         timings["match"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        seeds = np.random.SeedSequence(self.seed).spawn(len(pairs) + 1)
+        seeds = np.random.SeedSequence(self.seed).spawn(len(pairs))
         estimates = tuple(self.estimator.estimate(q_a, q_b, rng=np.random.default_rng(s))
                           for q_a, q_b, s in zip(points_a, points_b, seeds))
         timings["estimate"] = time.perf_counter() - start
+        return ScanObservations(geometry=geometry, n_views=n_views, features=features, pairs=pairs,
+                                matches=matches, points_a=points_a, points_b=points_b, estimates=estimates,
+                                nominal_angles_deg=nominal, projections=projections, timings_s=timings,
+                                static_background_removed=background is not None)
 
-        observations = ScanObservations(geometry=geometry, n_views=n_views, features=features, pairs=pairs,
-                                        matches=matches, points_a=points_a, points_b=points_b, estimates=estimates,
-                                        nominal_angles_deg=nominal, projections=projections)
+    def refine(self, observations: ScanObservations) -> ScanResult:
+        """Per-view angles from :meth:`observe`'s observations with this pipeline's refiner."""
+        timings = dict(observations.timings_s)
         start = time.perf_counter()
-        solution = self.refiner.refine(observations, rng=np.random.default_rng(seeds[-1]))
+        # The refiner's generator is the last of len(pairs) + 1 children, as it always was.
+        seed = np.random.SeedSequence(self.seed).spawn(len(observations.pairs) + 1)[-1]
+        solution = self.refiner.refine(observations, rng=np.random.default_rng(seed))
         timings["refine"] = time.perf_counter() - start
 
-        refined = solution.pair_estimates
+        refined, matches, features = solution.pair_estimates, observations.matches, observations.features
         if not any(refined):
             counts = ", ".join(f"view {v}: {len(f)}" for v, f in enumerate(features[:6]))
             raise EstimationError(
                 f"no view pair could be estimated (first pair: {refined[0]}); keypoints per view: {counts}"
-                f"{', ...' if n_views > 6 else ''}")
+                f"{', ...' if observations.n_views > 6 else ''}")
         return ScanResult(
-            pairs=pairs,
+            pairs=observations.pairs,
             pair_angles_deg=np.array([np.rad2deg(e.angle_rad) if e else np.nan for e in refined]),
             pair_inlier_masks=tuple(e.inlier_mask if e else np.zeros(len(m), bool) for e, m in zip(refined, matches)),
             n_matches=np.array([len(m) for m in matches], dtype=np.int64),
@@ -206,7 +221,7 @@ class Pipeline:
             n_keypoints=np.array([len(f) for f in features], dtype=np.int64),
             timings_s=timings,
             refiner_info=dict(solution.info),
-            static_background_removed=background is not None,
+            static_background_removed=observations.static_background_removed,
         )
 
     def _background(self, projections: np.ndarray, nominal: np.ndarray | None) -> np.ndarray | None:
