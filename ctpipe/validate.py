@@ -55,6 +55,7 @@ import numpy as np
 
 from ctpipe.config import PipelineConfig, check_keys, load_yaml, parse_pipeline
 from ctpipe.errors import ConfigError, InputError
+from ctpipe.fdk import bin_detector, binned_geometry
 from ctpipe.geometry import Geometry
 from ctpipe.registry import StageRegistry
 from ctpipe.stages import ParamSpec, check_value
@@ -207,30 +208,6 @@ def load_validate_settings(path: str | Path | None, registry: StageRegistry) -> 
         return parse_validate(load_yaml("validate.yaml", text=text), registry, source="built-in default")
     path = Path(path)
     return parse_validate(load_yaml(path), registry, base_dir=path.parent, path=str(path), source=str(path))
-
-
-def bin_detector(projections: np.ndarray, geometry: Geometry, factor: int) -> tuple[np.ndarray, Geometry]:
-    """Average ``factor x factor`` pixel blocks; the geometry keeps describing the same rays.
-
-    Binned pixel ``k`` covers pixels ``factor k .. factor k + factor - 1``, centred at
-    ``factor k + (factor - 1) / 2``, so the principal point maps to ``(u0 - (factor - 1) / 2) / factor``.
-    """
-    if factor == 1:
-        return projections, geometry
-    v, rows, cols = projections.shape
-    binned = projections.reshape(v, rows // factor, factor, cols // factor, factor).mean(axis=(2, 4), dtype=np.float32)
-    return binned.astype(np.float32), binned_geometry(geometry, factor)
-
-
-def binned_geometry(geometry: Geometry, factor: int) -> Geometry:
-    """The geometry of :func:`bin_detector`'s output: same rays, ``factor`` times coarser pixels."""
-    if factor == 1:
-        return geometry
-    shift = (factor - 1) / 2.0
-    return Geometry(geometry.source_to_object_mm, geometry.source_to_detector_mm, geometry.detector_cols // factor,
-                    geometry.detector_rows // factor, geometry.pixel_pitch_u_mm * factor,
-                    geometry.pixel_pitch_v_mm * factor, (geometry.u0_px - shift) / factor,
-                    (geometry.v0_px - shift) / factor)
 
 
 def pair_chained_deg(pairs, pair_angles_deg, nominal_angles_deg) -> np.ndarray:
@@ -444,6 +421,10 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
     if n_filled:
         notes.append(f"{n_filled} views were not connected to view 0 by estimated pairs; they keep their nominal angle")
     problems = estimate_problems(estimated_rel, truth, scan.angles.range_deg)
+    chosen = result.refiner_info.get("chosen")
+    if chosen in ("nominal", "start"):
+        problems.insert(0, f"the refiner kept the {'nominal' if chosen == 'nominal' else 'feature-based start'} "
+                           "angles: projection matching explained the projections no better")
     view_errors = {"nominal": view_errors_deg(nominal, truth),
                    "pair-chained": view_errors_deg(pair_chained_deg(result.pairs, result.pair_angles_deg, nominal),
                                                    truth),

@@ -50,9 +50,11 @@ class ProjectionMatchingRefiner(Refiner):
     The start (``least-squares``: the robust view graph with loop closure; or
     ``bundle-adjustment``; or ``nominal``) has the capture range for slips of degrees; matching
     each view against the reprojection of a reconstruction from all views then removes the drift
-    a chain of pairs accumulates (:mod:`ctpipe.solve.projection_matching`). With ``select``, the
-    nominal, start and matched angles are compared by how consistently they explain the
-    projections, and the best is returned, so a scan the matching cannot handle keeps its start.
+    a chain of pairs accumulates (:mod:`ctpipe.solve.projection_matching`). With ``select``,
+    matching starts from whichever of the start and the nominal angles explains the projections
+    better (a reconstruct-and-reproject residual, :func:`~ctpipe.solve.projection_matching.consistency_costs`),
+    and of nominal, start and matched angles the most consistent is returned, so a scan the
+    matching cannot handle keeps the better of its start and its nominal angles.
     Needs the projections (``ScanObservations.projections``); without them it returns the start.
     """
 
@@ -107,22 +109,35 @@ class ProjectionMatchingRefiner(Refiner):
             start_deg = start_deg + float(np.median(nominal - start_deg))
         begin = time.perf_counter()
         band = (self.band_low_px, self.band_high_px)
-        result = projection_matching(projections, observations.geometry, start_deg, binning=[b for b, _ in levels],
-                                     iterations=[n for _, n in levels], band_px=band, max_voxels=self.max_voxels,
-                                     filter=self.filter, max_step_deg=self.max_step_deg)
-        info["matching"] = {"levels": [{"binning": b, "iterations": n} for b, n in levels],
-                            "history": list(result.history), "stopped": result.stopped,
-                            "seconds": time.perf_counter() - begin}
-        chosen, angles = "matched", result.angles_deg
-        if self.select:
-            candidates = {"matched": result.angles_deg, "start": start_deg}
-            if nominal is not None:
-                candidates["nominal"] = np.asarray(nominal, dtype=np.float64)
+        costs = {}
+        candidates = {"start": start_deg}
+        if nominal is not None:
+            candidates["nominal"] = np.asarray(nominal, dtype=np.float64)
+        if self.select and len(candidates) > 1:
+            # Match from whichever explains the projections better: a feature start that went
+            # astray (too few features, a degenerate object) must not be the one refined.
             costs = consistency_costs(projections, observations.geometry, candidates, binning=levels[0][0],
                                       band_px=band, max_voxels=self.max_voxels, filter=self.filter)
+        origin = min(candidates, key=lambda name: (costs.get(name, 0.0), name != "start"))
+        result = projection_matching(projections, observations.geometry, candidates[origin],
+                                     binning=[b for b, _ in levels], iterations=[n for _, n in levels], band_px=band,
+                                     max_voxels=self.max_voxels, filter=self.filter, max_step_deg=self.max_step_deg)
+        info["matching"] = {"from": origin, "levels": [{"binning": b, "iterations": n} for b, n in levels],
+                            "history": list(result.history), "stopped": result.stopped}
+        chosen, angles = "matched", result.angles_deg
+        if self.select:
+            candidates["matched"] = result.angles_deg
+            costs.update(consistency_costs(projections, observations.geometry, {"matched": result.angles_deg},
+                                           binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
+                                           filter=self.filter))
+            if "start" not in costs:
+                costs.update(consistency_costs(projections, observations.geometry, {"start": start_deg},
+                                               binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
+                                               filter=self.filter))
             chosen = min(costs, key=lambda name: (costs[name], name != "matched"))
             angles = candidates[chosen]
             info["consistency_cost"] = costs
+        info["matching"]["seconds"] = time.perf_counter() - begin
         info["chosen"] = chosen
         return ScanSolution(np.deg2rad(angles - angles[0]), start_solution.pair_estimates, info)
 
