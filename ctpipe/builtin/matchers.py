@@ -33,7 +33,7 @@ class _NearestNeighbourMatcher(Matcher):
         if self.ratio is not None:
             # A missing second neighbour (inf) means the nearest one is unambiguous.
             keep &= distance[:, 0] < self.ratio * distance[:, 1]
-        if self.mutual:
+        if self.mutual and keep.any():
             back, _ = self._knn(features_b, features_a, 1)
             forward = np.where(keep, index[:, 0], 0)
             keep &= back[forward, 0] == np.arange(len(index))
