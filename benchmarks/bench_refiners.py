@@ -12,11 +12,11 @@ A further feature refiner is one more entry in ``REFINERS``: a name and a functi
 ``(SyntheticScan) -> (angles_rad, info)``.
 
 Projection matching works on pixels, not tracks: its rows simulate the granular sample on a
-small detector (``--detector``, default 128^2 pixels, 0.2 deg jitter) at the same view counts
+small detector (``--detector``, default 256^2 pixels, 0.2 deg jitter) at the same view counts
 and time :func:`ctpipe.solve.projection_matching.projection_matching` with the refiner's
-default levels (binning 4 then 2), started from the nominal angles.
+default levels (binned to 128 then 256 pixels a side), started from the nominal angles.
 
-    python benchmarks/bench_refiners.py --detector 128 --projection-views 360 1440 2880
+    python benchmarks/bench_refiners.py --detector 256 --projection-views 360 1440 2880
 """
 
 from __future__ import annotations
@@ -52,13 +52,14 @@ def bench_projection_matching(views: list[int], detector: int, seed: int) -> Non
     from ctpipe.phantoms import load_phantom
     from ctpipe.scan import parse_scan_spec
     from ctpipe.simulate import simulate
-    from ctpipe.solve.projection_matching import projection_matching
+    from ctpipe.solve.projection_matching import matching_levels, projection_matching
 
     defaults = ProjectionMatchingRefiner()
     phantom = load_phantom("granular")
     pitch = 0.8 * 512 / detector
-    print(f"\nprojection matching, granular sample on {detector}^2 pixels of {pitch:.2f} mm, levels "
-          f"{list(defaults.binning)} x {list(defaults.iterations)} iterations, from the nominal angles")
+    levels = matching_levels((detector, detector), defaults.iterations, level_px=defaults.level_px)
+    print(f"\nprojection matching, granular sample on {detector}^2 pixels of {pitch:.2f} mm, (binning, iterations) "
+          f"{levels}, from the nominal angles")
     print(f"{'views':>6s} {'simulate s':>10s} {'match s':>8s} {'warm-up s':>9s} {'nominal rms':>11s} {'rms err deg':>11s}")
     seconds = []
     for n_views in views:
@@ -78,7 +79,7 @@ def bench_projection_matching(views: list[int], detector: int, seed: int) -> Non
         warm_up = time.perf_counter() - start
         start = time.perf_counter()
         result = projection_matching(scan.projections, scan.geometry, scan.nominal_angles_deg,
-                                     binning=defaults.binning, iterations=defaults.iterations,
+                                     binning=[b for b, _ in levels], iterations=[n for _, n in levels],
                                      band_px=(defaults.band_low_px, defaults.band_high_px),
                                      max_voxels=defaults.max_voxels, filter=defaults.filter,
                                      max_step_deg=defaults.max_step_deg)
@@ -97,7 +98,7 @@ def main() -> None:
     parser.add_argument("--points-per-view", type=float, default=10.0,
                         help="new points entering the field per view (observations ~ 7.5 x this x views)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--detector", type=int, default=128, help="projection matching: detector pixels per side")
+    parser.add_argument("--detector", type=int, default=256, help="projection matching: detector pixels per side")
     parser.add_argument("--projection-views", type=int, nargs="*", default=[360, 1440, 2880],
                         help="projection matching: view counts (none: skip)")
     args = parser.parse_args()

@@ -117,9 +117,21 @@ def test_the_refiner_passes_the_conformance_check_and_returns_its_start_without_
     assert solution.info["matching"].startswith("skipped: no projections")
 
 
+def test_levels_bin_any_detector_to_about_the_same_sizes():
+    from ctpipe.solve.projection_matching import matching_levels
+
+    assert matching_levels((512, 512), (3, 2)) == [(4, 3), (2, 2)]
+    assert matching_levels((2048, 1536), (3, 2)) == [(12, 3), (6, 2)]
+    assert matching_levels((128, 128), (3, 2)) == [(1, 5)]          # both levels at full size: merged
+    assert matching_levels((512, 512), (3, 2), binning=(2, 1)) == [(2, 3), (1, 2)]
+    assert matching_levels((40, 40), (3, 2), binning=(4, 2)) == [(2, 2)]   # 10 px a side is too few
+
+
 def test_the_refiner_rejects_levels_that_do_not_line_up():
-    with pytest.raises(ConfigError, match="one count per binning level"):
+    with pytest.raises(ConfigError, match="one count per level"):
         ProjectionMatchingRefiner(binning=(4, 2), iterations=(3,))
+    with pytest.raises(ConfigError, match="one count per level"):
+        ProjectionMatchingRefiner(level_px=(128,))
     with pytest.raises(ConfigError, match="band_low_px: must be below band_high_px"):
         ProjectionMatchingRefiner(band_low_px=5.0, band_high_px=4.0)
 
@@ -129,7 +141,7 @@ def test_the_pipeline_with_projection_matching_beats_the_nominal_angles_by_far(s
 
     pipeline = Pipeline.from_config({
         "estimator": {"name": "ransac-1pt", "hypotheses": "all", "scoring": "msac", "sampson_threshold": 3.0e-3},
-        "refiner": {"name": "projection-matching", "binning": [2, 1], "iterations": [3, 2], "max_voxels": 96},
+        "refiner": {"name": "projection-matching", "level_px": [64, 128], "iterations": [3, 2], "max_voxels": 96},
         "pairs": {"baselines": [1, 2]},
     })
     result = pipeline.run(scan.projections, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg)

@@ -11,7 +11,7 @@ import numpy as np
 from ctpipe.data import ScanObservations, ScanSolution
 from ctpipe.fdk import FILTERS
 from ctpipe.hookspecs import hookimpl
-from ctpipe.solve.projection_matching import consistency_costs, projection_matching
+from ctpipe.solve.projection_matching import consistency_costs, matching_levels, projection_matching
 from ctpipe.stages import Refiner, param
 
 __all__ = ["ProjectionMatchingRefiner"]
@@ -60,7 +60,10 @@ class ProjectionMatchingRefiner(Refiner):
 
     start: Literal["least-squares", "bundle-adjustment", "nominal"] = param(
         "least-squares", doc="where matching starts: a refiner's angles, or the nominal ones")
-    binning: tuple[int, ...] = param((4, 2), doc="detector binning of each level, coarse to fine", ge=1, le=64)
+    level_px: tuple[int, ...] = param((128, 256), doc="detector size (pixels a side) each level is binned to, coarse "
+                                      "to fine", ge=16, le=8192)
+    binning: tuple[int, ...] | None = param(None, doc="explicit binning factor of each level (null: from level_px)",
+                                            ge=1, le=64)
     iterations: tuple[int, ...] = param((3, 2), doc="reconstruct-and-match rounds at each level", ge=0, le=50)
     band_low_px: float = param(0.7, doc="fine edge of the band-pass (Gaussian sigma, binned pixels)", ge=0, le=16)
     band_high_px: float = param(4.0, doc="coarse edge of the band-pass (Gaussian sigma, binned pixels)", gt=0, le=64)
@@ -75,9 +78,10 @@ class ProjectionMatchingRefiner(Refiner):
         super().__post_init__()
         from ctpipe.errors import ConfigError
 
-        if len(self.binning) != len(self.iterations):
-            raise ConfigError(f"ProjectionMatchingRefiner.iterations: must give one count per binning level "
-                              f"({len(self.binning)}), got {list(self.iterations)}")
+        n_levels = len(self.level_px if self.binning is None else self.binning)
+        if n_levels != len(self.iterations):
+            raise ConfigError(f"ProjectionMatchingRefiner.iterations: must give one count per level "
+                              f"({n_levels}), got {list(self.iterations)}")
         if not self.band_low_px < self.band_high_px:
             raise ConfigError(f"ProjectionMatchingRefiner.band_low_px: must be below band_high_px "
                               f"({self.band_high_px:g}), got {self.band_low_px:g}")
@@ -95,10 +99,9 @@ class ProjectionMatchingRefiner(Refiner):
         info["views_filled"] = n_filled
         projections = observations.projections
         rows, cols = observations.geometry.shape
-        levels = [(b, n) for b, n in zip(self.binning, self.iterations) if min(rows, cols) // b >= 8]
+        levels = matching_levels((rows, cols), self.iterations, level_px=self.level_px, binning=self.binning)
         skip = ("skipped: no projections to match" if projections is None else
-                f"skipped: every binning of {list(self.binning)} leaves fewer than 8 pixels of the {rows} x {cols} "
-                "detector" if not levels else
+                f"skipped: every level leaves fewer than 16 pixels of the {rows} x {cols} detector" if not levels else
                 f"skipped: {observations.n_views} views are too few to reconstruct a reference from (min_views "
                 f"{self.min_views})" if observations.n_views < self.min_views else "")
         if skip:

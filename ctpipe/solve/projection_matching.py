@@ -47,7 +47,7 @@ from ctpipe.fdk import FILTERS, bin_detector, fdk
 from ctpipe.geometry import Geometry
 from ctpipe.volume import VolumeGrid
 
-__all__ = ["ProjectionMatchingResult", "projection_matching", "consistency_costs", "reconstruction_grid",
+__all__ = ["ProjectionMatchingResult", "projection_matching", "matching_levels", "consistency_costs", "reconstruction_grid",
            "tangential_derivative", "band_pass", "as_line_integrals"]
 
 # Views reprojected at a time: bounds the memory of the reprojections to a few chunks' worth.
@@ -73,6 +73,31 @@ class ProjectionMatchingResult:
     angles_deg: np.ndarray
     history: tuple[dict, ...]
     stopped: str = ""
+
+
+def matching_levels(shape: tuple[int, int], iterations, *, level_px=(128, 256), binning=None) -> list[tuple[int, int]]:
+    """``(binning, iterations)`` of each level for a detector of ``shape`` (rows, cols).
+
+    With ``binning`` None, each level bins the detector to about ``level_px`` pixels a side
+    (factor ``round(min(shape) / level_px)``, at least 1), so a 512^2 detector is matched at
+    128^2 then 256^2 and a 2,048^2 one at the same sizes; levels that come out at the same
+    factor are merged (their iterations add up). Levels that would leave fewer than 16 pixels a
+    side are dropped.
+    """
+    side = min(shape)
+    if binning is None:
+        factors = [max(1, int(round(side / max(px, 1)))) for px in level_px]
+    else:
+        factors = [int(b) for b in binning]
+    levels: list[tuple[int, int]] = []
+    for factor, count in zip(factors, iterations):
+        if side // factor < 16:
+            continue
+        if levels and levels[-1][0] == factor:
+            levels[-1] = (factor, levels[-1][1] + int(count))
+        else:
+            levels.append((factor, int(count)))
+    return [(b, n) for b, n in levels if n > 0]
 
 
 def reconstruction_grid(geometry: Geometry, max_voxels: int) -> VolumeGrid:
@@ -177,14 +202,16 @@ class _Level:
 
 
 def _extrapolate_slow_modes(step: np.ndarray, previous: np.ndarray, theta_rad: np.ndarray,
-                            harmonics: int = 4, max_ratio: float = 0.9) -> np.ndarray:
+                            harmonics: int = 4, max_ratio: float = 0.8) -> np.ndarray:
     """Aitken extrapolation of the slowly converging low harmonics of the angle steps.
 
     A turn-periodic warp of the angles ``a cos(k theta) + b sin(k theta)`` of low order ``k`` is
     nearly an affine stretch of the object, which the reconstruction absorbs: matching removes
     only a fraction ``1 - rho`` of it per iteration, so successive steps in that mode shrink
     geometrically by ``rho``. The rest of the series is ``step * rho / (1 - rho)``; it is added
-    for each harmonic whose ratio is in (0, ``max_ratio``] and whose steps agree in direction.
+    for each harmonic whose ratio is positive and whose steps agree in direction, with the ratio
+    capped at ``max_ratio`` (at most 4 times the step, so a mode that only looks slow cannot run
+    away).
     """
     columns = [np.ones_like(theta_rad)]
     for k in range(1, harmonics + 1):
@@ -199,7 +226,8 @@ def _extrapolate_slow_modes(step: np.ndarray, previous: np.ndarray, theta_rad: n
             continue
         rho = float(now @ before) / energy
         cosine = float(now @ before) / max(float(np.sqrt(energy * (now @ now))), 1e-300)
-        if 0.0 < rho <= max_ratio and cosine > 0.8:
+        if rho > 0.0 and cosine > 0.8:
+            rho = min(rho, max_ratio)
             extra += basis[:, 2 * k - 1: 2 * k + 1] @ now * (rho / (1.0 - rho))
     return extra
 
