@@ -246,3 +246,16 @@ def test_limited_angle_scan_when_asked():
 
 def test_filters_are_listed():
     assert FILTERS == ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
+
+
+def test_a_dense_turn_with_jitter_as_large_as_its_step_is_a_full_scan():
+    """1,440 views 0.25 deg apart with 0.2 deg jitter: sorted, most gaps are tiny and a few near a
+    degree. Judged against the median gap, such a gap looked like a missing wedge, and FDK refused
+    the angles as a short scan spanning 360 deg (projection matching stopped on it)."""
+    from ctpipe.fdk import covers_full_circle
+
+    for seed in (18, 26, 35):    # the old rule called these short scans
+        angles = np.arange(1440) * 0.25 + np.random.default_rng(seed).normal(0.0, 0.2, 1440)
+        assert covers_full_circle(angles), seed
+    rng = np.random.default_rng(0)
+    assert not covers_full_circle(np.linspace(0.0, 245.0, 1440) + rng.normal(0.0, 0.2, 1440))
