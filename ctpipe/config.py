@@ -19,6 +19,7 @@ A pipeline file::
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +27,7 @@ from typing import Any, Literal
 
 import yaml
 
+from ctpipe._checks import short_repr
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.registry import StageRegistry
@@ -46,38 +48,130 @@ DEFAULT_STAGES = {
 }
 
 
+#: Nodes that aliases may add to a document beyond the ones written out. Real configurations
+#: alias a few small mappings; nested aliases ("billion laughs") multiply, and a few hundred
+#: bytes can stand for billions of values that a consumer (or an error message) then walks.
+ALIAS_NODE_BUDGET = 100_000
+#: Deepest nesting accepted; no configuration comes near it, and walking deeper recurses.
+MAX_DEPTH = 100
+#: Largest YAML file read (scan.yaml of 100,000 views with both angle lists is some 5 MB).
+MAX_YAML_BYTES = 64 * 1024 * 1024
+
+#: YAML 1.2 floats without a dot (``1e-3``, ``+1E5``, ``.5e3``): YAML 1.1, which PyYAML
+#: follows, needs a dot in the mantissa and reads them as strings. Integers and ``1e``/``e5``
+#: do not match and keep their types.
+_FLOAT_EXPONENT = re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$")
+
+
 class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate keys instead of silently keeping the last."""
+    """SafeLoader that refuses duplicate keys, alias bombs and deep nesting, and reads ``1e-3``."""
+
+    def get_single_node(self):
+        node = super().get_single_node()
+        if node is not None:
+            _check_expansion(node)
+        return node
+
+
+_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_EXPONENT, list("-+0123456789."))
+
+
+def _check_expansion(root: yaml.Node) -> None:
+    """Refuse a node graph whose aliases expand past the budget, that refers to itself, or is too deep.
+
+    Aliases make the composed graph a DAG sharing nodes; its expanded size is counted per
+    distinct node (iteratively, so a deep document cannot exhaust the stack here).
+    """
+    size: dict[int, int] = {}
+    on_path: set[int] = set()
+    stack: list[tuple[yaml.Node, int, bool]] = [(root, 1, False)]
+    while stack:
+        node, depth, children_done = stack.pop()
+        key = id(node)
+        if children_done:
+            on_path.discard(key)
+            size[key] = 1 + sum(size[id(child)] for child in _children(node))
+            continue
+        if key in size:
+            continue
+        if key in on_path:
+            raise ConfigError(f"an alias refers to the node that contains it (line {node.start_mark.line + 1}); "
+                              "aliases must not be recursive")
+        if depth > MAX_DEPTH:
+            raise ConfigError(f"nested more than {MAX_DEPTH} levels deep (line {node.start_mark.line + 1})")
+        on_path.add(key)
+        stack.append((node, depth, True))
+        stack.extend((child, depth + 1, False) for child in _children(node))
+    written = len(size)
+    if size[id(root)] - written > ALIAS_NODE_BUDGET:
+        raise ConfigError(f"aliases expand to {size[id(root)]:,} values from {written:,} written ones; "
+                          f"at most {ALIAS_NODE_BUDGET:,} more are allowed")
+
+
+def _children(node: yaml.Node) -> list[yaml.Node]:
+    if isinstance(node, yaml.SequenceNode):
+        return node.value
+    if isinstance(node, yaml.MappingNode):
+        return [item for pair in node.value for item in pair]
+    return []
 
 
 def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False):
     seen = set()
     for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *base': its keys may be overridden
+            continue
         key = loader.construct_object(key_node, deep=deep)
-        if key in seen:
-            raise ConfigError(f"duplicate key {key!r} at line {key_node.start_mark.line + 1}")
-        seen.add(key)
+        try:
+            duplicate = key in seen
+            seen.add(key)
+        except TypeError:  # a list or mapping as a key: construct_mapping says so with its line
+            break
+        if duplicate:
+            raise ConfigError(f"duplicate key {short_repr(key)} at line {key_node.start_mark.line + 1}")
     return loader.construct_mapping(node, deep=deep)
 
 
 _StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 
 
-def load_yaml(source: str | Path, *, text: str | None = None) -> Any:
-    """Parse a YAML file strictly (safe loader, no duplicate keys).
+def _read_text(path: Path, name: str) -> str:
+    """The text of a YAML file: a regular file, a FIFO or ``/dev/fd/N`` (process substitution)."""
+    if path.is_dir():
+        raise ConfigError(f"{name}: is a folder; a YAML file is expected")
+    try:
+        with path.open("rb") as stream:
+            data = stream.read(MAX_YAML_BYTES + 1)
+    except FileNotFoundError:
+        raise ConfigError(f"{name}: no such file") from None
+    except OSError as exc:
+        raise ConfigError(f"{name}: cannot be read ({exc.strerror or exc})") from None
+    if len(data) > MAX_YAML_BYTES:
+        raise ConfigError(f"{name}: larger than {MAX_YAML_BYTES // 2**20} MiB; a YAML configuration file is expected")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{name}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset {exc.start}); "
+                          "a YAML file must be UTF-8") from None
 
-    Raises :class:`ConfigError` with the file name and the line of the problem.
+
+def load_yaml(source: str | Path, *, text: str | None = None) -> Any:
+    """Parse a YAML file strictly (safe loader, no duplicate keys, YAML 1.2 floats such as ``1e-3``).
+
+    ``source`` may be a regular file, a FIFO or ``/dev/fd/N``; with ``text``, it only names it.
+    Raises :class:`ConfigError` naming the file (and the line, where there is one) for a missing
+    file, a folder, text that is not UTF-8, invalid YAML, duplicate keys, aliases expanding to
+    more than :data:`ALIAS_NODE_BUDGET` extra values, and nesting deeper than :data:`MAX_DEPTH`.
     """
     name = str(source)
     if text is None:
-        path = Path(source)
-        if not path.is_file():
-            raise ConfigError(f"{name}: no such file")
-        text = path.read_text(encoding="utf-8")
+        text = _read_text(Path(source), name)
     try:
         return yaml.load(text, Loader=_StrictLoader)
     except ConfigError as exc:
         raise ConfigError(f"{name}: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{name}: nested too deeply (at most {MAX_DEPTH} levels)") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
@@ -85,13 +179,18 @@ def load_yaml(source: str | Path, *, text: str | None = None) -> Any:
         raise ConfigError(f"{name}: not valid YAML{where}: {problem}") from None
 
 
+def short_key(key: Any) -> str:
+    """A mapping key as it goes into a YAML path: as written if a short string, else a short repr."""
+    return key if isinstance(key, str) and len(key) <= 40 and key.isprintable() else short_repr(key, 40)
+
+
 def check_keys(mapping: Any, path: str, *, allowed: tuple[str, ...], required: tuple[str, ...] = ()) -> Mapping:
     """Check ``mapping`` is a mapping with only ``allowed`` keys and every ``required`` one."""
     if not isinstance(mapping, Mapping):
-        raise ConfigError(f"{path}: must be a mapping with keys {', '.join(allowed)}, got {mapping!r}")
+        raise ConfigError(f"{path}: must be a mapping with keys {', '.join(allowed)}, got {short_repr(mapping)}")
     for key in mapping:
         if key not in allowed:
-            raise ConfigError(f"{path}.{key}: unknown key; allowed: {', '.join(allowed)}")
+            raise ConfigError(f"{path}.{short_key(key)}: unknown key; allowed: {', '.join(allowed)}")
     for key in required:
         if key not in mapping:
             raise ConfigError(f"{path}.{key}: missing; it is required")
@@ -119,12 +218,12 @@ def parse_stage(value: Any, kind: str, registry: StageRegistry, path: str) -> St
     if isinstance(value, str):
         value = {"name": value}
     if not isinstance(value, Mapping):
-        raise ConfigError(f"{path}: must be a {kind} name or a mapping with 'name' and parameters, got {value!r}")
+        raise ConfigError(f"{path}: must be a {kind} name or a mapping with 'name' and parameters, got {short_repr(value)}")
     if "name" not in value:
         raise ConfigError(f"{path}.name: missing; registered {kind}s: {', '.join(registry.names(kind))}")
     name = value["name"]
     if not isinstance(name, str):
-        raise ConfigError(f"{path}.name: must be a string, got {name!r}; registered {kind}s: {', '.join(registry.names(kind))}")
+        raise ConfigError(f"{path}.name: must be a string, got {short_repr(name)}; registered {kind}s: {', '.join(registry.names(kind))}")
     info = registry.get(kind, name, path=f"{path}.name")
     table = _parameter_table(info.cls)
     params = {}
@@ -133,7 +232,7 @@ def parse_stage(value: Any, kind: str, registry: StageRegistry, path: str) -> St
             continue
         if key not in table:
             allowed = ", ".join(table) or "none"
-            raise ConfigError(f"{path}.{key}: unknown parameter of {kind} {name!r}; allowed: {allowed}")
+            raise ConfigError(f"{path}.{short_key(key)}: unknown parameter of {kind} {name!r}; allowed: {allowed}")
         params[key] = check_value(table[key], raw, f"{path}.{key}")
     return StageSpec(kind, name, params)
 

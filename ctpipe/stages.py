@@ -24,6 +24,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from ctpipe._checks import as_integer, short_repr
 from ctpipe.errors import ConfigError
 
 __all__ = ["param", "ParamSpec", "Stage", "Detector", "Matcher", "Estimator", "Refiner", "STAGE_KINDS", "check_value"]
@@ -76,10 +77,17 @@ def _describe(annotation, spec: ParamSpec | None = None) -> str:
         else:
             word = _TYPE_WORDS.get(option, getattr(option, "__name__", str(option)))
             if option in (int, float) and spec is not None:
-                bounds = [f"{op} {v:g}" for op, v in ((">=", spec.ge), (">", spec.gt), ("<=", spec.le), ("<", spec.lt)) if v is not None]
+                bounds = [f"{op} {_number(v)}" for op, v in ((">=", spec.ge), (">", spec.gt), ("<=", spec.le), ("<", spec.lt)) if v is not None]
                 word += (" " + " and ".join(bounds)) if bounds else ""
             parts.append(word)
     return " or ".join(parts)
+
+
+def _number(v: float) -> str:
+    """A bound as people write it: 1000000 rather than 1e+06, 0.5 rather than 0.500000."""
+    if float(v).is_integer() and abs(v) < 1e16:
+        return str(int(v))
+    return f"{v:g}"
 
 
 def _matches_type(option, value) -> bool:
@@ -117,11 +125,22 @@ def check_value(spec: ParamSpec, value: Any, path: str) -> Any:
     The message names ``path``, the value received and what is allowed.
     """
     if not any(_matches_type(option, value) for option in _options(spec.annotation)) or not _in_bounds(spec, value):
-        raise ConfigError(f"{path}: must be {spec.allowed}, got {value!r}")
-    if float in _options(spec.annotation) and isinstance(value, (int, np.integer, np.floating)):
+        raise ConfigError(f"{path}: must be {spec.allowed}, got {short_repr(value)}")
+    return _plain(spec.annotation, value)
+
+
+def _plain(annotation, value):
+    """``value`` with numpy scalars as Python numbers, floats as float where allowed, lists as tuples."""
+    options = _options(annotation)
+    if isinstance(value, (list, tuple)):
+        inner = next((typing.get_args(o)[0] for o in options if typing.get_origin(o) is tuple), None)
+        return tuple(_plain(inner, v) for v in value)
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if float in options and isinstance(value, (int, float, np.integer, np.floating)):
         return float(value)
-    if isinstance(value, list):
-        return tuple(value)
+    if isinstance(value, np.integer):
+        return as_integer(value)
     return value
 
 
