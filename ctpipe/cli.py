@@ -48,7 +48,7 @@ def _cmd_plugins(args) -> int:
 
 
 def _cmd_estimate(args) -> int:
-    from ctpipe.config import load_yaml, parse_geometry, parse_pipeline
+    from ctpipe.config import load_geometry, load_yaml, parse_pipeline
     from ctpipe.io import read_projections, to_jsonable, write_csv, write_json
     from ctpipe.pipeline import Pipeline
 
@@ -69,10 +69,7 @@ def _cmd_estimate(args) -> int:
     else:
         if not args.geometry:
             raise InputError(f"{source}: a projection file needs --geometry GEOMETRY.yaml (or give a scan folder)")
-        geometry_yaml = load_yaml(args.geometry)
-        if isinstance(geometry_yaml, dict) and set(geometry_yaml) == {"geometry"}:
-            geometry_yaml = geometry_yaml["geometry"]
-        geometry = parse_geometry(geometry_yaml)
+        geometry = load_geometry(args.geometry)
         projections = read_projections(source)
     pipeline = Pipeline.from_config(config, registry=registry)
     with _progress(len(projections), "views", quiet=args.json) as advance:
@@ -263,25 +260,18 @@ def _int_at_least(minimum: int):
     return parse
 
 
-# YAML 1.1 (PyYAML) reads "1e-3" as a string; only "1.0e-3" is a float. On a command line
-# people type the former, so exponent notation without a dot is taken as the number it means.
-_EXPONENT = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$")
-
-
 def _key_value(text: str) -> tuple[str, object]:
-    """argparse type of ``--set``: ``key=value`` with the value parsed as YAML."""
-    import yaml
+    """argparse type of ``--set``: ``key=value`` with the value parsed as YAML (``1e-3`` a float)."""
+    from ctpipe.config import load_yaml
 
     key, sep, raw = text.partition("=")
     key = key.strip()
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"must be key=value (e.g. n_features=500), got {text!r}")
-    if _EXPONENT.match(raw.strip()):
-        return key, float(raw)
     try:
-        return key, yaml.safe_load(raw)
-    except yaml.YAMLError:
-        raise argparse.ArgumentTypeError(f"{key}: value {raw!r} is not a YAML scalar or list") from None
+        return key, load_yaml(f"--set {key}", text=raw)
+    except ConfigError:
+        raise argparse.ArgumentTypeError(f"{key}: value {raw[:40]!r} is not a YAML scalar or list") from None
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -29,11 +29,11 @@ import yaml
 
 from ctpipe._checks import short_repr
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.geometry import Geometry
+from ctpipe.geometry import MAX_DETECTOR_PX, Geometry
 from ctpipe.registry import StageRegistry
 from ctpipe.stages import ParamSpec, Stage, check_value
 
-__all__ = ["load_yaml", "StageSpec", "PipelineConfig", "parse_pipeline", "parse_geometry", "check_keys",
+__all__ = ["load_yaml", "StageSpec", "PipelineConfig", "parse_pipeline", "parse_geometry", "load_geometry", "check_keys",
            "build_stage", "DEFAULT_STAGES"]
 
 #: Stage used for a kind the pipeline file does not mention. The estimator's Sampson threshold
@@ -290,8 +290,8 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
 _GEOMETRY_FIELDS = {
     "source_to_object_mm": ParamSpec("source_to_object_mm", float, None, "", gt=0),
     "source_to_detector_mm": ParamSpec("source_to_detector_mm", float, None, "", gt=0),
-    "detector_cols": ParamSpec("detector_cols", int, None, "", ge=1),
-    "detector_rows": ParamSpec("detector_rows", int, None, "", ge=1),
+    "detector_cols": ParamSpec("detector_cols", int, None, "", ge=1, le=MAX_DETECTOR_PX),
+    "detector_rows": ParamSpec("detector_rows", int, None, "", ge=1, le=MAX_DETECTOR_PX),
     "pixel_pitch_u_mm": ParamSpec("pixel_pitch_u_mm", float, None, "", gt=0),
     "pixel_pitch_v_mm": ParamSpec("pixel_pitch_v_mm", float, None, "", gt=0),
     "u0_px": ParamSpec("u0_px", float | None, None, ""),
@@ -309,3 +309,20 @@ def parse_geometry(mapping: Any, path: str = "geometry") -> Geometry:
         return Geometry(**values)
     except InputError as exc:
         raise ConfigError(str(exc).replace("geometry", path, 1)) from None
+
+
+def load_geometry(source: str | Path) -> Geometry:
+    """A geometry from a YAML file: the :class:`Geometry` fields, or them under one ``geometry`` key.
+
+    The wrapped form is what ``scan.yaml`` uses; any other top-level key beside ``geometry`` is
+    refused by name.
+    """
+    mapping = load_yaml(source)
+    if isinstance(mapping, Mapping) and "geometry" in mapping:
+        for key in mapping:
+            if key != "geometry":
+                raise ConfigError(f"{source}: {short_key(key)}: unknown top-level key; a geometry file holds "
+                                  f"either the geometry fields ({', '.join(_GEOMETRY_FIELDS)}) or one 'geometry' "
+                                  "mapping of them")
+        mapping = mapping["geometry"]
+    return parse_geometry(mapping)

@@ -23,9 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ctpipe._checks import as_integer, as_real, short_repr
 from ctpipe.errors import InputError
 
-__all__ = ["Geometry"]
+__all__ = ["Geometry", "MAX_DETECTOR_PX"]
+
+#: Largest detector side accepted, pixels (flat panels have at most a few thousand).
+MAX_DETECTOR_PX = 65_536
 
 
 @dataclass(frozen=True)
@@ -57,14 +61,19 @@ class Geometry:
     v0_px: float | None = None
 
     def __post_init__(self) -> None:
+        # numpy scalars (np.float32(150), a value read from an array) are numbers too; they are
+        # stored as Python floats and ints so that every consumer sees plain values.
         for name in ("source_to_object_mm", "source_to_detector_mm", "pixel_pitch_u_mm", "pixel_pitch_v_mm"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise InputError(f"geometry.{name}: must be a finite number > 0, got {value!r}")
+            value = as_real(getattr(self, name))
+            if value is None or not (math.isfinite(value) and value > 0):
+                raise InputError(f"geometry.{name}: must be a finite number > 0, got {short_repr(getattr(self, name))}")
+            object.__setattr__(self, name, value)
         for name in ("detector_cols", "detector_rows"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value > 0):
-                raise InputError(f"geometry.{name}: must be an integer > 0, got {value!r}")
+            value = as_integer(getattr(self, name))
+            if value is None or not 0 < value <= MAX_DETECTOR_PX:
+                raise InputError(f"geometry.{name}: must be an integer >= 1 and <= {MAX_DETECTOR_PX}, "
+                                 f"got {short_repr(getattr(self, name))}")
+            object.__setattr__(self, name, value)
         if self.source_to_detector_mm <= self.source_to_object_mm:
             raise InputError(
                 "geometry: source_to_detector_mm must exceed source_to_object_mm "
@@ -77,9 +86,10 @@ class Geometry:
         if self.v0_px is None:
             object.__setattr__(self, "v0_px", (self.detector_rows - 1) / 2.0)
         for name in ("u0_px", "v0_px"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value)):
-                raise InputError(f"geometry.{name}: must be a finite number or null, got {value!r}")
+            value = as_real(getattr(self, name))
+            if value is None or not math.isfinite(value):
+                raise InputError(f"geometry.{name}: must be a finite number or null, got {short_repr(getattr(self, name))}")
+            object.__setattr__(self, name, value)
 
     @property
     def magnification(self) -> float:

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ctpipe._checks import as_integer, as_real, short_repr
 from ctpipe.errors import InputError
 
 __all__ = ["VolumeGrid"]
@@ -57,16 +58,22 @@ class VolumeGrid:
     centre_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
+        # numpy scalars are accepted and stored as Python ints and floats.
         for name in ("n_x", "n_y", "n_z"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value > 0):
-                raise InputError(f"grid.{name}: must be an integer > 0, got {value!r}")
-        if not (isinstance(self.voxel_size_mm, (int, float)) and math.isfinite(self.voxel_size_mm)
-                and self.voxel_size_mm > 0):
-            raise InputError(f"grid.voxel_size_mm: must be a finite number > 0, got {self.voxel_size_mm!r}")
-        centre = tuple(float(c) for c in np.asarray(self.centre_mm, dtype=np.float64).reshape(-1))
+            value = as_integer(getattr(self, name))
+            if value is None or value <= 0:
+                raise InputError(f"grid.{name}: must be an integer > 0, got {short_repr(getattr(self, name))}")
+            object.__setattr__(self, name, value)
+        size = as_real(self.voxel_size_mm)
+        if size is None or not (math.isfinite(size) and size > 0):
+            raise InputError(f"grid.voxel_size_mm: must be a finite number > 0, got {short_repr(self.voxel_size_mm)}")
+        object.__setattr__(self, "voxel_size_mm", size)
+        try:
+            centre = tuple(float(c) for c in np.asarray(self.centre_mm, dtype=np.float64).reshape(-1))
+        except (TypeError, ValueError):
+            centre = ()
         if len(centre) != 3 or not all(math.isfinite(c) for c in centre):
-            raise InputError(f"grid.centre_mm: must be 3 finite numbers (x, y, z), got {self.centre_mm!r}")
+            raise InputError(f"grid.centre_mm: must be 3 finite numbers (x, y, z), got {short_repr(self.centre_mm)}")
         object.__setattr__(self, "centre_mm", centre)
 
     @classmethod
