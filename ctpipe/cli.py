@@ -1,7 +1,10 @@
 """Command line: ``ctpipe plugins | estimate | detect | simulate | validate | experiment synthetic``.
 
 Errors caused by the user's input print one line ``ctpipe: error: ...`` on stderr and exit
-with status 2; nothing half-written is left behind.
+with status 2; nothing half-written is left behind: every output path is checked before the
+work starts, and a result of several files is written all-or-nothing. SIGTERM (what
+``timeout`` and batch schedulers send) is handled like Ctrl-C, so temporary files are removed.
+See docs/errors.md.
 """
 
 from __future__ import annotations
@@ -9,7 +12,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import re
+import signal
 import sys
 import time
 from pathlib import Path
@@ -49,9 +54,11 @@ def _cmd_plugins(args) -> int:
 
 def _cmd_estimate(args) -> int:
     from ctpipe.config import load_geometry, load_yaml, parse_pipeline
-    from ctpipe.io import read_projections, to_jsonable, write_csv, write_json
+    from ctpipe.io import check_output_dir, csv_bytes, json_bytes, read_projections, to_jsonable, write_files
     from ctpipe.pipeline import Pipeline
 
+    if args.out is not None:
+        check_output_dir(args.out)
     registry = _registry(args)
     config = parse_pipeline(load_yaml(args.pipeline) if args.pipeline else None, registry)
     source = Path(args.projections)
@@ -85,10 +92,11 @@ def _cmd_estimate(args) -> int:
             "pairs": error_table(pair_errors_deg(result.pairs, result.pair_angles_deg, truth)),
         }
         header, columns = header + ["true_deg", "error_deg"], columns + [truth - truth[0], errors]
-    if args.out:
+    if args.out is not None:
         out = Path(args.out)
-        write_csv(out / "angles.csv", header, [[v, *row] for v, row in enumerate(zip(*columns))])
-        write_json(out / "result.json", report)
+        angles_csv = csv_bytes(header, [[v, *row] for v, row in enumerate(zip(*columns))])
+        result_json = json_bytes(report)
+        write_files({out / "angles.csv": lambda h: h.write(angles_csv), out / "result.json": lambda h: h.write(result_json)})
     if args.json:
         print(json.dumps(to_jsonable(report), indent=2))
     else:
@@ -108,15 +116,14 @@ def _cmd_estimate(args) -> int:
 
 def _cmd_detect(args) -> int:
     from ctpipe.config import build_stage, parse_stage
-    from ctpipe.io import atomic_write, read_image, to_jsonable, write_keypoints
+    from ctpipe.io import check_output_file, keypoints_writer, read_image, to_jsonable, write_files
 
-    out = Path(args.out)
-    overlay = Path(args.overlay) if args.overlay else None
     # Checked before the detector runs: a typo in a suffix should cost nothing, and writing
     # keypoints to "kp.png" or a picture to "kp.npz" would only surprise later.
-    for flag, path, suffix in (("--out", out, ".npz"), ("--overlay", overlay, ".png")):
-        if path is not None and (path.suffix.lower() != suffix or path.is_dir()):
-            raise InputError(f"{flag} {path}: must be a {suffix} file name")
+    out = check_output_file(args.out, "--out", ".npz")
+    overlay = check_output_file(args.overlay, "--overlay", ".png") if args.overlay is not None else None
+    if overlay is not None and overlay.absolute() == out.absolute():
+        raise InputError(f"--overlay {overlay}: is the --out file too; give two different files")
     registry = _registry(args)
     params = {}
     for key, value in args.set:
@@ -139,9 +146,10 @@ def _cmd_detect(args) -> int:
         from ctpipe.report import keypoints_png
 
         picture = keypoints_png(image, features, f"{args.detector}: {len(features)} keypoints")
-    write_keypoints(out, features, detector=args.detector, params=effective)
+    files = {out: keypoints_writer(features, detector=args.detector, params=effective)}
     if picture is not None:
-        atomic_write(overlay, lambda handle: handle.write(picture))
+        files[overlay] = lambda handle: handle.write(picture)
+    write_files(files)
     outputs = {"out": str(out), "overlay": str(overlay) if overlay is not None else None}
     if args.json:
         report = {"detector": args.detector, "params": effective, "n_keypoints": len(features),
@@ -161,10 +169,10 @@ def _cmd_simulate(args) -> int:
     from ctpipe.scan import check_scan_folder_free, load_scan_spec
     from ctpipe.simulate import simulate, write_simulated_scan
 
+    out = Path(args.out) if args.out.strip() else args.out
+    check_scan_folder_free(out, overwrite=args.overwrite)
     phantom = load_phantom(args.phantom)
     spec = load_scan_spec(args.scan)
-    out = Path(args.out)
-    check_scan_folder_free(out, overwrite=args.overwrite)
     seed = spec.seed if args.seed is None else args.seed
     with _progress(spec.n_views, "views", quiet=False) as advance:
         scan = simulate(phantom, spec, rng=np.random.default_rng(seed), progress=advance)
@@ -176,9 +184,10 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_validate(args) -> int:
-    from ctpipe.io import to_jsonable
+    from ctpipe.io import check_output_dir, staged_folder, to_jsonable
     from ctpipe.validate import load_validate_settings, run_validate, write_validate_outputs
 
+    check_output_dir(args.out)
     registry = _registry(args)
     settings = load_validate_settings(args.experiment, registry)
     if args.seed is not None:
@@ -188,7 +197,8 @@ def _cmd_validate(args) -> int:
         return _progress(total, "views", quiet=args.json, description=step)
 
     report = run_validate(settings, registry, progress=progress)
-    written = write_validate_outputs(report, args.out) if args.out else []
+    with staged_folder(args.out) as tmp:
+        written = [Path(args.out) / p.relative_to(tmp) for p in write_validate_outputs(report, tmp)]
     if args.json:
         print(json.dumps(to_jsonable(report.to_dict()), indent=2))
         return 0
@@ -202,9 +212,11 @@ def _cmd_validate(args) -> int:
 
 def _cmd_experiment_synthetic(args) -> int:
     from ctpipe.experiments import load_synthetic_settings, run_synthetic
-    from ctpipe.io import to_jsonable
+    from ctpipe.io import check_output_dir, staged_folder, to_jsonable
     from ctpipe.report import synthetic_table, write_synthetic_outputs
 
+    if args.out is not None:
+        check_output_dir(args.out)
     registry = _registry(args)
     settings = load_synthetic_settings(args.config, registry=registry)
     reps = args.reps or settings.reps
@@ -212,8 +224,9 @@ def _cmd_experiment_synthetic(args) -> int:
     with _progress(total, "trials", quiet=args.json) as advance:
         report = run_synthetic(settings, reps=args.reps, seed=args.seed, jobs=args.jobs,
                                blocked=tuple(args.block_plugin), progress=advance)
-    if args.out:
-        write_synthetic_outputs(report, args.out)
+    if args.out is not None:
+        with staged_folder(args.out) as tmp:
+            write_synthetic_outputs(report, tmp)
     if args.json:
         print(json.dumps(to_jsonable(report.summary()), indent=2))
     else:
@@ -337,16 +350,46 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, so every ``finally`` removes its temporary files."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    if os.getpid() != _MAIN_PID[0]:
+        # A forked worker (experiment synthetic): its parent cleans up; die as SIGTERM means.
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return
+    # A second SIGTERM (schedulers repeat it) must not cut the clean-up of the first short.
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise _Terminated()
+
+
+_MAIN_PID = [0]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    previous = None
+    try:
+        _MAIN_PID[0] = os.getpid()
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:  # not the main thread (main() called from a thread): leave signals alone
+        pass
     try:
         return args.run(args)
     except CtpipeError as exc:
         print(f"ctpipe: error: {exc}", file=sys.stderr)
         return 2
+    except _Terminated:
+        print("ctpipe: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("ctpipe: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

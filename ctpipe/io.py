@@ -2,35 +2,190 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
 import os
+import shutil
 import tempfile
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ctpipe.errors import InputError
 
-__all__ = ["atomic_write", "write_json", "write_csv", "read_projections", "read_image", "write_keypoints",
-           "to_jsonable"]
+__all__ = ["atomic_write", "write_json", "write_csv", "write_files", "staged_folder", "json_bytes", "csv_bytes",
+           "check_output_dir", "check_output_file", "read_projections", "read_image", "write_keypoints",
+           "keypoints_writer", "to_jsonable"]
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _existing_ancestor(path: Path) -> Path:
+    """The nearest of ``path``'s ancestors that exists (``path`` itself is not considered)."""
+    parent = path.absolute().parent
+    while not parent.exists() and not parent.is_symlink():
+        parent = parent.parent
+    return parent
+
+
+def _check_target(path, what: str, kind: str) -> Path:
+    if path is None or not str(path).strip():
+        raise InputError(f"{what}: empty path; give a {kind} name")
+    path = Path(path)
+    ancestor = _existing_ancestor(path)
+    if not ancestor.is_dir():
+        raise InputError(f"{what} {path}: {ancestor} is a file, not a folder; choose a {kind} elsewhere")
+    # os.access says yes to root and to read-only mounts alike; creating a file is the honest test.
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".ctpipe-probe.", dir=ancestor)
+    except OSError as exc:
+        raise InputError(f"{what} {path}: cannot write in {ancestor} ({exc.strerror or exc})") from None
+    os.close(fd)
+    os.unlink(probe)
+    return path
+
+
+def check_output_dir(path, what: str = "--out") -> Path:
+    """Raise :class:`InputError` unless result files can be written into the folder ``path``.
+
+    Called before any work, so a typo in an output path costs nothing. ``path`` may be
+    missing (it is created with its parents when the results are written) or an existing
+    folder; it must not be empty, be a file, lie under a file, or lie somewhere not writable.
+    """
+    if path is not None and str(path).strip() and Path(path).exists() and not Path(path).is_dir():
+        raise InputError(f"{what} {path}: exists and is not a folder")
+    path = _check_target(path, what, "folder")
+    if path.is_dir():
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".ctpipe-probe.", dir=path)
+        except OSError as exc:
+            raise InputError(f"{what} {path}: cannot write in it ({exc.strerror or exc})") from None
+        os.close(fd)
+        os.unlink(probe)
+    return path
+
+
+def check_output_file(path, what: str = "--out", suffix: str | None = None) -> Path:
+    """Raise :class:`InputError` unless the file ``path`` can be written (see :func:`check_output_dir`).
+
+    ``suffix`` (e.g. ``".npz"``), when given, is the one extension allowed, case-insensitive.
+    """
+    if path is not None and str(path).strip():
+        path = Path(path)
+        if suffix is not None and path.suffix.lower() != suffix:
+            raise InputError(f"{what} {path}: must be a {suffix} file name")
+        if path.is_dir():
+            raise InputError(f"{what} {path}: is a folder; give a file name")
+    return _check_target(path, what, "file")
+
+
+def _commit(moves: Sequence[tuple[Path, Path]]) -> None:
+    """Rename every ``(staged, target)`` pair; on any failure put every target back as it was."""
+    for _, target in moves:
+        if target.is_dir():
+            raise InputError(f"{target}: is a folder; cannot replace it with a file")
+    done: list[tuple[Path, Path | None]] = []
+    try:
+        for staged, target in moves:
+            saved = None
+            if target.exists():
+                fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent)
+                os.close(fd)
+                saved = Path(name)
+                os.replace(target, saved)
+            done.append((target, saved))
+            os.replace(staged, target)
+    except BaseException:
+        for target, saved in reversed(done):
+            if saved is not None:
+                os.replace(saved, target)
+            else:
+                target.unlink(missing_ok=True)
+        raise
+    for _, saved in done:
+        if saved is not None:
+            saved.unlink(missing_ok=True)
+
+
+def _stage(path: Path, write: Callable[[io.BufferedWriter], None]) -> Path:
+    """Write a temporary sibling of ``path`` with the permissions a plain ``open`` would give."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())
+        with os.fdopen(fd, "wb") as handle:
+            write(handle)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return Path(tmp)
 
 
 def atomic_write(path: str | Path, write: Callable[[io.BufferedWriter], None]) -> Path:
     """Write a file through a temporary sibling and rename it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    return write_files({path: write})[0]
+
+
+def write_files(files: Mapping[str | Path, Callable[[io.BufferedWriter], None]]) -> list[Path]:
+    """Write several files all-or-nothing: every one, or none of them and nothing else.
+
+    Each is written to a temporary sibling first; only when all are written are they renamed
+    into place, and a failure in a rename puts back the files already replaced.
+
+    Parameters
+    ----------
+    files : mapping of path -> callable(handle)
+        Each callable writes one file's bytes to the binary handle it is given.
+
+    Returns
+    -------
+    The paths, in the mapping's order.
+    """
+    staged: list[tuple[Path, Path]] = []
     try:
-        with os.fdopen(fd, "wb") as handle:
-            write(handle)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+        for path, write in files.items():
+            path = Path(path)
+            staged.append((_stage(path, write), path))
+        _commit(staged)
+    finally:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+    return [path for _, path in staged]
+
+
+@contextlib.contextmanager
+def staged_folder(folder: str | Path, what: str = "--out") -> Iterator[Path]:
+    """Yield a temporary sibling of ``folder`` to write results in; move them into ``folder`` at the end.
+
+    For writers that take a folder (``write_validate_outputs``): if the ``with`` body raises,
+    nothing reaches ``folder``; otherwise every file is moved in all-or-nothing (see
+    :func:`write_files`). The temporary folder is removed either way, also on Ctrl-C or SIGTERM
+    (which ``ctpipe.cli`` turns into :class:`KeyboardInterrupt`).
+    """
+    folder = check_output_dir(folder, what)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    try:
+        yield tmp
+        files = sorted(p for p in tmp.rglob("*") if p.is_file())
+        created = not folder.exists()
+        try:
+            for file in files:
+                (folder / file.relative_to(tmp)).parent.mkdir(parents=True, exist_ok=True)
+            _commit([(file, folder / file.relative_to(tmp)) for file in files])
+        except BaseException:
+            if created:
+                shutil.rmtree(folder, ignore_errors=True)
+            raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def to_jsonable(value):
@@ -50,18 +205,29 @@ def to_jsonable(value):
     return value
 
 
-def write_json(path: str | Path, data) -> Path:
-    text = json.dumps(to_jsonable(data), indent=2) + "\n"
-    return atomic_write(path, lambda h: h.write(text.encode()))
+def json_bytes(data) -> bytes:
+    """``data`` as indented UTF-8 JSON (numpy values plain, NaN as null), ending in a newline."""
+    return (json.dumps(to_jsonable(data), indent=2) + "\n").encode()
 
 
-def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence]) -> Path:
+def csv_bytes(header: Sequence[str], rows: Iterable[Sequence]) -> bytes:
+    """A CSV table as UTF-8 bytes; non-finite floats are empty cells."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(header)
     for row in rows:
         writer.writerow(["" if isinstance(v, float) and not np.isfinite(v) else v for v in row])
-    return atomic_write(path, lambda h: h.write(buffer.getvalue().encode()))
+    return buffer.getvalue().encode()
+
+
+def write_json(path: str | Path, data) -> Path:
+    text = json_bytes(data)
+    return atomic_write(path, lambda h: h.write(text))
+
+
+def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence]) -> Path:
+    text = csv_bytes(header, rows)
+    return atomic_write(path, lambda h: h.write(text))
 
 
 def read_projections(path: str | Path) -> np.ndarray:
@@ -115,6 +281,11 @@ def write_keypoints(path: str | Path, features, *, detector: str, params: dict) 
     descriptors are compared with, e.g. ``"L2"``), ``detector`` and ``params``. Strings are
     stored as 0-d unicode arrays, so ``np.load`` needs no pickle.
     """
+    return atomic_write(path, keypoints_writer(features, detector=detector, params=params))
+
+
+def keypoints_writer(features, *, detector: str, params: dict) -> Callable[[io.BufferedWriter], None]:
+    """What :func:`write_keypoints` writes, as a callable for :func:`write_files`."""
     angle = np.asarray(features.angle_deg, dtype=np.float32)
     arrays = {
         "pt": np.asarray(features.xy, dtype=np.float32).reshape(-1, 2),
@@ -128,7 +299,14 @@ def write_keypoints(path: str | Path, features, *, detector: str, params: dict) 
         "detector": np.array(detector),
         "params": np.array(json.dumps(to_jsonable(params), sort_keys=True)),
     }
-    return atomic_write(path, lambda handle: np.savez(handle, **arrays))
+    return lambda handle: np.savez(handle, **arrays)
+
+
+#: File signatures ("magic bytes") of the formats ctpipe reads, by suffix.
+_FORMATS = {".npy": ("npy", (b"\x93NUMPY",)),
+            ".tif": ("TIFF", (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")),
+            ".tiff": ("TIFF", (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")),
+            ".png": ("PNG", (b"\x89PNG\r\n\x1a\n",))}
 
 
 def _read_array(path: Path) -> np.ndarray:

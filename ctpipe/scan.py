@@ -413,6 +413,10 @@ def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angl
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
     try:
+        # mkdtemp makes the folder private (0700); the scan folder should read like any other.
+        mask = os.umask(0o022)
+        os.umask(mask)
+        os.chmod(tmp, 0o777 & ~mask)
         for name, stack in stacks.items():
             for i, image in enumerate(stack):
                 file = tmp / _PATTERNS[name].format(index=i)
@@ -431,13 +435,34 @@ def check_scan_folder_free(folder: str | Path, *, overwrite: bool = False) -> No
     """Raise :class:`InputError` unless a scan can be written to ``folder``.
 
     It must not exist, or be an empty folder, or ``overwrite`` must be set; callers that spend
-    time producing the scan call this first, so a refusal costs nothing.
+    time producing the scan call this first, so a refusal costs nothing. ``overwrite`` only
+    ever replaces a scan folder (one with a ``scan.yaml`` of this format), and never the
+    current directory or one of its ancestors, which ``--out .`` would otherwise delete.
     """
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise InputError(f"{folder}: exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+    from ctpipe.io import check_output_dir
+
+    folder = check_output_dir(folder, "--out")
+    if not folder.is_dir() or not any(folder.iterdir()):
+        return
+    if not overwrite:
         raise InputError(f"{folder}: exists and is not empty; choose another folder or overwrite")
+    resolved, here = folder.resolve(), Path.cwd().resolve()
+    if resolved == here or resolved in here.parents:
+        raise InputError(f"{folder}: is the current directory or one of its parents; overwrite only "
+                         f"replaces a scan folder, so give a folder of its own")
+    if not _is_scan_folder(folder):
+        raise InputError(f"{folder}: is not a ctpipe scan folder (no scan.yaml with format {SCAN_FORMAT}); "
+                         f"overwrite only replaces a scan folder, so choose another folder")
+
+
+def _is_scan_folder(folder: Path) -> bool:
+    try:
+        with open(folder / "scan.yaml", "rb") as handle:
+            head = handle.read(4096).decode("utf-8", errors="replace")
+    except OSError:
+        return False
+    return any(line.split("#")[0].strip().strip("'\"").endswith(SCAN_FORMAT) and line.startswith("format:")
+               for line in head.splitlines())
 
 
 def _swap_into_place(tmp: Path, folder: Path, overwrite: bool) -> None:
