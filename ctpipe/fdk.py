@@ -39,6 +39,7 @@ from scipy import fft as sp_fft
 
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
+from ctpipe.resources import check_fits, memory_guard
 from ctpipe.volume import VolumeGrid
 
 __all__ = ["FILTERS", "fdk", "view_weights", "parker_weights", "ramp_filter", "covers_full_circle",
@@ -414,8 +415,25 @@ def fdk(
     InputError
         Projections not 3-D float, not of shape (V, rows, cols), or not finite; angles not 1-D
         finite; an unknown filter; a short scan shorter than 180 deg plus the fan angle.
+    ctpipe.resources.ResourceError
+        The volume cannot fit in the memory available (checked before it is allocated).
     """
     proj, angles = _validate(projections, geometry, angles_deg, grid, filter, short_scan, progress)
+    what, n_bytes = _fdk_size(grid, geometry, len(angles))
+    check_fits(what, n_bytes, hint="use a smaller grid")
+    with memory_guard(what, n_bytes, hint="use a smaller grid"):
+        return _fdk(proj, angles, geometry, grid, filter, short_scan, progress)
+
+
+def _fdk_size(grid: VolumeGrid, geometry: Geometry, n_views: int) -> tuple[str, int]:
+    """FDK's peak memory in words and bytes: the accumulator, its transposed copy, a chunk of filtered views."""
+    rows, cols = geometry.shape
+    chunk = min(n_views, _CHUNK_VIEWS) * (cols + 2) * (rows + 2) * 4
+    n_bytes = 2 * grid.n_x * grid.n_y * grid.n_z * 4 + 3 * chunk
+    return f"reconstructing a {grid.n_x} x {grid.n_y} x {grid.n_z} volume with FDK", n_bytes
+
+
+def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_scan, progress) -> np.ndarray:
     theta = np.deg2rad(angles)
     intervals, redundancy = _scan_weights(theta, geometry, short_scan)
 

@@ -40,6 +40,7 @@ from numba import njit, prange
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.primitives import Primitives, local_maps, unit_interval
+from ctpipe.resources import check_fits
 from ctpipe.volume import VolumeGrid
 
 __all__ = ["project_analytic", "VoxelProjector"]
@@ -219,6 +220,9 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     if progress is not None and not callable(progress):
         raise InputError(f"progress: must be a callable taking a number of views, or None, got {progress!r}")
 
+    check_fits(f"projecting {angles.size} views of {geometry.detector_rows} x {geometry.detector_cols}",
+               angles.size * geometry.detector_rows * geometry.detector_cols * 4 * (2 if blur_px > 0 else 1),
+               hint="use fewer views or a smaller detector")
     out = np.zeros((angles.size, geometry.detector_rows, geometry.detector_cols), dtype=np.float32)
     theta = np.deg2rad(angles)
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
@@ -505,6 +509,11 @@ class VoxelProjector:
         volume = _check_array("volume", volume, self._grid.shape, "grid.shape (n_y, n_z, n_x)")
         common = self._common(angles_deg)
         shape_x, shape_z, shape_y = self._layout_shapes(1)
+        check_fits(f"projecting {common[0].size} views of {self._geometry.detector_rows} x "
+                   f"{self._geometry.detector_cols} from a {self._grid.n_x} x {self._grid.n_y} x {self._grid.n_z} volume",
+                   4 * (common[0].size * self._geometry.shape[0] * self._geometry.shape[1]
+                        + sum(math.prod(shape[1:]) for shape in (shape_x, shape_z, shape_y))),
+                   hint="use fewer views, a smaller detector or a smaller grid")
         vol_x = np.zeros(shape_x[1:], dtype=np.float32)
         vol_z = np.zeros(shape_z[1:], dtype=np.float32)
         vol_y = np.zeros(shape_y[1:], dtype=np.float32)
@@ -533,6 +542,10 @@ class VoxelProjector:
                                    "(len(angles_deg), detector_rows, detector_cols)")
         n_buf = max(1, min(numba.get_num_threads(), expected[0]))
         shape_x, shape_z, shape_y = self._layout_shapes(n_buf)
+        check_fits(f"back-projecting onto a {self._grid.n_x} x {self._grid.n_y} x {self._grid.n_z} volume "
+                   f"({n_buf} thread buffers)",
+                   4 * (math.prod(self._grid.shape) + sum(math.prod(shape) for shape in (shape_x, shape_z, shape_y))),
+                   hint="use a smaller grid")
         buf_x = np.zeros(shape_x, dtype=np.float32)
         buf_z = np.zeros(shape_z, dtype=np.float32)
         buf_y = np.zeros(shape_y, dtype=np.float32)

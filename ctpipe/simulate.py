@@ -15,9 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from ctpipe.geometry import Geometry
+from ctpipe.resources import FLOAT32, check_fits, memory_guard
 from ctpipe.volume import VolumeGrid
 
-__all__ = ["SimulatedScan", "project_phantom", "simulate", "voxelise_phantom", "write_simulated_scan"]
+__all__ = ["SimulatedScan", "project_phantom", "simulate", "simulation_bytes", "check_simulation_fits",
+           "voxelise_phantom", "write_simulated_scan"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +65,35 @@ def project_phantom(phantom, geometry: Geometry, angles_deg, *, supersample: int
     return projections
 
 
+def simulation_bytes(spec, *, scans: int = 1) -> int:
+    """Peak memory (bytes) of :func:`simulate` for ``spec``, ``scans`` results held at once.
+
+    A noise-free scan holds one float32 stack (V, rows, cols), two while the detector blur
+    runs; a noisy one holds the line integrals, the intensities and their ``-log`` at once, plus
+    the flat and dark frames. Every scan but the last keeps what it returns (projections, and
+    intensities, flats and darks when noisy). Python ints: no overflow for any size.
+    """
+    rows, cols = spec.geometry.detector_rows, spec.geometry.detector_cols
+    frame = int(rows) * int(cols) * FLOAT32
+    stack = int(spec.n_views) * frame
+    if spec.noise is None:
+        kept, peak = stack, stack * (2 if spec.projector.blur_px > 0 else 1)
+    else:
+        frames = (int(spec.noise.flat_frames) + int(spec.noise.dark_frames)) * frame
+        kept, peak = 2 * stack + frames, 3 * stack + frames
+    return (scans - 1) * kept + peak
+
+
+def check_simulation_fits(spec, *, scans: int = 1, hint: str | None = None) -> None:
+    """Raise :class:`ctpipe.resources.ResourceError` when :func:`simulate` of ``spec`` cannot fit in memory."""
+    geometry = spec.geometry
+    frames = "" if spec.noise is None else \
+        f" with {spec.noise.flat_frames} flat and {spec.noise.dark_frames} dark frames"
+    times = "" if scans == 1 else f" {scans} times"
+    check_fits(f"simulating {spec.n_views} views of {geometry.detector_rows} x {geometry.detector_cols}{frames}{times}",
+               simulation_bytes(spec, scans=scans), hint=hint)
+
+
 def simulate(phantom, spec, *, rng: np.random.Generator, jitter: bool = True,
              progress: Callable[[int], object] | None = None) -> SimulatedScan:
     """Simulate the scan ``spec`` of ``phantom``.
@@ -76,7 +107,19 @@ def simulate(phantom, spec, *, rng: np.random.Generator, jitter: bool = True,
         Draws the jitter, then the detector noise.
     jitter : bool
         False scans at the nominal angles (the jitter-free reference of ``ctpipe validate``).
+
+    Raises
+    ------
+    ctpipe.resources.ResourceError
+        The scan cannot fit in the memory available (checked before anything is allocated).
     """
+    check_simulation_fits(spec, hint="use fewer views, a smaller detector or fewer flat/dark frames")
+    with memory_guard(f"simulating {spec.n_views} views of {spec.geometry.detector_rows} x "
+                      f"{spec.geometry.detector_cols}", simulation_bytes(spec)):
+        return _simulate(phantom, spec, rng, jitter, progress)
+
+
+def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
     from ctpipe.acquisition import acquire, log_transform
 
     nominal = spec.nominal_angles_deg()
