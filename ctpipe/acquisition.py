@@ -14,7 +14,8 @@ reconstruction starts from the flat/dark-corrected line integrals::
 
 Photon starvation makes ``I - D`` zero or negative, whose log is undefined: the transmission
 is clipped from below at ``min_transmission`` (default 1e-6, i.e. ``p_hat <= 13.8``). Pixels
-whose flat is not above their dark (dead pixels) carry no information and get ``p_hat = 0``.
+whose flat is not above their dark (dead pixels) carry no information and get ``p_hat = 0``;
+when more than half the pixels are so, the flats and darks are refused (swapped, or mislabelled).
 Noise can make the transmission exceed 1: those ``p_hat`` stay negative, unbiased.
 
 Every array this module returns is float32 (Poisson counts below 2^24 are exact in it); the
@@ -33,7 +34,11 @@ from ctpipe.config import check_keys
 from ctpipe.errors import InputError
 from ctpipe.stages import ParamSpec, check_value
 
-__all__ = ["NoiseModel", "parse_noise", "beer_lambert", "acquire", "log_transform"]
+__all__ = ["NoiseModel", "parse_noise", "beer_lambert", "acquire", "log_transform", "MAX_DEAD_FRACTION"]
+
+#: The largest fraction of pixels whose flat is not above their dark that :func:`log_transform`
+#: takes as dead pixels; beyond it the flats and darks cannot correct the scan.
+MAX_DEAD_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
@@ -188,6 +193,14 @@ def log_transform(intensities, flats=None, darks=None, *, photons_per_pixel: flo
         dark = np.zeros(shape)
     beam = flat - dark
     alive = beam > 0
+    # A few dead pixels are normal; most of the detector dark is not: every line integral would
+    # be 0, and the failure would only surface far downstream ("0 keypoints per view").
+    dead = 1.0 - float(np.count_nonzero(alive)) / alive.size
+    if dead > MAX_DEAD_FRACTION:
+        raise InputError(f"flats must be brighter than darks: {100.0 * dead:.0f} % of pixels have dark >= flat "
+                         f"(mean flat {float(flat.mean()):.4g}, mean dark {float(dark.mean()):.4g}; at most "
+                         f"{100.0 * MAX_DEAD_FRACTION:.0f} % may be dead pixels), so the flat/dark correction is "
+                         "impossible; are the flats and darks swapped?")
     beam = np.where(alive, beam, 1.0)
     out = np.empty(counts.shape, np.float32)
     for v in range(len(counts)):

@@ -224,7 +224,7 @@ def _angles(value: Any, path: str) -> np.ndarray:
                           f"{value if not isinstance(value, list) else f'a list of {len(value)} items'!r}") from None
 
 
-def _file_names(value: Any, path: str, allowed: tuple[str, ...] = ("files", "count")) -> list[str]:
+def _file_names(value: Any, path: str, folder: Path, allowed: tuple[str, ...] = ("files", "count")) -> list[str]:
     check_keys(value, path, allowed=allowed, required=("files",))
     files = value["files"]
     if isinstance(files, str):
@@ -234,10 +234,19 @@ def _file_names(value: Any, path: str, allowed: tuple[str, ...] = ("files", "cou
         if "count" not in value:
             raise ConfigError(f"{path}.count: missing; a file pattern needs the number of files")
         count = check_value(ParamSpec("count", int, None, "", ge=1), value["count"], f"{path}.count")
-        try:
-            return [files.format(index=i) for i in range(count)]
-        except (KeyError, IndexError, ValueError) as exc:
-            raise ConfigError(f"{path}.files: not a usable pattern ({exc}), got {files!r}") from None
+        # Names are made one at a time and each file looked up, so a count beyond the files
+        # present stops at the first missing one: 10^12 names are never built.
+        names = []
+        for i in range(count):
+            try:
+                name = files.format(index=i)
+            except (KeyError, IndexError, ValueError) as exc:
+                raise ConfigError(f"{path}.files: not a usable pattern ({exc}), got {files!r}") from None
+            if not (folder / name).is_file():
+                raise InputError(f"{folder / name}: no such file; {path}.count says {count} files but only {i} "
+                                 f"exist, and count must match the files present")
+            names.append(name)
+        return names
     if not isinstance(files, list) or not files or not all(isinstance(f, str) for f in files):
         raise ConfigError(f"{path}.files: must be a pattern with {{index}} or a non-empty list of file names, "
                           f"got {files!r}")
@@ -247,23 +256,23 @@ def _file_names(value: Any, path: str, allowed: tuple[str, ...] = ("files", "cou
 
 
 def _read_frames(folder: Path, names: list[str], shape: tuple[int, int], what: str) -> np.ndarray:
-    import tifffile
+    from ctpipe.io import read_array
+    from ctpipe.resources import check_fits
 
     frames = None
     for i, name in enumerate(names):
         file = folder / name
         if not file.is_file():
             raise InputError(f"{file}: no such file ({what} {i} of {len(names)})")
-        try:
-            image = tifffile.imread(file)
-        except Exception as exc:  # tifffile raises several types for a damaged file
-            raise InputError(f"{file}: cannot be read as TIFF: {exc}") from None
+        image = read_array(file, kind=".tif")
         if image.shape != shape:
             raise InputError(f"{file}: must be a {shape[0]} x {shape[1]} image (rows x cols, from the geometry), "
                              f"got shape {image.shape}")
         if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
             raise InputError(f"{file}: must hold real numbers, got {image.dtype}")
         if frames is None:
+            check_fits(f"reading {len(names)} {what} frames of {shape[0]} x {shape[1]}",
+                       len(names) * shape[0] * shape[1] * image.dtype.itemsize, of=str(image.dtype))
             frames = np.empty((len(names), *shape), image.dtype)
         elif image.dtype != frames.dtype:
             raise InputError(f"{file}: is {image.dtype} but the first {what} file is {frames.dtype}")
@@ -304,7 +313,7 @@ def read_scan(folder: str | Path) -> Scan:
         if len(truth) != len(nominal):
             raise ConfigError(f"{path}.angles.true_deg: has {len(truth)} angles but nominal_deg has {len(nominal)}")
     projections = mapping["projections"]
-    names = _file_names(projections, f"{path}.projections", allowed=("values", "files", "count"))
+    names = _file_names(projections, f"{path}.projections", folder, allowed=("values", "files", "count"))
     values = projections.get("values", "line_integrals")
     if values not in VALUE_KINDS:
         raise ConfigError(f"{path}.projections.values: must be one of {', '.join(VALUE_KINDS)}, got {values!r}")
@@ -314,13 +323,20 @@ def read_scan(folder: str | Path) -> Scan:
     frames = {}
     for kind in ("flats", "darks"):
         if mapping.get(kind) is not None:
-            frames[kind] = _read_frames(folder, _file_names(mapping[kind], f"{path}.{kind}"), geometry.shape, kind[:-1])
+            frames[kind] = _read_frames(folder, _file_names(mapping[kind], f"{path}.{kind}", folder), geometry.shape,
+                                        kind[:-1])
     raw = _read_frames(folder, names, geometry.shape, "projection")
     flats, darks = frames.get("flats"), frames.get("darks")
     if values == "intensities":
         if flats is None:
             raise ConfigError(f"{path}.flats: missing; intensities need flat fields to be turned into line integrals")
-        line_integrals = log_transform(raw, flats, darks)
+        from ctpipe.resources import FLOAT32, check_fits
+
+        check_fits(f"the -log of {raw.shape[0]} views of {raw.shape[1]} x {raw.shape[2]}", raw[:1].size * len(raw) * FLOAT32)
+        try:
+            line_integrals = log_transform(raw, flats, darks)
+        except InputError as exc:
+            raise InputError(f"{folder}: {exc}") from None
     else:
         line_integrals = raw.astype(np.float32, copy=False)
     provenance = mapping.get("provenance") or {}
