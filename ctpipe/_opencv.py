@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ctpipe.errors import InputError
+from ctpipe.errors import ConfigError, InputError
 
 __all__ = ["available_detectors", "detect_and_compute", "knn_match", "essential_pose", "version"]
 
@@ -104,11 +104,7 @@ def detect_and_compute(kind: str, params: dict, image_u8: np.ndarray) -> dict:
     try:
         keypoints, descriptors = detector.detectAndCompute(image_u8, None)
     except cv2.error as error:
-        # OpenCV asserts instead of returning nothing on images too small for its pyramid
-        # (ORB on 1 x 1, BRISK on 2 x 2): the user's input, so one line, not a traceback.
-        reason = (getattr(error, "err", "") or str(error)).strip().splitlines()[-1]
-        raise InputError(f"image: {kind} cannot run on a {image_u8.shape[0]} x {image_u8.shape[1]} image "
-                         f"(OpenCV: {reason}); give it a larger image") from None
+        raise _detect_error(kind, params, image_u8, error) from None
     norm = _NORMS[detector.defaultNorm()]
     n = len(keypoints)
     if descriptors is None:
@@ -129,6 +125,27 @@ def detect_and_compute(kind: str, params: dict, image_u8: np.ndarray) -> dict:
         "descriptors": descriptors,
         "norm": norm,
     }
+
+
+def _detect_error(kind: str, params: dict, image_u8: np.ndarray, error: cv2.error) -> Exception:
+    """One line for an OpenCV assertion or allocation failure in a detector.
+
+    OpenCV asserts instead of returning nothing on images too small for its pyramid (ORB on
+    1 x 1, BRISK on 2 x 2), but also on parameters that only fail on some images (a pyramid
+    deeper than the image, a huge upsampling). Which one the user should change is found out by
+    running OpenCV's defaults on the same image: if they work, the parameters are the cause.
+    """
+    reason = (getattr(error, "err", "") or str(error)).strip().splitlines()[-1]
+    rows, cols = image_u8.shape[:2]
+    try:
+        cv2_defaults = _factory(kind)()
+        cv2_defaults.detectAndCompute(image_u8, None)
+    except cv2.error:
+        return InputError(f"image: {kind} cannot run on a {rows} x {cols} image (OpenCV: {reason}); "
+                          "give it a larger image")
+    changed = ", ".join(f"{k}={v!r}" for k, v in params.items())
+    return ConfigError(f"detector: {kind} with {changed} fails on this {rows} x {cols} image although OpenCV's "
+                       f"defaults run (OpenCV: {reason}); bring the pyramid or size parameters closer to their defaults")
 
 
 def knn_match(descriptors_a: np.ndarray, descriptors_b: np.ndarray, norm: str, k: int, *, flann: bool = False,

@@ -70,11 +70,15 @@ class NoiseModel:
         return {key: getattr(self, key) for key in _NOISE_FIELDS}
 
 
+#: Largest photon count per pixel and frame: numpy's Poisson sampler refuses means beyond ~1e19
+#: ("lam value too large"), and real detectors count well under 1e6.
+MAX_PHOTONS = 1e12
+
 _NOISE_FIELDS = {
-    "photons_per_pixel": ParamSpec("photons_per_pixel", float, None, "", gt=0),
+    "photons_per_pixel": ParamSpec("photons_per_pixel", float, None, "", gt=0, le=MAX_PHOTONS),
     "flat_frames": ParamSpec("flat_frames", int, 8, "", ge=1, le=10_000),
     "dark_frames": ParamSpec("dark_frames", int, 4, "", ge=0, le=10_000),
-    "dark_counts": ParamSpec("dark_counts", float, 0.0, "", ge=0),
+    "dark_counts": ParamSpec("dark_counts", float, 0.0, "", ge=0, le=MAX_PHOTONS),
 }
 
 
@@ -83,7 +87,7 @@ def parse_noise(value: Any, path: str = "noise") -> NoiseModel | None:
     if value is None:
         return None
     check_keys(value, path, allowed=tuple(_NOISE_FIELDS), required=("photons_per_pixel",))
-    spec = ParamSpec("photons_per_pixel", float | None, None, "", gt=0)
+    spec = ParamSpec("photons_per_pixel", float | None, None, "", gt=0, le=MAX_PHOTONS)
     if check_value(spec, value["photons_per_pixel"], f"{path}.photons_per_pixel") is None:
         return None
     values = {key: check_value(_NOISE_FIELDS[key], raw, f"{path}.{key}") for key, raw in value.items()}

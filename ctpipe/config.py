@@ -1,7 +1,7 @@
 """Strict YAML configuration: pipelines, geometries, stage parameters.
 
 Every error names the YAML path of the bad value, the value, and what is allowed, e.g.
-``pipeline.estimator.sampson_threshold: must be a number > 0, got -1``.
+``pipeline.estimator.sampson_threshold: must be a number > 0 and <= 1, got -1``.
 
 A pipeline file::
 

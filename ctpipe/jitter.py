@@ -176,15 +176,15 @@ class Jitter:
 
 
 _PARAMS: dict[str, dict[str, ParamSpec]] = {
-    "gaussian": {"sigma_deg": ParamSpec("sigma_deg", float, None, "", ge=0)},
-    "random_walk": {"sigma_deg": ParamSpec("sigma_deg", float, None, "", ge=0)},
-    "periodic": {"amplitude_deg": ParamSpec("amplitude_deg", float, None, ""),
-                 "phase_deg": ParamSpec("phase_deg", float, 0.0, ""),
-                 "harmonic": ParamSpec("harmonic", int, 1, "", ge=1)},
-    "jumps": {"count": ParamSpec("count", int, None, "", ge=0),
+    "gaussian": {"sigma_deg": ParamSpec("sigma_deg", float, None, "", ge=0, le=360)},
+    "random_walk": {"sigma_deg": ParamSpec("sigma_deg", float, None, "", ge=0, le=360)},
+    "periodic": {"amplitude_deg": ParamSpec("amplitude_deg", float, None, "", ge=-360, le=360),
+                 "phase_deg": ParamSpec("phase_deg", float, 0.0, "", ge=-36_000, le=36_000),
+                 "harmonic": ParamSpec("harmonic", int, 1, "", ge=1, le=100_000)},
+    "jumps": {"count": ParamSpec("count", int, None, "", ge=0, le=100_000),
               "rate_per_view": ParamSpec("rate_per_view", float, None, "", ge=0, le=1),
-              "size_deg": ParamSpec("size_deg", float, None, "", ge=0),
-              "size_sigma_deg": ParamSpec("size_sigma_deg", float, 0.0, "", ge=0),
+              "size_deg": ParamSpec("size_deg", float, None, "", ge=0, le=360),
+              "size_sigma_deg": ParamSpec("size_sigma_deg", float, 0.0, "", ge=0, le=360),
               "sign": ParamSpec("sign", Literal["random", "positive", "negative"], "random", "")},
 }
 _REQUIRED = {"gaussian": ("sigma_deg",), "random_walk": ("sigma_deg",), "periodic": ("amplitude_deg",),

@@ -148,10 +148,10 @@ class ScanSpec:
 
 _ANGLE_FIELDS = {"n_views": ParamSpec("n_views", int, None, "", ge=1, le=100_000),
                  "range_deg": ParamSpec("range_deg", float, 360.0, "", gt=0, le=36_000),
-                 "start_deg": ParamSpec("start_deg", float, 0.0, "")}
+                 "start_deg": ParamSpec("start_deg", float, 0.0, "", ge=-36_000, le=36_000)}
 _PROJECTOR_FIELDS = {"kind": ParamSpec("kind", Literal["analytic", "voxel"], "analytic", ""),
                      "supersample": ParamSpec("supersample", int, 1, "", ge=1, le=16),
-                     "blur_px": ParamSpec("blur_px", float, 0.0, "", ge=0)}
+                     "blur_px": ParamSpec("blur_px", float, 0.0, "", ge=0, le=64)}
 _SEED = ParamSpec("seed", int, 0, "", ge=0)
 
 

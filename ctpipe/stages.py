@@ -84,10 +84,10 @@ def _describe(annotation, spec: ParamSpec | None = None) -> str:
 
 
 def _number(v: float) -> str:
-    """A bound as people write it: 1000000 rather than 1e+06, 0.5 rather than 0.500000."""
-    if float(v).is_integer() and abs(v) < 1e16:
+    """A bound as people write it: 1000000 and 1e12 rather than 1e+06 and 1000000000000, 0.5 rather than 0.500000."""
+    if float(v).is_integer() and abs(v) < 1e7:
         return str(int(v))
-    return f"{v:g}"
+    return f"{v:g}".replace("e+", "e")
 
 
 def _matches_type(option, value) -> bool:

@@ -65,7 +65,7 @@ def test_bad_inputs():
         log_transform(np.ones((1, 4, 4)))
     assert parse_noise(None) is None and parse_noise({"photons_per_pixel": None}) is None
     assert parse_noise({"photons_per_pixel": 100, "dark_counts": 5}) == NoiseModel(100.0, 8, 4, 5.0)
-    with pytest.raises(ConfigError, match=r"noise.photons_per_pixel: must be a number > 0 or null, got -1"):
+    with pytest.raises(ConfigError, match=r"noise.photons_per_pixel: must be a number > 0 and <= 1e12 or null, got -1"):
         parse_noise({"photons_per_pixel": -1})
     with pytest.raises(ConfigError, match=r"noise.flat_frames: must be an integer >= 1 and <= 10000, got 0"):
         parse_noise({"photons_per_pixel": 10, "flat_frames": 0})

@@ -19,12 +19,12 @@ def test_defaults_and_bare_names():
 
 @pytest.mark.parametrize("text, message", [
     ("estimator: {name: ransac-1pt, sampson_threshold: -1}",
-     "pipeline.estimator.sampson_threshold: must be a number > 0, got -1"),
+     "pipeline.estimator.sampson_threshold: must be a number > 0 and <= 1, got -1"),
     ("estimator: {name: ransac-1pt, probability: yes}",
      "pipeline.estimator.probability: must be a number > 0 and < 1, got True"),
     ("estimator: {name: ransac-1pt, hypotheses: some}",
      "pipeline.estimator.hypotheses: must be one of 'random', 'all', got 'some'"),
-    ("detector: {name: sift, n_features: 2.5}", "pipeline.detector.n_features: must be an integer >= 0, got 2.5"),
+    ("detector: {name: sift, n_features: 2.5}", "pipeline.detector.n_features: must be an integer >= 0 and <= 1000000, got 2.5"),
     ("detector: {name: sift, nfeatures: 10}", "pipeline.detector.nfeatures: unknown parameter of detector 'sift'; allowed: n_features"),
     ("detector: {name: surff}", "pipeline.detector.name: unknown detector 'surff'; registered detectors: akaze, brisk"),
     ("detector: {n_features: 3}", "pipeline.detector.name: missing; registered detectors: akaze"),
@@ -53,7 +53,7 @@ def test_geometry_is_validated_with_units_in_its_keys():
         parse_geometry({k: v for k, v in good.items() if k != "source_to_object_mm"})
     with pytest.raises(ConfigError, match="geometry: source_to_detector_mm must exceed source_to_object_mm"):
         parse_geometry({**good, "source_to_object_mm": 2000})
-    with pytest.raises(ConfigError, match="geometry.detector_cols: must be an integer >= 1, got 0"):
+    with pytest.raises(ConfigError, match="geometry.detector_cols: must be an integer >= 1 and <= 65536, got 0"):
         parse_geometry({**good, "detector_cols": 0})
 
 

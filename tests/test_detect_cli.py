@@ -198,7 +198,7 @@ def bad_images(tmp_path, blobs):
     ("good.npy", ["--detector", "nope"], "detector.name: unknown detector 'nope'; registered detectors: akaze"),
     ("good.npy", ["--set", "n_featurs=5"], "detector.n_featurs: unknown parameter of detector 'sift'; allowed: "
                                            "n_features, "),
-    ("good.npy", ["--set", "n_features=many"], "detector.n_features: must be an integer >= 0, got 'many'"),
+    ("good.npy", ["--set", "n_features=many"], "detector.n_features: must be an integer >= 0 and <= 1000000, got 'many'"),
     ("good.npy", ["--set", "sigma=1", "--set", "sigma=2"], "detector.sigma: given twice"),
 ])
 def test_bad_input_exits_2_with_one_line_and_writes_nothing(capsys, bad_images, image, extra, message):

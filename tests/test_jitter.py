@@ -70,7 +70,7 @@ def test_combination_is_the_sum_and_same_seed_gives_same_offsets():
 
 
 @pytest.mark.parametrize("value, message", [
-    ([{"gaussian": {"sigma_deg": -1}}], "jitter[0].gaussian.sigma_deg: must be a number >= 0, got -1"),
+    ([{"gaussian": {"sigma_deg": -1}}], "jitter[0].gaussian.sigma_deg: must be a number >= 0 and <= 360, got -1"),
     ([{"gaussian": {"sigma": 1}}], "jitter[0].gaussian.sigma: unknown key; allowed: sigma_deg"),
     ([{"wobble": {}}], "jitter[0].wobble: unknown jitter kind; allowed: gaussian, random_walk, periodic, jumps"),
     ([{"jumps": {"size_deg": 1}}], "jitter[0].jumps: give exactly one of count"),

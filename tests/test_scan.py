@@ -84,7 +84,7 @@ def test_a_failure_midway_leaves_nothing(tmp_path, monkeypatch):
     (lambda t: t.replace("format: ctpipe-scan/1", "format: other"), ConfigError,
      "scan.yaml.format: must be 'ctpipe-scan/1', got 'other'"),
     (lambda t: t.replace("detector_cols: 12", "detector_cols: -12"), ConfigError,
-     "scan.yaml.geometry.detector_cols: must be an integer >= 1, got -12"),
+     "scan.yaml.geometry.detector_cols: must be an integer >= 1 and <= 65536, got -12"),
     (lambda t: t.replace("count: 5", "count: 4"), InputError,
      "4 projection files but 5 nominal angles; there must be one angle for every projection"),
     (lambda t: t.replace("values: line_integrals", "values: counts"), ConfigError,
@@ -148,9 +148,9 @@ def test_scan_spec_parses_and_round_trips(tmp_path):
 @pytest.mark.parametrize("old, new, message", [
     ("n_views: 8", "n_views: 0", "s.yaml.angles.n_views: must be an integer >= 1 and <= 100000, got 0"),
     ("kind: analytic", "kind: raytrace", "s.yaml.projector.kind: must be one of 'analytic', 'voxel', got 'raytrace'"),
-    ("sigma_deg: 0.2", "sigma_deg: -0.2", "s.yaml.jitter[0].gaussian.sigma_deg: must be a number >= 0, got -0.2"),
+    ("sigma_deg: 0.2", "sigma_deg: -0.2", "s.yaml.jitter[0].gaussian.sigma_deg: must be a number >= 0 and <= 360, got -0.2"),
     ("seed: 4", "seeds: 4", "s.yaml.seeds: unknown key; allowed: geometry, angles, jitter, noise, projector, seed"),
-    ("dark_counts: 100", "dark_counts: lots", "s.yaml.noise.dark_counts: must be a number >= 0, got 'lots'"),
+    ("dark_counts: 100", "dark_counts: lots", "s.yaml.noise.dark_counts: must be a number >= 0 and <= 1e12, got 'lots'"),
     ("pixel_pitch_u_mm: 0.8, ", "", "s.yaml.geometry.pixel_pitch_u_mm: missing; it is required"),
 ])
 def test_bad_scan_specs_name_the_path(tmp_path, old, new, message):

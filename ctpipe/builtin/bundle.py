@@ -19,24 +19,28 @@ class BundleAdjustmentRefiner(Refiner):
     """Track features through the scan and adjust every view angle and a 3-D point per track (reprojection error in pixels)."""
 
     loss: Literal["soft-l1", "huber", "linear"] = param("soft-l1", doc="robust loss of the reprojection error")
-    loss_scale_px: float = param(0.5, doc="reprojection error (px) where the robust loss starts to flatten", gt=0)
-    min_track_length: int = param(2, doc="drop tracks seen in fewer views", ge=2)
-    outlier_threshold_px: float = param(0.8, doc="drop observations with a larger reprojection error (px)", gt=0)
-    extension_rounds: int = param(0, doc="rounds of guided track extension, each followed by an adjustment", ge=0)
+    loss_scale_px: float = param(0.5, doc="reprojection error (px) where the robust loss starts to flatten", gt=0,
+                                  le=1000)
+    min_track_length: int = param(2, doc="drop tracks seen in fewer views", ge=2, le=100_000)
+    outlier_threshold_px: float = param(0.8, doc="drop observations with a larger reprojection error (px)", gt=0,
+                                         le=1000)
+    extension_rounds: int = param(0, doc="rounds of guided track extension, each followed by an adjustment", ge=0,
+                                 le=100)
     extension_radius_px: float = param(0.8, doc="largest distance (px) from a track's prediction to a keypoint it takes",
-                                       gt=0)
-    extension_window_views: int = param(8, doc="views beyond its observations a track is searched in per round", ge=1)
+                                       gt=0, le=1000)
+    extension_window_views: int = param(8, doc="views beyond its observations a track is searched in per round", ge=1,
+                                        le=100_000)
     descriptor_quantile: float = param(
         0.95, doc="a keypoint joins a track within this quantile of the verified matches' descriptor distances",
         gt=0, le=1)
     drop_static: bool = param(True, doc="drop tracks that stay put where a rigid point would move (silhouettes, defects)")
     static_min_motion_px: float = param(1.0, doc="judge a track static only if a rigid point would move this much (px)",
-                                        gt=0)
+                                        gt=0, le=1000)
     static_fraction: float = param(0.5, doc="static: moving less than this share of a rigid point's motion", gt=0, lt=1)
     estimate_u0: bool = param(False, doc="also adjust the principal point column (centre of rotation)")
     estimate_v0: bool = param(False, doc="also adjust the principal point row")
     estimate_tilt: bool = param(False, doc="also adjust the in-plane detector tilt")
-    max_iterations: int = param(50, doc="Levenberg-Marquardt iterations per adjustment", ge=1)
+    max_iterations: int = param(50, doc="Levenberg-Marquardt iterations per adjustment", ge=1, le=10_000)
 
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
         settings = BundleSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)})

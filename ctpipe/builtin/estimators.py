@@ -51,19 +51,21 @@ class Ransac1ptEstimator(Estimator):
 
     probability: float = param(0.999, doc="confidence p of drawing at least one all-inlier sample", gt=0, lt=1)
     outlier_fraction: float = param(0.7, doc="expected outlier fraction eps (sets the iteration count)", ge=0, lt=1)
-    sampson_threshold: float = param(0.01, doc="inlier if Sampson distance below this (normalised units)", gt=0)
+    sampson_threshold: float = param(0.01, doc="inlier if Sampson distance below this (normalised units)", gt=0,
+                                     le=1)
     min_consensus: float = param(0.25, doc="a consensus is valid if its inlier fraction exceeds this", ge=0, lt=1)
-    max_iterations: int = param(100000, doc="upper bound on drawn hypotheses", ge=1)
+    max_iterations: int = param(100000, doc="upper bound on drawn hypotheses", ge=1, le=10_000_000)
     hypotheses: Literal["random", "all"] = param(
         "random", doc="'random': draw N from p and eps (the paper); 'all': try every correspondence")
     scoring: Literal["count", "msac"] = param(
         "count", doc="rank consensus sets by inlier count (the paper) or by truncated squared Sampson distance")
     refit: Literal["sampson", "tls", "none"] = param(
         "sampson", doc="least-squares refit of each consensus: Sampson, closed-form TLS, or none")
-    local_optimisations: int = param(1, doc="distinct consensus sets refit and re-scored (best first)", ge=1)
+    local_optimisations: int = param(1, doc="distinct consensus sets refit and re-scored (best first)", ge=1,
+                                     le=1000)
     noise_scale_factor: float | None = param(
         3.0, doc="after the refit keep only inliers within this many robust noise scales "
-                  "(1.4826 x median Sampson distance of the consensus) and refit again; null: the paper's plain refit", gt=0)
+                  "(1.4826 x median Sampson distance of the consensus) and refit again; null: the paper's plain refit", gt=0, le=1000)
 
     def estimate(self, q_a: np.ndarray, q_b: np.ndarray, *, rng: np.random.Generator):
         m = len(q_a)
@@ -188,7 +190,7 @@ class MedianEstimator(Estimator):
     """Median of the per-correspondence angles (paper's baseline)."""
 
     sampson_threshold: float = param(
-        0.01, doc="correspondences within this Sampson distance of the median angle are reported as inliers", gt=0)
+        0.01, doc="correspondences within this Sampson distance of the median angle are reported as inliers", gt=0, le=1)
 
     def estimate(self, q_a: np.ndarray, q_b: np.ndarray, *, rng: np.random.Generator):
         usable = _informative(q_a, q_b)
@@ -205,8 +207,8 @@ class OpenCV5ptEstimator(Estimator):
     method: Literal["ransac", "lmeds", "usac-default", "usac-accurate", "usac-magsac"] = param(
         "ransac", doc="OpenCV robust method")
     probability: float = param(0.999, doc="RANSAC confidence", gt=0, lt=1)
-    threshold: float = param(1e-3, doc="epipolar distance threshold, normalised units", gt=0)
-    max_iters: int = param(1000, doc="maximum RANSAC iterations", ge=1)
+    threshold: float = param(1e-3, doc="epipolar distance threshold, normalised units", gt=0, le=1)
+    max_iters: int = param(1000, doc="maximum RANSAC iterations", ge=1, le=1_000_000)
 
     def estimate(self, q_a: np.ndarray, q_b: np.ndarray, *, rng: np.random.Generator):
         if len(q_a) < 5:

@@ -61,11 +61,11 @@ class FlannMatcher(_NearestNeighbourMatcher):
 
     ratio: float | None = param(0.8, doc="keep a match if d1 < ratio * d2 (null: no ratio test)", gt=0, le=1)
     mutual: bool = param(False, doc="keep only pairs that are each other's nearest neighbour")
-    trees: int = param(4, doc="randomised KD-trees (float descriptors)", ge=1)
-    checks: int = param(64, doc="leaves visited per query", ge=1)
-    lsh_tables: int = param(6, doc="LSH hash tables (binary descriptors)", ge=1)
+    trees: int = param(4, doc="randomised KD-trees (float descriptors)", ge=1, le=64)
+    checks: int = param(64, doc="leaves visited per query", ge=1, le=100_000)
+    lsh_tables: int = param(6, doc="LSH hash tables (binary descriptors)", ge=1, le=64)
     lsh_key_size: int = param(12, doc="LSH key bits", ge=1, le=31)
-    lsh_probes: int = param(1, doc="LSH multi-probe level", ge=0)
+    lsh_probes: int = param(1, doc="LSH multi-probe level", ge=0, le=4)
 
     def _knn(self, a: Features, b: Features, k: int):
         return _opencv.knn_match(a.descriptors, b.descriptors, a.norm, k, flann=True, flann_trees=self.trees,

@@ -535,9 +535,10 @@ def surf(image, *, hessian_threshold: float = 100.0, n_octaves: int = 4, n_octav
 class SurfDetector(Detector):
     """SURF (Bay et al.) as OpenCV computes it: fast-Hessian keypoints, 64/128-float descriptors."""
 
-    hessian_threshold: float = param(100.0, doc="keep maxima of the Hessian determinant above this", ge=0)
-    n_octaves: int = param(4, doc="octaves of box-filter sizes", ge=1)
-    n_octave_layers: int = param(3, doc="layers per octave searched for maxima", ge=1)
+    hessian_threshold: float = param(100.0, doc="keep maxima of the Hessian determinant above this", ge=0,
+                                        le=1e9)
+    n_octaves: int = param(4, doc="octaves of box-filter sizes", ge=1, le=8)
+    n_octave_layers: int = param(3, doc="layers per octave searched for maxima", ge=1, le=8)
     extended: bool = param(False, doc="128-float descriptors instead of 64")
     upright: bool = param(False, doc="skip the orientation (faster, not rotation invariant; angle 270)")
 

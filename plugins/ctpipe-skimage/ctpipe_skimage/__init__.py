@@ -189,20 +189,21 @@ class SkimageSiftDetector(Detector):
     """
 
     upsampling: Literal[1, 2, 4] = param(2, doc="upscale the image by 1, 2 or 4 before detection")
-    n_octaves: int = param(8, doc="maximum number of octaves (reduced to keep 12 px at the coarsest)", ge=1)
-    n_scales: int = param(3, doc="scales per octave", ge=1)
+    n_octaves: int = param(8, doc="maximum number of octaves (reduced to keep 12 px at the coarsest)", ge=1,
+                           le=16)
+    n_scales: int = param(3, doc="scales per octave", ge=1, le=16)
     sigma_min: float = param(1.6, doc="blur of the seed image, upsampled pixels (must be >= sigma_in * upsampling)",
-                             gt=0)
-    sigma_in: float = param(0.5, doc="assumed blur of the input image, px", ge=0)
+                             gt=0, le=16)
+    sigma_in: float = param(0.5, doc="assumed blur of the input image, px", ge=0, le=16)
     c_dog: float = param(0.04 / 3, doc="DoG contrast threshold, unit-image intensity (rescaled by skimage "
-                                       "when n_scales != 3)", ge=0)
-    c_edge: float = param(10.0, doc="edgeness threshold (ratio of principal curvatures)", gt=0)
-    n_bins: int = param(36, doc="bins of the orientation histogram", ge=8)
-    lambda_ori: float = param(1.5, doc="orientation window: Gaussian weight of std lambda_ori * sigma", gt=0)
+                                       "when n_scales != 3)", ge=0, le=1)
+    c_edge: float = param(10.0, doc="edgeness threshold (ratio of principal curvatures)", gt=0, le=1000)
+    n_bins: int = param(36, doc="bins of the orientation histogram", ge=8, le=360)
+    lambda_ori: float = param(1.5, doc="orientation window: Gaussian weight of std lambda_ori * sigma", gt=0, le=16)
     c_max: float = param(0.8, doc="secondary orientation peaks above c_max * highest make extra keypoints", gt=0, le=1)
-    lambda_descr: float = param(6.0, doc="descriptor window: Gaussian weight of std lambda_descr * sigma", gt=0)
-    n_hist: int = param(4, doc="descriptor grid is n_hist x n_hist histograms", ge=1)
-    n_ori: int = param(8, doc="orientation bins per descriptor histogram", ge=1)
+    lambda_descr: float = param(6.0, doc="descriptor window: Gaussian weight of std lambda_descr * sigma", gt=0, le=64)
+    n_hist: int = param(4, doc="descriptor grid is n_hist x n_hist histograms", ge=1, le=16)
+    n_ori: int = param(8, doc="orientation bins per descriptor histogram", ge=1, le=64)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -298,12 +299,13 @@ class SkimageOrbDetector(Detector):
     An image narrower than 7 pixels (the FAST circle) or without contrast gives no keypoints.
     """
 
-    n_keypoints: int = param(500, doc="keep the n keypoints of highest Harris response", ge=1)
+    n_keypoints: int = param(500, doc="keep the n keypoints of highest Harris response", ge=1,
+                                 le=1_000_000)
     fast_n: int = param(9, doc="contiguous FAST circle pixels (of 16) that must differ", ge=1, le=16)
     fast_threshold: float = param(0.08, doc="FAST intensity threshold, fraction of the image contrast", ge=0, le=1)
     harris_k: float = param(0.04, doc="Harris sensitivity k (corners ranked by det - k trace^2)", ge=0, le=0.25)
-    downscale: float = param(1.2, doc="pyramid downscale factor", gt=1)
-    n_scales: int = param(8, doc="pyramid levels", ge=1)
+    downscale: float = param(1.2, doc="pyramid downscale factor", gt=1, le=4)
+    n_scales: int = param(8, doc="pyramid levels", ge=1, le=32)
 
     def detect(self, image: np.ndarray) -> Features:
         """Detect oriented FAST keypoints and compute their rBRIEF descriptors.
@@ -424,18 +426,23 @@ class SkimageCensureDetector(Detector):
     different seeds cannot be matched.
     """
 
-    min_scale: int = param(1, doc="smallest CENSURE filter scale (keypoints start at min_scale + 1)", ge=1)
-    max_scale: int = param(7, doc="largest CENSURE filter scale (keypoints end at max_scale - 1)", ge=3)
+    min_scale: int = param(1, doc="smallest CENSURE filter scale (keypoints start at min_scale + 1)", ge=1,
+                           le=32)
+    max_scale: int = param(7, doc="largest CENSURE filter scale (keypoints end at max_scale - 1)", ge=3,
+                           le=64)
     mode: Literal["DoB", "Octagon", "STAR"] = param("DoB", doc="bi-level filter shape")
-    non_max_threshold: float = param(0.15, doc="minimum filter response, unit-image intensity", ge=0)
-    line_threshold: float = param(10.0, doc="reject points whose ratio of principal curvatures exceeds this", gt=0)
+    non_max_threshold: float = param(0.15, doc="minimum filter response, unit-image intensity", ge=0,
+                                     le=1000)
+    line_threshold: float = param(10.0, doc="reject points whose ratio of principal curvatures exceeds this", gt=0,
+                                    le=1000)
     polarity: Literal["both", "dark", "bright"] = param("both", doc="blobs to find: dark, bright or both")
     descriptor_size: Literal[128, 256, 512] = param(256, doc="BRIEF bits per descriptor")
     patch_size: int = param(49, doc="BRIEF patch side, px (keypoints within patch_size // 2 of the border dropped)",
-                            ge=5)
+                            ge=5, le=1024)
     brief_mode: Literal["normal", "uniform"] = param("normal", doc="BRIEF sampling distribution of the test pairs")
-    sigma: float = param(1.0, doc="Gaussian blur before the BRIEF tests, px", ge=0)
-    seed: int = param(1, doc="seed of BRIEF's sampling pattern (must be equal for views to match)", ge=0)
+    sigma: float = param(1.0, doc="Gaussian blur before the BRIEF tests, px", ge=0, le=16)
+    seed: int = param(1, doc="seed of BRIEF's sampling pattern (must be equal for views to match)", ge=0,
+                     le=2**32 - 1)
 
     def __post_init__(self) -> None:
         super().__post_init__()
