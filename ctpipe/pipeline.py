@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from ctpipe.config import PipelineConfig, build_stage, load_yaml, parse_pipeline
+from ctpipe._checks import short_repr
+from ctpipe.config import PipelineConfig, build_stage, load_yaml, parse_geometry, parse_pipeline
 from ctpipe.data import Features, ScanObservations
 from ctpipe.errors import EstimationError, InputError
 from ctpipe.geometry import Geometry
@@ -102,6 +103,11 @@ class Pipeline:
     static_background: str = "auto"
 
     def __post_init__(self) -> None:
+        for name, kind in (("detector", Detector), ("matcher", Matcher), ("estimator", Estimator), ("refiner", Refiner)):
+            stage = getattr(self, name)
+            if not isinstance(stage, kind):
+                raise InputError(f"{name}: must be a ctpipe {kind.__name__} stage (e.g. from the registry or "
+                                 f"Pipeline.from_config), got {type(stage).__name__} {short_repr(stage)}")
         if self.static_background not in ("auto", "on", "off"):
             raise InputError(f"static_background: must be one of 'auto', 'on', 'off', got {self.static_background!r}")
 
@@ -139,8 +145,9 @@ class Pipeline:
         ----------
         projections : ndarray of shape (V, rows, cols)
             uint8 or float images (float: e.g. ``-log`` line integrals); no NaN.
-        geometry : Geometry
-            Must match the projections' (rows, cols).
+        geometry : Geometry or mapping
+            Must match the projections' (rows, cols). A mapping of the :class:`Geometry`
+            fields is validated as a geometry YAML is (:func:`ctpipe.config.parse_geometry`).
         nominal_angles_deg : array_like of shape (V,), optional
             The commanded angles. They tell a full turn (whose seam is then paired too, see
             :func:`ctpipe.solve.view_pairs`) and give whole-scan refiners their start.
@@ -163,6 +170,7 @@ class Pipeline:
 
         Several refiners can then be compared on the same observations with :meth:`refine`.
         """
+        geometry = _check_geometry(geometry)
         projections = _check_projections(projections, geometry)
         n_views = len(projections)
         nominal = None if nominal_angles_deg is None else _check_nominal(nominal_angles_deg, n_views)
@@ -244,6 +252,15 @@ class Pipeline:
                 return None
         views = np.unique(np.linspace(0, len(projections) - 1, min(len(projections), 90)).round().astype(int))
         return np.median(np.asarray(projections[views], dtype=np.float32), axis=0)
+
+
+def _check_geometry(geometry) -> Geometry:
+    if isinstance(geometry, Geometry):
+        return geometry
+    if isinstance(geometry, Mapping):
+        return parse_geometry(geometry)
+    raise InputError(f"geometry: must be a ctpipe.geometry.Geometry (or a mapping of its fields), "
+                     f"got {type(geometry).__name__} {short_repr(geometry)}")
 
 
 def _check_projections(projections, geometry: Geometry) -> np.ndarray:
