@@ -52,7 +52,7 @@ def test_estimate_writes_angles_and_prints_json(scan_files):
 
 @pytest.mark.parametrize("pipeline_text, message", [
     ("estimator: {name: ransac-1pt, sampson_threshold: -1}\n",
-     "ctpipe: error: pipeline.estimator.sampson_threshold: must be a number > 0, got -1"),
+     "ctpipe: error: pipeline.estimator.sampson_threshold: must be a number > 0 and <= 1, got -1"),
     ("detector: {name: nope}\n", "ctpipe: error: pipeline.detector.name: unknown detector 'nope'; registered"),
     ("detector: [sift\n", "not valid YAML"),
 ])

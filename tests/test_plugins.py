@@ -93,7 +93,7 @@ def test_builtins_are_listed_in_one_tuple():
 def test_stage_parameters_are_validated_on_construction():
     from ctpipe.builtin.estimators import Ransac1ptEstimator
 
-    with pytest.raises(ConfigError, match=r"Ransac1ptEstimator.sampson_threshold: must be a number > 0, got -1"):
+    with pytest.raises(ConfigError, match=r"Ransac1ptEstimator.sampson_threshold: must be a number > 0 and <= 1, got -1"):
         Ransac1ptEstimator(sampson_threshold=-1)
 
 
