@@ -237,6 +237,8 @@ def read_projections(path: str | Path) -> np.ndarray:
     array = _read_array(Path(path))
     if array.ndim != 3:
         raise InputError(f"{path}: projections must be a 3-D array (views, rows, cols), got shape {array.shape}")
+    if array.dtype == bool or not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)):
+        raise InputError(f"{path}: projections must have an integer or floating dtype, got {array.dtype}")
     return array
 
 
