@@ -366,7 +366,9 @@ def read_array(path: str | Path, *, kind: str | None = None) -> np.ndarray:
     # mean the same thing to the user, and their text (one line of it) says which damage.
     except Exception as exc:  # noqa: BLE001
         raise InputError(f"{path}: damaged or truncated {label} file ({_one_line(exc)})") from None
-    if array.size == 0:
+    if array.size == 0 and label != "npy":
+        # An empty .npy is a valid (empty) array, reported as such by the caller; an image
+        # format without pixels is damaged (tifffile returns shape (0,) for some such files).
         raise InputError(f"{path}: damaged {label} file: it holds no pixels (shape {array.shape})")
     return array
 
