@@ -129,7 +129,7 @@ CLI_CASES = [
      _f(**{"c.npy": np.ones((3, 48, 48), np.complex64)})),
     ("est-huge-npy-header", ["estimate", "{d}/h.npy", "--geometry", "{d}/geometry.yaml"], "h.npy",
      _f(**{"h.npy": _npy_header_only((100000, 4096, 4096))})),
-    ("est-zero-views", ["estimate", "{d}/z.npy", "--geometry", "{d}/geometry.yaml"], "z.npy",
+    ("est-zero-views", ["estimate", "{d}/z.npy", "--geometry", "{d}/geometry.yaml"], "at least 2 views",
      _f(**{"z.npy": np.zeros((0, 48, 48), np.float32)})),
     ("est-one-view", ["estimate", "{d}/one.npy", "--geometry", "{d}/geometry.yaml"], "view",
      _f(**{"one.npy": _textured((48, 48))[None].astype(np.float32)})),
