@@ -12,11 +12,13 @@ reprojection of the scan's own reconstruction. ``docs/wholescan.md`` has the met
 from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bundle_adjust, solve_bundle
 from ctpipe.solve.graph import (LOSSES, PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
                                 unwrap_pair_angles_deg, view_pairs)
-from ctpipe.solve.projection_matching import (ProjectionMatchingResult, consistency_costs, matching_levels,
-                                              projection_matching)
+# The function projection_matching stays in its module: imported here under the module's own
+# name it would shadow the submodule (``import ctpipe.solve.projection_matching as pm`` would give
+# the function).
+from ctpipe.solve.projection_matching import ProjectionMatchingResult, consistency_costs, matching_levels
 from ctpipe.solve.tracks import Tracks, build_tracks, extend_tracks, static_tracks, triangulate_tracks
 
 __all__ = ["covers_full_turn", "unwrap_pair_angles_deg", "view_pairs", "chain_pair_angles", "solve_pair_graph",
            "PairGraphSolution", "LOSSES", "Tracks", "build_tracks", "extend_tracks", "static_tracks",
            "triangulate_tracks", "bundle_adjust", "solve_bundle", "BundleResult", "BundleSettings", "BundleSolution",
-           "projection_matching", "consistency_costs", "matching_levels", "ProjectionMatchingResult"]
+           "consistency_costs", "matching_levels", "ProjectionMatchingResult"]
