@@ -44,14 +44,21 @@ def _check_target(path, what: str, kind: str) -> Path:
     ancestor = _existing_ancestor(path)
     if not ancestor.is_dir():
         raise InputError(f"{what} {path}: {ancestor} is a file, not a folder; choose a {kind} elsewhere")
-    # os.access says yes to root and to read-only mounts alike; creating a file is the honest test.
+    _probe_writable(ancestor, f"{what} {path}: cannot write in {ancestor}")
+    return path
+
+
+def _probe_writable(folder: Path, message: str) -> None:
+    """Create and remove a file in ``folder``, or raise ``InputError(message (reason))``.
+
+    os.access says yes to root and to read-only mounts alike; creating a file is the honest test.
+    """
     try:
-        fd, probe = tempfile.mkstemp(prefix=".ctpipe-probe.", dir=ancestor)
+        fd, probe = tempfile.mkstemp(prefix=".ctpipe-probe.", dir=folder)
     except OSError as exc:
-        raise InputError(f"{what} {path}: cannot write in {ancestor} ({exc.strerror or exc})") from None
+        raise InputError(f"{message} ({exc.strerror or exc})") from None
     os.close(fd)
     os.unlink(probe)
-    return path
 
 
 def check_output_dir(path, what: str = "--out") -> Path:
@@ -65,12 +72,7 @@ def check_output_dir(path, what: str = "--out") -> Path:
         raise InputError(f"{what} {path}: exists and is not a folder")
     path = _check_target(path, what, "folder")
     if path.is_dir():
-        try:
-            fd, probe = tempfile.mkstemp(prefix=".ctpipe-probe.", dir=path)
-        except OSError as exc:
-            raise InputError(f"{what} {path}: cannot write in it ({exc.strerror or exc})") from None
-        os.close(fd)
-        os.unlink(probe)
+        _probe_writable(path, f"{what} {path}: cannot write in it")
     return path
 
 
