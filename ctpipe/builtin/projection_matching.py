@@ -116,11 +116,17 @@ class ProjectionMatchingRefiner(Refiner):
         candidates = {"start": start_deg}
         if nominal is not None:
             candidates["nominal"] = np.asarray(nominal, dtype=np.float64)
+        def cost_the_rest() -> None:
+            """Consistency cost of every candidate not costed yet, in one reconstruct-and-reproject pass."""
+            costs.update(consistency_costs(projections, observations.geometry,
+                                           {name: a for name, a in candidates.items() if name not in costs},
+                                           binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
+                                           filter=self.filter))
+
         if self.select and len(candidates) > 1:
             # Match from whichever explains the projections better: a feature start that went
             # astray (too few features, a degenerate object) must not be the one refined.
-            costs = consistency_costs(projections, observations.geometry, candidates, binning=levels[0][0],
-                                      band_px=band, max_voxels=self.max_voxels, filter=self.filter)
+            cost_the_rest()
         origin = min(candidates, key=lambda name: (costs.get(name, 0.0), name != "start"))
         result = projection_matching(projections, observations.geometry, candidates[origin],
                                      binning=[b for b, _ in levels], iterations=[n for _, n in levels], band_px=band,
@@ -130,13 +136,7 @@ class ProjectionMatchingRefiner(Refiner):
         chosen, angles = "matched", result.angles_deg
         if self.select:
             candidates["matched"] = result.angles_deg
-            costs.update(consistency_costs(projections, observations.geometry, {"matched": result.angles_deg},
-                                           binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
-                                           filter=self.filter))
-            if "start" not in costs:
-                costs.update(consistency_costs(projections, observations.geometry, {"start": start_deg},
-                                               binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
-                                               filter=self.filter))
+            cost_the_rest()
             chosen = min(costs, key=lambda name: (costs[name], name != "matched"))
             angles = candidates[chosen]
             info["consistency_cost"] = costs
