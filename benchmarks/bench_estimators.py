@@ -17,8 +17,8 @@ import numpy as np
 
 import cv2
 from ctpipe.builtin.estimators import OpenCV5ptEstimator, Ransac1ptEstimator
-from ctpipe.experiments import load_synthetic_settings
-from ctpipe.synthetic import make_correspondences
+from ctpipe.evaluate.experiments import load_synthetic_settings
+from ctpipe.evaluate.synthetic import make_correspondences
 
 ESTIMATORS = {
     "ransac-1pt (paper threshold 0.01)": Ransac1ptEstimator(),

@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ctpipe.fdk import fdk
 from ctpipe.geometry import Geometry
-from ctpipe.volume import VolumeGrid
+from ctpipe.recon.feldkamp import fdk
+from ctpipe.recon.volume import VolumeGrid
 
 # The phantom and its closed-form projections live with the tests, one definition for both.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))

@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ctpipe.evaluate.validate import load_validate_settings
 from ctpipe.geometry import Geometry
-from ctpipe.phantoms import load_phantom
 from ctpipe.plugins import get_registry
-from ctpipe.projectors import VoxelProjector, project_analytic
-from ctpipe.validate import load_validate_settings
+from ctpipe.sim.phantoms import load_phantom
+from ctpipe.sim.projectors import VoxelProjector, project_analytic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_fdk import SIZES, load_mbirjax, parse_args, print_peer_timing, setup, time_call  # noqa: E402

@@ -13,7 +13,7 @@ A further feature refiner is one more entry in ``REFINERS``: a name and a functi
 
 Projection matching works on pixels, not tracks: its rows simulate the granular sample on a
 small detector (``--detector``, default 256^2 pixels, 0.2 deg jitter) at the same view counts
-and time :func:`ctpipe.solve.projection_matching.projection_matching` with the refiner's
+and time :func:`ctpipe.solve.reprojection.projection_matching` with the refiner's
 default levels (binned to 128 then 256 pixels a side), started from the nominal angles.
 
     python benchmarks/bench_refiners.py --detector 256 --projection-views 360 1440 2880
@@ -28,7 +28,7 @@ import numpy as np
 
 from ctpipe.builtin.bundle import BundleAdjustmentRefiner
 from ctpipe.builtin.refiners import LeastSquaresRefiner
-from ctpipe.scoring import view_errors_deg
+from ctpipe.evaluate.scoring import view_errors_deg
 from ctpipe.solve.simulated import SyntheticScan, synthetic_scan
 
 
@@ -49,10 +49,10 @@ REFINERS = {
 def bench_projection_matching(views: list[int], detector: int, seed: int) -> None:
     """Time projection matching on simulated projections of the granular sample."""
     from ctpipe.builtin.projection_matching import ProjectionMatchingRefiner
-    from ctpipe.phantoms import load_phantom
-    from ctpipe.scan import parse_scan_spec
-    from ctpipe.simulate import simulate
-    from ctpipe.solve.projection_matching import matching_levels, projection_matching
+    from ctpipe.sim.phantoms import load_phantom
+    from ctpipe.sim.scan_spec import parse_scan_spec
+    from ctpipe.sim.simulator import simulate
+    from ctpipe.solve.reprojection import matching_levels, projection_matching
 
     defaults = ProjectionMatchingRefiner()
     phantom = load_phantom("granular")

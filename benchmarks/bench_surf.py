@@ -35,13 +35,13 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from ctpipe import _opencv
+from ctpipe.builtin import _opencv
 from ctpipe.builtin.opencv_detectors import SiftDetector
 from ctpipe.builtin.surf import surf
+from ctpipe.evaluate.scoring import keypoint_agreement
 from ctpipe.geometry import Geometry
 from ctpipe.model import rotation_matrix
 from ctpipe.pipeline import Pipeline
-from ctpipe.scoring import keypoint_agreement
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ("camera", "xray_a", "xray_b", "xray_rot0", "xray_rot1", "astronaut1024")

@@ -16,12 +16,12 @@ import time
 
 import numpy as np
 
+from ctpipe.evaluate.report import _figure_png, _pyplot
+from ctpipe.evaluate.scoring import view_errors_deg
+from ctpipe.evaluate.validate import load_validate_settings, pair_chained_deg
 from ctpipe.pipeline import Pipeline
 from ctpipe.plugins import get_registry
-from ctpipe.report import _figure_png, _pyplot
-from ctpipe.scoring import view_errors_deg
-from ctpipe.simulate import simulate
-from ctpipe.validate import load_validate_settings, pair_chained_deg
+from ctpipe.sim.simulator import simulate
 
 REFINERS = {
     "least-squares (robust view graph + seam)": {"name": "least-squares", "weighting": "inliers"},

@@ -54,7 +54,8 @@ def _cmd_plugins(args) -> int:
 
 def _cmd_estimate(args) -> int:
     from ctpipe.config import load_geometry, load_yaml, parse_pipeline
-    from ctpipe.io import check_output_dir, csv_bytes, json_bytes, read_projections, to_jsonable, write_files
+    from ctpipe.io.arrays import read_projections
+    from ctpipe.io.outputs import check_output_dir, csv_bytes, json_bytes, to_jsonable, write_files
     from ctpipe.pipeline import Pipeline
 
     if args.out is not None:
@@ -66,7 +67,7 @@ def _cmd_estimate(args) -> int:
     if not source.exists():
         raise InputError(f"{source}: no such file or scan folder")
     if source.is_dir():
-        from ctpipe.scan import read_scan
+        from ctpipe.io.scan_folder import read_scan
 
         scan = read_scan(source)
         projections, geometry, truth = scan.projections, scan.geometry, scan.true_angles_deg
@@ -84,7 +85,7 @@ def _cmd_estimate(args) -> int:
     report = {"pipeline": config.to_dict(), "geometry": geometry.to_dict(), **result.to_dict()}
     header, columns = ["view", "angle_deg", "n_keypoints"], [result.angles_deg, result.n_keypoints]
     if truth is not None:
-        from ctpipe.scoring import error_table, pair_errors_deg, view_errors_deg
+        from ctpipe.evaluate.scoring import error_table, pair_errors_deg, view_errors_deg
 
         errors = view_errors_deg(result.angles_deg, truth)
         report["angle_errors"] = {
@@ -116,7 +117,8 @@ def _cmd_estimate(args) -> int:
 
 def _cmd_detect(args) -> int:
     from ctpipe.config import build_stage, parse_stage
-    from ctpipe.io import check_output_file, keypoints_writer, read_image, to_jsonable, write_files
+    from ctpipe.io.arrays import read_image
+    from ctpipe.io.outputs import check_output_file, keypoints_writer, to_jsonable, write_files
 
     # Checked before the detector runs: a typo in a suffix should cost nothing, and writing
     # keypoints to "kp.png" or a picture to "kp.npz" would only surprise later.
@@ -143,7 +145,7 @@ def _cmd_detect(args) -> int:
     # Render before writing anything, so a failure leaves neither file behind.
     picture = None
     if overlay is not None:
-        from ctpipe.report import keypoints_png
+        from ctpipe.evaluate.report import keypoints_png
 
         picture = keypoints_png(image, features, f"{args.detector}: {len(features)} keypoints")
     files = {out: keypoints_writer(features, detector=args.detector, params=effective)}
@@ -165,9 +167,10 @@ def _cmd_detect(args) -> int:
 
 
 def _cmd_simulate(args) -> int:
-    from ctpipe.phantoms import load_phantom
-    from ctpipe.scan import check_scan_folder_free, load_scan_spec
-    from ctpipe.simulate import simulate, write_simulated_scan
+    from ctpipe.io.scan_folder import check_scan_folder_free
+    from ctpipe.sim.phantoms import load_phantom
+    from ctpipe.sim.scan_spec import load_scan_spec
+    from ctpipe.sim.simulator import simulate, write_simulated_scan
 
     out = Path(args.out) if args.out.strip() else args.out
     check_scan_folder_free(out, overwrite=args.overwrite)
@@ -184,8 +187,8 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_validate(args) -> int:
-    from ctpipe.io import check_output_dir, staged_folder, to_jsonable
-    from ctpipe.validate import load_validate_settings, run_validate, write_validate_outputs
+    from ctpipe.evaluate.validate import load_validate_settings, run_validate, write_validate_outputs
+    from ctpipe.io.outputs import check_output_dir, staged_folder, to_jsonable
 
     check_output_dir(args.out)
     registry = _registry(args)
@@ -211,9 +214,9 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_experiment_synthetic(args) -> int:
-    from ctpipe.experiments import load_synthetic_settings, run_synthetic
-    from ctpipe.io import check_output_dir, staged_folder, to_jsonable
-    from ctpipe.report import synthetic_table, write_synthetic_outputs
+    from ctpipe.evaluate.experiments import load_synthetic_settings, run_synthetic
+    from ctpipe.evaluate.report import synthetic_table, write_synthetic_outputs
+    from ctpipe.io.outputs import check_output_dir, staged_folder, to_jsonable
 
     if args.out is not None:
         check_output_dir(args.out)
@@ -330,7 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=_cmd_simulate)
 
     p = sub.add_parser("validate", help="simulate a jittered scan, estimate its angles, score the reconstructions")
-    p.add_argument("experiment", nargs="?", help="experiment YAML (default: the built-in ctpipe/data/validate.yaml)")
+    p.add_argument("experiment", nargs="?", help="experiment YAML (default: the built-in ctpipe/evaluate/validate.yaml)")
     p.add_argument("--out", default="results/validate",
                    help="directory for report.json, angles.csv and PNGs (default: results/validate)")
     p.add_argument("--seed", type=_int_at_least(0), help="random seed (default: the experiment's)")
@@ -340,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("experiment", help="run an experiment")
     experiments = p.add_subparsers(dest="experiment", required=True, parser_class=_Parser)
     p = experiments.add_parser("synthetic", help="the paper's synthetic experiments, every estimator")
-    p.add_argument("--config", help="experiment YAML (default: the built-in ctpipe/data/synthetic.yaml)")
+    p.add_argument("--config", help="experiment YAML (default: the built-in ctpipe/evaluate/synthetic.yaml)")
     p.add_argument("--reps", type=_int_at_least(1), help="repetitions per swept value (default 300)")
     p.add_argument("--seed", type=_int_at_least(0), help="random seed (default 0)")
     p.add_argument("--jobs", type=_int_at_least(1), help="worker processes (default: number of CPUs)")

@@ -19,8 +19,8 @@ from ctpipe.errors import EstimationError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
 from ctpipe.plugins import get_registry
-from ctpipe.solve.graph import view_pairs
 from ctpipe.registry import StageRegistry
+from ctpipe.solve.graph import view_pairs
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner
 
 __all__ = ["Pipeline", "ScanResult", "consecutive_pairs"]

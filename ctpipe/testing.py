@@ -10,10 +10,10 @@ import numpy as np
 
 from ctpipe.data import Features, Matches, PairEstimate, ScanObservations, ScanSolution
 from ctpipe.errors import InputError
+from ctpipe.evaluate.synthetic import make_correspondences
 from ctpipe.geometry import Geometry
 from ctpipe.model import FailedEstimation
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner, Stage
-from ctpipe.synthetic import make_correspondences
 
 __all__ = ["check_stage", "check_detector", "check_matcher", "check_estimator", "check_refiner", "textured_image"]
 

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from ctpipe.acquisition import NoiseModel, acquire, beer_lambert, log_transform, parse_noise
 from ctpipe.errors import ConfigError, InputError
+from ctpipe.io.flatfield import log_transform
+from ctpipe.sim.acquisition import NoiseModel, acquire, beer_lambert, parse_noise
 
 
 def test_log_of_noise_free_intensities_recovers_the_line_integrals():

@@ -185,10 +185,10 @@ def test_detector_offsets_of_a_simulated_scan_are_pulled_most_of_the_way_back():
     0.2-1 px (measured: 97.6 of 98.5 and 93.5 of 93.0 from 95.5 / 95.5), so the test asks for most of the way."""
     import dataclasses
 
-    from ctpipe.phantoms import load_phantom
     from ctpipe.pipeline import Pipeline
-    from ctpipe.scan import parse_scan_spec
-    from ctpipe.simulate import simulate
+    from ctpipe.sim.phantoms import load_phantom
+    from ctpipe.sim.scan_spec import parse_scan_spec
+    from ctpipe.sim.simulator import simulate
 
     spec = parse_scan_spec({
         "geometry": {"source_to_object_mm": 130.0, "source_to_detector_mm": 300.0, "detector_cols": 192,

@@ -101,7 +101,7 @@ def test_experiment_synthetic_json_and_outputs(tmp_path):
 
 
 def test_experiment_results_do_not_depend_on_the_number_of_workers():
-    from ctpipe.experiments import load_synthetic_settings, run_synthetic
+    from ctpipe.evaluate.experiments import load_synthetic_settings, run_synthetic
 
     settings = load_synthetic_settings()
     one = run_synthetic(settings, reps=2, jobs=1).summary()

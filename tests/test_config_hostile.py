@@ -17,16 +17,16 @@ import numpy as np
 import pytest
 
 from ctpipe._checks import short_repr
-from ctpipe.acquisition import parse_noise
 from ctpipe.cli import _key_value
 from ctpipe.config import load_geometry, load_yaml, parse_geometry, parse_pipeline
 from ctpipe.errors import ConfigError, CtpipeError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.pipeline import Pipeline
 from ctpipe.plugins import get_registry
-from ctpipe.scan import parse_scan_spec
+from ctpipe.recon.volume import VolumeGrid
+from ctpipe.sim.acquisition import parse_noise
+from ctpipe.sim.scan_spec import parse_scan_spec
 from ctpipe.stages import ParamSpec, check_value
-from ctpipe.volume import VolumeGrid
 
 GEOMETRY = {"source_to_object_mm": 100.0, "source_to_detector_mm": 200.0, "detector_cols": 32, "detector_rows": 32,
             "pixel_pitch_u_mm": 0.1, "pixel_pitch_v_mm": 0.1}

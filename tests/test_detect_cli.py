@@ -13,9 +13,9 @@ from skimage.io import imread, imsave
 
 from ctpipe.cli import _key_value, main
 from ctpipe.data import Features
-from ctpipe.io import write_keypoints
+from ctpipe.evaluate.report import keypoints_png
+from ctpipe.io.outputs import write_keypoints
 from ctpipe.plugins import get_registry
-from ctpipe.report import keypoints_png
 
 ROWS, COLS = 112, 144  # not square, so a swapped axis shows
 

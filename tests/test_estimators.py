@@ -4,8 +4,8 @@ import pytest
 from ctpipe.builtin.estimators import (HistogramEstimator, MedianEstimator, OpenCV5ptEstimator, Ransac1ptEstimator,
                                        ransac_iterations)
 from ctpipe.data import PairEstimate
+from ctpipe.evaluate.synthetic import make_correspondences
 from ctpipe.model import FailedEstimation
-from ctpipe.synthetic import make_correspondences
 
 # (estimator, MAE bound in degrees with 30 inliers + 70 re-paired outliers, sigma 1e-4)
 ESTIMATORS = [

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from ctpipe.errors import InputError
-from ctpipe.fdk import FILTERS, fdk, parker_weights, view_weights
 from ctpipe.geometry import Geometry
 from ctpipe.model import rotation_matrix
-from ctpipe.volume import VolumeGrid
+from ctpipe.recon.feldkamp import FILTERS, fdk, parker_weights, view_weights
+from ctpipe.recon.volume import VolumeGrid
 
 # SOD 200, SDD 400, 160^2 pixels of 0.5 mm: half fan angle 5.7 deg, a field of view of radius
 # 19.9 mm at the axis; the phantom reaches 14 mm in x and z, 13 mm along the axis.
@@ -252,7 +252,7 @@ def test_a_dense_turn_with_jitter_as_large_as_its_step_is_a_full_scan():
     """1,440 views 0.25 deg apart with 0.2 deg jitter: sorted, most gaps are tiny and a few near a
     degree. Judged against the median gap, such a gap looked like a missing wedge, and FDK refused
     the angles as a short scan spanning 360 deg (projection matching stopped on it)."""
-    from ctpipe.fdk import covers_full_circle
+    from ctpipe.recon.feldkamp import covers_full_circle
 
     for seed in (18, 26, 35):    # the old rule called these short scans
         angles = np.arange(1440) * 0.25 + np.random.default_rng(seed).normal(0.0, 0.2, 1440)

@@ -18,6 +18,7 @@ import subprocess
 import sys
 import time
 import traceback
+from importlib import import_module
 from pathlib import Path
 
 import numpy as np
@@ -78,7 +79,7 @@ def _textured(shape, seed=0) -> np.ndarray:
 def _scan_folder(d: Path, name: str, *, flats_scale: float = 1.0, darks_scale: float = 0.01) -> None:
     """A 3-view intensity scan folder whose flats/darks are scaled (darks > flats is hostile)."""
     from ctpipe.geometry import Geometry
-    from ctpipe.scan import write_scan
+    from ctpipe.io.scan_folder import write_scan
 
     geometry = Geometry(**GEOMETRY)
     rng = np.random.default_rng(0)
@@ -364,14 +365,14 @@ CLI_CASES = [
      _f(**{"c.yaml": "reps: [\n"})),
     ("syn-config-unknown-key", ["experiment", "synthetic", "--config", "{d}/c.yaml"], "colour",
      _f(**{"c.yaml": lambda d: (d / "c.yaml").write_text(
-         (Path(__file__).parents[1] / "ctpipe" / "data" / "synthetic.yaml").read_text() + "colour: red\n")})),
+         (Path(__file__).parents[1] / "ctpipe" / "evaluate" / "synthetic.yaml").read_text() + "colour: red\n")})),
     ("syn-config-zero-reps", ["experiment", "synthetic", "--config", "{d}/c.yaml"], "reps",
      _f(**{"c.yaml": lambda d: (d / "c.yaml").write_text(
-         (Path(__file__).parents[1] / "ctpipe" / "data" / "synthetic.yaml").read_text().replace("reps: 300",
+         (Path(__file__).parents[1] / "ctpipe" / "evaluate" / "synthetic.yaml").read_text().replace("reps: 300",
                                                                                               "reps: 0"))})),
     ("syn-config-negative-sigma", ["experiment", "synthetic", "--config", "{d}/c.yaml"], "sigma",
      _f(**{"c.yaml": lambda d: (d / "c.yaml").write_text(
-         (Path(__file__).parents[1] / "ctpipe" / "data" / "synthetic.yaml").read_text().replace(
+         (Path(__file__).parents[1] / "ctpipe" / "evaluate" / "synthetic.yaml").read_text().replace(
              "sigma: 1.0e-4", "sigma: -1.0e-4"))})),
     ("syn-reps-zero", ["experiment", "synthetic", "--reps", "0"], "--reps", {}),
     ("syn-jobs-zero", ["experiment", "synthetic", "--jobs", "0"], "--jobs", {}),
@@ -490,17 +491,17 @@ def _stack(views=3, shape=(48, 48)):
 
 
 def _fdk(projections=None, angles=(0.0, 120.0, 240.0), grid=None, **kwargs):
-    from ctpipe.fdk import fdk
-    from ctpipe.volume import VolumeGrid
+    from ctpipe.recon.feldkamp import fdk
+    from ctpipe.recon.volume import VolumeGrid
 
     grid = grid if grid is not None else VolumeGrid(n_x=8, n_y=8, n_z=8, voxel_size_mm=1.0)
     return fdk(_stack() if projections is None else projections, _geometry(), list(angles), grid, **kwargs)
 
 
 def _simulate(**spec_changes):
-    from ctpipe.phantoms import load_phantom
-    from ctpipe.scan import parse_scan_spec
-    from ctpipe.simulate import simulate
+    from ctpipe.sim.phantoms import load_phantom
+    from ctpipe.sim.scan_spec import parse_scan_spec
+    from ctpipe.sim.simulator import simulate
 
     spec = SPEC
     for path, value in spec_changes.items():
@@ -517,21 +518,21 @@ def _load_text(d: Path, content) -> object:
 
 
 def _write_scan(d: Path, folder: str, **kwargs):
-    from ctpipe.scan import write_scan
+    from ctpipe.io.scan_folder import write_scan
 
     args = {"projections": _stack(), "geometry": _geometry(), "nominal_angles_deg": [0.0, 1.0, 2.0], **kwargs}
     return write_scan(d / folder, **args)
 
 
 def _write_files_into_a_folder(d: Path):
-    from ctpipe.io import write_files
+    from ctpipe.io.outputs import write_files
 
     (d / "taken").mkdir()
     return write_files({d / "ok.txt": lambda h: h.write(b"1"), d / "taken": lambda h: h.write(b"2")})
 
 
 def _staged_folder_failing(d: Path):
-    from ctpipe.io import staged_folder
+    from ctpipe.io.outputs import staged_folder
 
     with staged_folder(d / "res") as tmp:
         (tmp / "a.json").write_text("{}")
@@ -575,28 +576,28 @@ API_CASES = [
     ("fdk-angles-wrong-length", lambda d: _fdk(angles=(0.0, 1.0)), InputError),
     ("fdk-nan-angle", lambda d: _fdk(angles=(0.0, np.nan, 240.0)), InputError),
     ("fdk-unknown-filter", lambda d: _fdk(filter="sharp"), InputError),
-    ("fdk-huge-grid", lambda d: _fdk(grid=__import__("ctpipe.volume").volume.VolumeGrid(
+    ("fdk-huge-grid", lambda d: _fdk(grid=import_module("ctpipe.recon.volume").VolumeGrid(
         n_x=100000, n_y=100000, n_z=100000, voxel_size_mm=1.0)), InputError),
     ("simulate-huge-detector", lambda d: _simulate(geometry__detector_cols=60000, geometry__detector_rows=60000),
      InputError),
     ("simulate-huge-views", lambda d: _simulate(angles__n_views=10**8), CtpipeError),
-    ("read-scan-missing", lambda d: __import__("ctpipe.scan").scan.read_scan(d / "nope"), InputError),
-    ("read-scan-file", lambda d: __import__("ctpipe.scan").scan.read_scan(d / "afile"), InputError),
-    ("read-scan-empty-folder", lambda d: __import__("ctpipe.scan").scan.read_scan(d / "emptydir"), InputError),
+    ("read-scan-missing", lambda d: import_module("ctpipe.io.scan_folder").read_scan(d / "nope"), InputError),
+    ("read-scan-file", lambda d: import_module("ctpipe.io.scan_folder").read_scan(d / "afile"), InputError),
+    ("read-scan-empty-folder", lambda d: import_module("ctpipe.io.scan_folder").read_scan(d / "emptydir"), InputError),
     ("load-yaml-alias-bomb", lambda d: _load_text(d, BOMB), ConfigError),
     ("load-yaml-not-utf8", lambda d: _load_text(d, b"a: \xff\n"), ConfigError),
     ("load-yaml-duplicate-key", lambda d: _load_text(d, "a: 1\na: 2\n"), ConfigError),
     ("load-yaml-python-tag", lambda d: _load_text(d, "a: !!python/name:os.system\n"), ConfigError),
     ("load-yaml-malformed", lambda d: _load_text(d, "a: [\n"), ConfigError),
-    ("load-yaml-missing", lambda d: __import__("ctpipe.config").config.load_yaml(d / "nope.yaml"), ConfigError),
-    ("load-yaml-folder", lambda d: __import__("ctpipe.config").config.load_yaml(d / "emptydir"), ConfigError),
+    ("load-yaml-missing", lambda d: import_module("ctpipe.config").load_yaml(d / "nope.yaml"), ConfigError),
+    ("load-yaml-folder", lambda d: import_module("ctpipe.config").load_yaml(d / "emptydir"), ConfigError),
     ("write-scan-into-file", lambda d: _write_scan(d, "afile"), InputError),
     ("write-scan-nan-angles", lambda d: _write_scan(d, "s", nominal_angles_deg=[0.0, np.nan, 2.0]), InputError),
     ("write-scan-int64-stack", lambda d: _write_scan(d, "s", projections=np.ones((3, 48, 48), np.int64)),
      InputError),
-    ("check-output-dir-empty", lambda d: __import__("ctpipe.io").io.check_output_dir(""), InputError),
-    ("check-output-dir-file", lambda d: __import__("ctpipe.io").io.check_output_dir(d / "afile"), InputError),
-    ("check-output-file-under-file", lambda d: __import__("ctpipe.io").io.check_output_file(d / "afile" / "x.npz"),
+    ("check-output-dir-empty", lambda d: import_module("ctpipe.io.outputs").check_output_dir(""), InputError),
+    ("check-output-dir-file", lambda d: import_module("ctpipe.io.outputs").check_output_dir(d / "afile"), InputError),
+    ("check-output-file-under-file", lambda d: import_module("ctpipe.io.outputs").check_output_file(d / "afile" / "x.npz"),
      InputError),
     ("write-files-onto-a-folder", _write_files_into_a_folder, InputError),
     ("staged-folder-body-fails", _staged_folder_failing, EstimationError),
@@ -620,7 +621,7 @@ ACCEPTED_CASES = [
     ("yaml-exponent-with-sign", lambda d: _load_text(d, "x: -2E+2\n"), {"x": -200.0}),
     ("geometry-numpy-scalars", lambda d: _geometry(source_to_object_mm=np.float32(100.0),
                                                    detector_cols=np.int64(48)).detector_cols, 48),
-    ("check-output-dir-missing-parents", lambda d: __import__("ctpipe.io").io.check_output_dir(d / "a" / "b").name,
+    ("check-output-dir-missing-parents", lambda d: import_module("ctpipe.io.outputs").check_output_dir(d / "a" / "b").name,
      "b"),
 ]
 
@@ -670,7 +671,7 @@ def test_sigterm_while_a_scan_is_written_leaves_no_temporary_folder(tmp_path):
 
 def test_estimate_writes_both_files_or_neither(tmp_path, monkeypatch):
     """A failure renaming the second file takes the first one back out."""
-    from ctpipe import io as ctio
+    from ctpipe.io import outputs as ctio
     from ctpipe.cli import main
 
     _common_files(tmp_path)
@@ -695,7 +696,7 @@ def test_estimate_writes_both_files_or_neither(tmp_path, monkeypatch):
 
 def test_overwrite_replaces_a_scan_folder(tmp_path, monkeypatch):
     """--overwrite still does its job on what it is for: a ctpipe scan folder."""
-    from ctpipe.scan import check_scan_folder_free
+    from ctpipe.io.scan_folder import check_scan_folder_free
 
     _scan_folder(tmp_path, "scan")
     monkeypatch.chdir(tmp_path / "scan")
@@ -704,7 +705,7 @@ def test_overwrite_replaces_a_scan_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     check_scan_folder_free("scan", overwrite=True)
     _scan_folder(tmp_path, "again")
-    from ctpipe.scan import write_scan
+    from ctpipe.io.scan_folder import write_scan
 
     write_scan(tmp_path / "scan", _stack(), _geometry(), [0.0, 1.0, 2.0], overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again", "scan"]

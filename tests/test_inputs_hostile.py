@@ -17,9 +17,10 @@ import yaml
 
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
-from ctpipe.io import read_image, read_projections
+from ctpipe.io.arrays import read_image, read_projections
+from ctpipe.io.scan_folder import read_scan, write_scan
 from ctpipe.resources import ResourceError, check_fits, format_bytes
-from ctpipe.scan import parse_scan_spec, read_scan, write_scan
+from ctpipe.sim.scan_spec import parse_scan_spec
 
 GEOMETRY = Geometry(source_to_object_mm=190.0, source_to_detector_mm=390.0, detector_cols=12, detector_rows=10,
                     pixel_pitch_u_mm=0.8, pixel_pitch_v_mm=0.8)
@@ -71,8 +72,8 @@ def test_check_fits_names_the_size_and_what_is_available(one_gigabyte):
       "noise": {"photons_per_pixel": 1000, "flat_frames": 10_000}}, "10000 flat and 4 dark frames"),
 ])
 def test_simulate_refuses_what_cannot_fit_before_allocating(one_gigabyte, scan, fragment):
-    from ctpipe.phantoms import load_phantom
-    from ctpipe.simulate import simulate
+    from ctpipe.sim.phantoms import load_phantom
+    from ctpipe.sim.simulator import simulate
 
     with pytest.raises(ResourceError, match="is available") as info:
         simulate(load_phantom("granular"), parse_scan_spec(scan), rng=np.random.default_rng(0))
@@ -80,10 +81,10 @@ def test_simulate_refuses_what_cannot_fit_before_allocating(one_gigabyte, scan, 
 
 
 def test_validate_refuses_a_grid_that_cannot_fit_before_simulating(one_gigabyte, monkeypatch):
+    from ctpipe.evaluate.validate import parse_validate
     from ctpipe.plugins import get_registry
-    from ctpipe.validate import parse_validate
 
-    monkeypatch.setattr("ctpipe.simulate.project_phantom", lambda *a, **k: pytest.fail("simulated anyway"))
+    monkeypatch.setattr("ctpipe.sim.simulator.project_phantom", lambda *a, **k: pytest.fail("simulated anyway"))
     experiment = {"phantom": "granular", "scan": {"geometry": SMALL, "angles": {"n_views": 36}},
                   "reconstruction": {"grid_size": 1024}}
     with pytest.raises(ResourceError, match=r"on a 1024\^3 grid needs .* is available; lower .*grid_size"):
@@ -91,9 +92,9 @@ def test_validate_refuses_a_grid_that_cannot_fit_before_simulating(one_gigabyte,
 
 
 def test_fdk_and_projectors_refuse_volumes_that_cannot_fit(one_gigabyte):
-    from ctpipe.fdk import fdk
-    from ctpipe.projectors import VoxelProjector
-    from ctpipe.volume import VolumeGrid
+    from ctpipe.recon.feldkamp import fdk
+    from ctpipe.recon.volume import VolumeGrid
+    from ctpipe.sim.projectors import VoxelProjector
 
     grid = VolumeGrid.cube(1024, 0.1)
     with pytest.raises(ResourceError, match="reconstructing a 1024 x 1024 x 1024 volume"):
@@ -174,7 +175,7 @@ def test_cli_estimate_and_detect_on_damaged_files(tmp_path):
 
 
 def test_darks_brighter_than_flats_are_refused_where_the_correction_happens(tmp_path):
-    from ctpipe.acquisition import log_transform
+    from ctpipe.io.flatfield import log_transform
 
     intensities = np.full((5, 10, 12), 500, np.uint16)
     flats, darks = np.full((2, 10, 12), 100, np.uint16), np.full((2, 10, 12), 1000, np.uint16)
@@ -226,8 +227,8 @@ def test_cli_simulate_and_validate_refuse_sizes_beyond_memory(tmp_path):
 
 
 def test_validate_short_scan_message_names_the_experiment_setting():
+    from ctpipe.evaluate.validate import parse_validate
     from ctpipe.plugins import get_registry
-    from ctpipe.validate import parse_validate
 
     experiment = {"phantom": "granular", "scan": {"geometry": SMALL, "angles": {"n_views": 30, "range_deg": 120.0}},
                   "reconstruction": {"grid_size": 16}}

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.jitter import (GaussianJitter, Jitter, JumpJitter, PeriodicJitter, RandomWalkJitter, nominal_angles_deg,
-                           parse_jitter)
+from ctpipe.sim.jitter import (GaussianJitter, Jitter, JumpJitter, PeriodicJitter, RandomWalkJitter,
+                               nominal_angles_deg, parse_jitter)
 
 
 def test_full_scans_exclude_the_endpoint_and_short_scans_include_it():

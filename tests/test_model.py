@@ -4,7 +4,7 @@ from scipy.optimize import minimize_scalar
 
 from ctpipe.model import (CircularMotion, FailedEstimation, angles_from_correspondences, essential_matrix,
                           fit_angle, rotation_matrix, sampson_distance)
-from ctpipe.synthetic import cylinder_points, make_correspondences, project
+from ctpipe.evaluate.synthetic import cylinder_points, make_correspondences, project
 
 ANGLES_DEG = [-179.0, -120.0, -90.0, -45.0, -5.0, -1.0, -0.01, 0.0, 0.01, 1.0, 5.0, 45.0, 90.0, 120.0, 179.0]
 

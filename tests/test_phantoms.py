@@ -3,8 +3,8 @@ import pytest
 
 from ctpipe.config import load_yaml
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.phantoms import list_phantoms, load_phantom, parse_phantom, rotation_from_deg
-from ctpipe.primitives import KINDS
+from ctpipe.sim.phantoms import list_phantoms, load_phantom, parse_phantom, rotation_from_deg
+from ctpipe.sim.primitives import KINDS
 
 
 def parse(text: str, **kwargs):

@@ -99,7 +99,7 @@ def test_stage_parameters_are_validated_on_construction():
 
 def test_opencv_detectors_missing_from_the_cv2_build_are_not_registered(monkeypatch):
     # A plain opencv-python wheel installed over the contrib one has no KAZE/AKAZE/BRISK factories.
-    from ctpipe import _opencv
+    from ctpipe.builtin import _opencv
 
     real = _opencv._factory
     monkeypatch.setattr(_opencv, "_factory", lambda kind: None if kind == "kaze" else real(kind))

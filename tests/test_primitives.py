@@ -7,8 +7,8 @@ import pytest
 
 from ctpipe.errors import InputError
 from ctpipe.model import rotation_matrix
-from ctpipe.primitives import Primitives, unit_interval, voxelise
-from ctpipe.volume import VolumeGrid
+from ctpipe.recon.volume import VolumeGrid
+from ctpipe.sim.primitives import Primitives, unit_interval, voxelise
 
 GRID = VolumeGrid.cube(64, 0.5, centre_mm=(0.5, -0.3, 0.2))
 

@@ -7,15 +7,15 @@ import pytest
 
 from ctpipe.builtin.projection_matching import ProjectionMatchingRefiner
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.fdk import fdk
+from ctpipe.evaluate.scoring import view_errors_deg
 from ctpipe.geometry import Geometry
-from ctpipe.phantoms import load_phantom
-from ctpipe.projectors import VoxelProjector
-from ctpipe.scan import parse_scan_spec
-from ctpipe.scoring import view_errors_deg
-from ctpipe.simulate import simulate
-from ctpipe.solve.projection_matching import (as_line_integrals, band_pass, consistency_costs, projection_matching,
-                                              reconstruction_grid, tangential_derivative)
+from ctpipe.recon.feldkamp import fdk
+from ctpipe.sim.phantoms import load_phantom
+from ctpipe.sim.projectors import VoxelProjector
+from ctpipe.sim.scan_spec import parse_scan_spec
+from ctpipe.sim.simulator import simulate
+from ctpipe.solve.reprojection import (as_line_integrals, band_pass, consistency_costs, projection_matching,
+                                       reconstruction_grid, tangential_derivative)
 from ctpipe.testing import check_refiner
 
 SCAN = {
@@ -118,7 +118,7 @@ def test_the_refiner_passes_the_conformance_check_and_returns_its_start_without_
 
 
 def test_levels_bin_any_detector_to_about_the_same_sizes():
-    from ctpipe.solve.projection_matching import matching_levels
+    from ctpipe.solve.reprojection import matching_levels
 
     assert matching_levels((512, 512), (3, 2)) == [(4, 3), (2, 2)]
     assert matching_levels((2048, 1536), (3, 2)) == [(12, 3), (6, 2)]
@@ -152,8 +152,8 @@ def test_the_pipeline_with_projection_matching_beats_the_nominal_angles_by_far(s
 
 
 def test_removing_the_static_background_takes_the_container_out_of_the_pair_angles(scan):
+    from ctpipe.evaluate.scoring import pair_errors_deg
     from ctpipe.pipeline import Pipeline
-    from ctpipe.scoring import pair_errors_deg
 
     def bias_percent(static_background):
         pipeline = Pipeline.from_config({

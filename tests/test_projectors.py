@@ -8,9 +8,9 @@ import pytest
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.model import rotation_matrix
-from ctpipe.primitives import Primitives, local_maps, voxelise
-from ctpipe.projectors import VoxelProjector, project_analytic
-from ctpipe.volume import VolumeGrid
+from ctpipe.recon.volume import VolumeGrid
+from ctpipe.sim.primitives import Primitives, local_maps, voxelise
+from ctpipe.sim.projectors import VoxelProjector, project_analytic
 
 # Principal point off the centre by a non-integer amount in both directions.
 GEOMETRY = Geometry(source_to_object_mm=200.0, source_to_detector_mm=400.0, detector_cols=96, detector_rows=80,

@@ -1,11 +1,13 @@
 import numpy as np
 import pytest
 
-from ctpipe.acquisition import NoiseModel, acquire, log_transform
 from ctpipe.config import load_yaml
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
-from ctpipe.scan import SCAN_FORMAT, load_scan_spec, parse_scan_spec, read_scan, write_scan
+from ctpipe.io.flatfield import log_transform
+from ctpipe.io.scan_folder import SCAN_FORMAT, read_scan, write_scan
+from ctpipe.sim.acquisition import NoiseModel, acquire
+from ctpipe.sim.scan_spec import load_scan_spec, parse_scan_spec
 
 GEOMETRY = Geometry(source_to_object_mm=190.0, source_to_detector_mm=390.0, detector_cols=12, detector_rows=10,
                     pixel_pitch_u_mm=0.8, pixel_pitch_v_mm=0.7, u0_px=5.25)

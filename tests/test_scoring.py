@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from ctpipe.errors import InputError
-from ctpipe.scoring import (align_offset, error_table, pair_errors_deg, recovery, support_mask, view_errors_deg,
-                            volume_metrics)
-from ctpipe.volume import VolumeGrid
+from ctpipe.evaluate.scoring import (align_offset, error_table, pair_errors_deg, recovery, support_mask,
+                                     view_errors_deg, volume_metrics)
+from ctpipe.recon.volume import VolumeGrid
 
 
 def test_error_table_is_the_papers_table_of_absolute_errors():

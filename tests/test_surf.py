@@ -11,12 +11,12 @@ import pytest
 from ctpipe.builtin.surf import SurfDetector, integral_image, surf
 from ctpipe.config import build_stage, parse_stage
 from ctpipe.errors import InputError
+from ctpipe.evaluate.scoring import keypoint_agreement
 from ctpipe.geometry import Geometry
 from ctpipe.images import to_uint8
 from ctpipe.model import rotation_matrix
 from ctpipe.pipeline import Pipeline
 from ctpipe.plugins import get_registry
-from ctpipe.scoring import keypoint_agreement
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = Path(os.environ.get("CTPIPE_SURF_REFERENCE", ROOT.parent / "shared" / "surf-reference"))

@@ -15,7 +15,8 @@ import yaml
 from ctpipe.errors import ConfigError
 from ctpipe.geometry import Geometry
 from ctpipe.plugins import get_registry
-from ctpipe.validate import bin_detector, load_validate_settings, parse_validate, run_validate, write_validate_outputs
+from ctpipe.evaluate.validate import (bin_detector, load_validate_settings, parse_validate, run_validate,
+                                      write_validate_outputs)
 
 # 120 views >= pi/2 x 64: enough for the 64^3 grid that the jitter, not the sampling, dominates.
 SCAN = {
@@ -245,7 +246,7 @@ def _fake_pipeline(monkeypatch, make_angles):
                           pair_status=("ok",) * n, angles_deg=make_angles(nominal, truth - truth[0]),
                           n_keypoints=np.full(len(nominal), 9), timings_s={}, refiner_info={"fake": True})
 
-    import ctpipe.simulate as simulate_module
+    import ctpipe.sim.simulator as simulate_module
 
     real_simulate = simulate_module.simulate
 
@@ -333,7 +334,7 @@ def test_report_has_rms_pair_chained_and_the_refiner(report, tmp_path):
 
 
 def test_estimate_problems_are_empty_for_a_good_estimate():
-    from ctpipe.validate import estimate_problems
+    from ctpipe.evaluate.validate import estimate_problems
 
     truth = np.arange(360) * 1.0 + np.random.default_rng(0).normal(0, 0.2, 360)
     assert estimate_problems(truth + np.random.default_rng(1).normal(0, 0.05, 360), truth, 360.0) == []
@@ -359,13 +360,13 @@ def test_experiments_fdk_or_the_simulation_would_refuse_are_refused_at_parse_tim
 
 
 def test_cli_refuses_a_150_deg_short_scan_before_simulating(tmp_path, monkeypatch, capsys):
-    import ctpipe.simulate
+    import ctpipe.sim.simulator
     from ctpipe.cli import main
 
     def no_simulation(*args, **kwargs):
         raise AssertionError("the experiment was simulated before it was checked")
 
-    monkeypatch.setattr(ctpipe.simulate, "simulate", no_simulation)
+    monkeypatch.setattr(ctpipe.sim.simulator, "simulate", no_simulation)
     experiment = {**TINY, "scan": {**TINY["scan"], "angles": {"n_views": 24, "range_deg": 150.0}}}
     (tmp_path / "e.yaml").write_text(yaml.safe_dump(experiment))
     code = main(["validate", str(tmp_path / "e.yaml"), "--out", str(tmp_path / "res")])

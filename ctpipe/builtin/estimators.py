@@ -13,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 
-from ctpipe import _opencv
+from ctpipe.builtin import _opencv
 from ctpipe.data import PairEstimate
 from ctpipe.hookspecs import hookimpl
 from ctpipe.model import (FailedEstimation, angles_from_correspondences, correspondence_terms, fit_angle,

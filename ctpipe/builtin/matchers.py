@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ctpipe import _opencv
+from ctpipe.builtin import _opencv
 from ctpipe.data import Features, Matches
 from ctpipe.errors import InputError
 from ctpipe.hookspecs import hookimpl

@@ -11,7 +11,7 @@ from typing import Literal
 
 import numpy as np
 
-from ctpipe import _opencv
+from ctpipe.builtin import _opencv
 from ctpipe.data import Features
 from ctpipe.errors import ConfigError
 from ctpipe.hookspecs import hookimpl

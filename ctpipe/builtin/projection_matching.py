@@ -9,9 +9,9 @@ from typing import Literal
 import numpy as np
 
 from ctpipe.data import ScanObservations, ScanSolution
-from ctpipe.fdk import FILTERS
 from ctpipe.hookspecs import hookimpl
-from ctpipe.solve.projection_matching import consistency_costs, matching_levels, projection_matching
+from ctpipe.recon.feldkamp import FILTERS
+from ctpipe.solve.reprojection import consistency_costs, matching_levels, projection_matching
 from ctpipe.stages import Refiner, param
 
 __all__ = ["ProjectionMatchingRefiner"]
@@ -50,9 +50,9 @@ class ProjectionMatchingRefiner(Refiner):
     The start (``least-squares``: the robust view graph with loop closure; or
     ``bundle-adjustment``; or ``nominal``) has the capture range for slips of degrees; matching
     each view against the reprojection of a reconstruction from all views then removes the drift
-    a chain of pairs accumulates (:mod:`ctpipe.solve.projection_matching`). With ``select``,
+    a chain of pairs accumulates (:mod:`ctpipe.solve.reprojection`). With ``select``,
     matching starts from whichever of the start and the nominal angles explains the projections
-    better (a reconstruct-and-reproject residual, :func:`~ctpipe.solve.projection_matching.consistency_costs`),
+    better (a reconstruct-and-reproject residual, :func:`~ctpipe.solve.reprojection.consistency_costs`),
     and of nominal, start and matched angles the most consistent is returned, so a scan the
     matching cannot handle keeps the better of its start and its nominal angles.
     Needs the projections (``ScanObservations.projections``); without them it returns the start.

@@ -26,10 +26,10 @@ import numpy as np
 
 from ctpipe.config import StageSpec, build_stage, check_keys, load_yaml, parse_stage
 from ctpipe.errors import ConfigError
+from ctpipe.evaluate.synthetic import Cylinder, make_correspondences
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
 from ctpipe.stages import ParamSpec, check_value
-from ctpipe.synthetic import Cylinder, make_correspondences
 
 __all__ = ["SyntheticSettings", "load_synthetic_settings", "run_synthetic", "SyntheticReport", "STUDIES"]
 
@@ -44,7 +44,7 @@ class EstimatorEntry:
 
 @dataclass(frozen=True)
 class SyntheticSettings:
-    """A validated synthetic-experiment description (see ``ctpipe/data/synthetic.yaml``)."""
+    """A validated synthetic-experiment description (see ``ctpipe/evaluate/synthetic.yaml``)."""
 
     cylinder: Cylinder
     reps: int
@@ -138,8 +138,8 @@ def load_synthetic_settings(path: str | Path | None = None, *, registry: StageRe
     """The built-in experiment (``path=None``) or one from a YAML file."""
     registry = registry or get_registry()
     if path is None:
-        text = resources.files("ctpipe").joinpath("data/synthetic.yaml").read_text(encoding="utf-8")
-        return parse_synthetic(load_yaml("ctpipe/data/synthetic.yaml", text=text), registry)
+        text = resources.files("ctpipe.evaluate").joinpath("synthetic.yaml").read_text(encoding="utf-8")
+        return parse_synthetic(load_yaml("ctpipe/evaluate/synthetic.yaml", text=text), registry)
     return parse_synthetic(load_yaml(path), registry)
 
 

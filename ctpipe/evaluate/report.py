@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ctpipe.experiments import SyntheticReport
-from ctpipe.io import atomic_write, write_csv, write_json
+from ctpipe.evaluate.experiments import SyntheticReport
+from ctpipe.io.outputs import atomic_write, write_csv, write_json
 
 __all__ = ["synthetic_table", "write_synthetic_outputs", "slices_png", "angle_errors_png", "keypoints_png"]
 

@@ -27,16 +27,16 @@ simulation would refuse late are refused before the first projection (:func:`che
 An experiment file::
 
     phantom: granular                 # a built-in name or a phantom YAML path
-    scan: {...}                       # a scan spec (see ctpipe.scan), or a path to one
+    scan: {...}                       # a scan spec (see ctpipe.io.scan_folder), or a path to one
     pipeline: null                    # null: the default pipeline; a path or a mapping
     reconstruction:
       grid_size: 160                  # voxels per edge of the cubic grid around the object
       voxel_size_mm: null             # null: the object's extent / grid_size
-      filter: hann                    # one of ctpipe.fdk.FILTERS
+      filter: hann                    # one of ctpipe.recon.feldkamp.FILTERS
       detector_binning: 2             # average b x b pixels before FDK (grid resolution)
     seed: 0
 
-The built-in default is ``ctpipe/data/validate.yaml``.
+The built-in default is ``ctpipe/evaluate/validate.yaml``.
 """
 
 from __future__ import annotations
@@ -55,15 +55,16 @@ import numpy as np
 
 from ctpipe.config import PipelineConfig, check_keys, load_yaml, parse_pipeline
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.fdk import bin_detector, binned_geometry
 from ctpipe.geometry import Geometry
+from ctpipe.recon.feldkamp import bin_detector, binned_geometry
+from ctpipe.recon.volume import VolumeGrid
 from ctpipe.registry import StageRegistry
 from ctpipe.resources import FLOAT32, check_fits, memory_guard
 from ctpipe.stages import ParamSpec, check_value
-from ctpipe.volume import VolumeGrid
 
 __all__ = ["ValidateSettings", "load_validate_settings", "parse_validate", "check_experiment", "run_validate",
-           "ValidateReport", "bin_detector", "binned_geometry", "pair_chained_deg", "estimate_problems"]
+           "ValidateReport", "write_validate_outputs", "bin_detector", "binned_geometry", "pair_chained_deg",
+           "estimate_problems"]
 
 #: Per-view angle sets of the report, in the order they are printed.
 VIEW_LABELS = ("nominal", "pair-chained", "estimated")
@@ -104,9 +105,9 @@ def _resolve(base_dir: Path | None, value: str) -> Path:
 def parse_validate(mapping: Any, registry: StageRegistry, *, base_dir: Path | None = None, path: str = "experiment",
                    source: str = "") -> ValidateSettings:
     """Validate an experiment mapping; relative file names resolve against ``base_dir``."""
-    from ctpipe.fdk import FILTERS
-    from ctpipe.phantoms import load_phantom
-    from ctpipe.scan import load_scan_spec, parse_scan_spec
+    from ctpipe.recon.feldkamp import FILTERS
+    from ctpipe.sim.phantoms import load_phantom
+    from ctpipe.sim.scan_spec import load_scan_spec, parse_scan_spec
 
     check_keys(mapping, path, allowed=("phantom", "scan", "pipeline", "reconstruction", "seed"),
                required=("phantom", "scan"))
@@ -173,8 +174,8 @@ def check_experiment(settings: ValidateSettings, *, path: str = "experiment") ->
     ctpipe.resources.ResourceError
         The run needs more memory than is available (the message names the sizes and what to lower).
     """
-    from ctpipe.fdk import covers_full_circle, short_scan_minimum_deg
-    from ctpipe.scoring import support_mask
+    from ctpipe.evaluate.scoring import support_mask
+    from ctpipe.recon.feldkamp import covers_full_circle, short_scan_minimum_deg
     from ctpipe.solve.graph import view_pairs
 
     scan = settings.scan
@@ -217,7 +218,7 @@ _PEAK_VOLUMES = 7
 
 def _run_size(settings: ValidateSettings, path: str) -> tuple[str, int, str, str]:
     """What a run allocates at its peak, in words and bytes: two simulated scans and the volumes."""
-    from ctpipe.simulate import simulation_bytes
+    from ctpipe.sim.simulator import simulation_bytes
 
     scan, n = settings.scan, settings.reconstruction.grid_size
     volumes = _PEAK_VOLUMES * n**3 * FLOAT32
@@ -231,7 +232,7 @@ def _run_size(settings: ValidateSettings, path: str) -> tuple[str, int, str, str
 def load_validate_settings(path: str | Path | None, registry: StageRegistry) -> ValidateSettings:
     """Settings from an experiment YAML, or the built-in default when ``path`` is None."""
     if path is None:
-        text = resources.files("ctpipe").joinpath("data/validate.yaml").read_text(encoding="utf-8")
+        text = resources.files("ctpipe.evaluate").joinpath("validate.yaml").read_text(encoding="utf-8")
         return parse_validate(load_yaml("validate.yaml", text=text), registry, source="built-in default")
     path = Path(path)
     return parse_validate(load_yaml(path), registry, base_dir=path.parent, path=str(path), source=str(path))
@@ -380,12 +381,12 @@ class ValidateReport:
                 f"{100.0 * self.recovery['reference']:.0f} % of what the true angles gain{wrong}")
 
     def to_dict(self) -> dict[str, Any]:
-        import cv2
         import numba
         import scipy
         import skimage
 
-        import ctpipe
+        from ctpipe._version import __version__
+        from ctpipe.builtin import _opencv
 
         result = self.pipeline_result
         return {
@@ -402,8 +403,8 @@ class ValidateReport:
             "timings_s": self.timings_s,
             "verdict": self.verdict(),
             "notes": self.notes,
-            "versions": {"ctpipe": ctpipe.__version__, "python": platform.python_version(), "numpy": np.__version__,
-                         "scipy": scipy.__version__, "numba": numba.__version__, "opencv": cv2.__version__,
+            "versions": {"ctpipe": __version__, "python": platform.python_version(), "numpy": np.__version__,
+                         "scipy": scipy.__version__, "numba": numba.__version__, "opencv": _opencv.version(),
                          "scikit-image": skimage.__version__, "machine": platform.machine()},
         }
 
@@ -426,11 +427,11 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
 
 
 def _run_validate(settings: ValidateSettings, registry: StageRegistry, progress) -> ValidateReport:
-    from ctpipe.fdk import covers_full_circle, fdk, short_scan_minimum_deg
     from ctpipe.pipeline import Pipeline
-    from ctpipe.scoring import (align_offset, error_table, pair_errors_deg, recovery, support_mask, view_errors_deg,
-                                volume_metrics)
-    from ctpipe.simulate import simulate, voxelise_phantom
+    from ctpipe.recon.feldkamp import covers_full_circle, fdk, short_scan_minimum_deg
+    from ctpipe.evaluate.scoring import (align_offset, error_table, pair_errors_deg, recovery, support_mask,
+                                         view_errors_deg, volume_metrics)
+    from ctpipe.sim.simulator import simulate, voxelise_phantom
 
     def bar(step: str, total: int):
         return progress(step, total) if progress is not None else nullcontext(None)
@@ -541,8 +542,8 @@ def write_validate_outputs(report: ValidateReport, out: str | Path) -> list[Path
 
     Everything is rendered before the first file is written; each file is renamed into place.
     """
-    from ctpipe.io import atomic_write, write_csv, write_json
-    from ctpipe.report import angle_errors_png, slices_png
+    from ctpipe.evaluate.report import angle_errors_png, slices_png
+    from ctpipe.io.outputs import atomic_write, write_csv, write_json
 
     out = Path(out)
     grid = report.grid

@@ -1,8 +1,6 @@
-"""Scan folders (simulated or real projections with their geometry and angles) and scan specs.
+"""Scan folders: projections with their geometry and angles, simulated or from a real scanner.
 
-Scan folder
------------
-A folder with a ``scan.yaml`` and one TIFF per frame::
+A scan folder is a folder with a ``scan.yaml`` and one TIFF per frame::
 
     scan.yaml
     projections/proj_00000.tif ...    # one 2-D image (rows, cols) per view, float32 or uint16
@@ -35,23 +33,9 @@ A folder with a ``scan.yaml`` and one TIFF per frame::
     written_utc: "2025-01-01T00:00:00+00:00"
 
 File names are relative to the folder. :func:`read_scan` returns the projections as float32
-line integrals, applying :func:`ctpipe.acquisition.log_transform` when they are intensities.
-A real scanner's export only needs a ``scan.yaml`` written next to its TIFFs.
-
-Scan spec
----------
-What ``ctpipe simulate PHANTOM --scan SCAN.yaml`` acquires::
-
-    geometry: {...}                                  # as above
-    angles: {n_views: 360, range_deg: 360.0, start_deg: 0.0}   # see ctpipe.jitter.nominal_angles_deg
-    jitter: [{gaussian: {sigma_deg: 0.2}}, {jumps: {count: 3, size_deg: 1.0}}]   # ctpipe.jitter
-    noise: {photons_per_pixel: 100000, flat_frames: 8, dark_frames: 4, dark_counts: 100}
-                                                     # ctpipe.acquisition; null: exact line integrals
-    projector: {kind: analytic, supersample: 2, blur_px: 0.5}   # analytic or voxel
-    seed: 0
-
-``geometry`` and ``angles`` are required; ``jitter`` defaults to none, ``noise`` to null,
-``projector`` to ``{kind: analytic, supersample: 1, blur_px: 0}``, ``seed`` to 0.
+line integrals, applying :func:`ctpipe.io.flatfield.log_transform` when they are intensities.
+A real scanner's export only needs a ``scan.yaml`` written next to its TIFFs. What a simulation
+acquires is a scan spec, :mod:`ctpipe.sim.scan_spec`.
 """
 
 from __future__ import annotations
@@ -61,23 +45,21 @@ import os
 import shutil
 import tempfile
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import yaml
 
-from ctpipe.acquisition import NoiseModel, log_transform, parse_noise
 from ctpipe.config import check_keys, load_yaml, parse_geometry
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
-from ctpipe.io import to_jsonable
-from ctpipe.jitter import Jitter, nominal_angles_deg, parse_jitter
+from ctpipe.io.flatfield import log_transform
+from ctpipe.io.outputs import to_jsonable
 from ctpipe.stages import ParamSpec, check_value
 
-__all__ = ["AngleSpec", "ProjectorSpec", "ScanSpec", "parse_scan_spec", "load_scan_spec", "Scan", "read_scan",
-           "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS"]
+__all__ = ["Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS"]
 
 #: The ``format`` value of a scan.yaml this version reads and writes.
 SCAN_FORMAT = "ctpipe-scan/1"
@@ -86,100 +68,6 @@ VALUE_KINDS = ("line_integrals", "intensities")
 
 _PATTERNS = {"projections": "projections/proj_{index:05d}.tif", "flats": "flats/flat_{index:05d}.tif",
              "darks": "darks/dark_{index:05d}.tif"}
-
-
-# ---------------------------------------------------------------------------------------------
-# Scan spec
-
-
-@dataclass(frozen=True)
-class AngleSpec:
-    """Nominal angles: ``n_views`` over ``range_deg`` from ``start_deg``."""
-
-    n_views: int
-    range_deg: float = 360.0
-    start_deg: float = 0.0
-
-    def nominal_angles_deg(self) -> np.ndarray:
-        """Shape (n_views,), float64; see :func:`ctpipe.jitter.nominal_angles_deg`."""
-        return nominal_angles_deg(self.n_views, self.range_deg, self.start_deg)
-
-    def to_dict(self) -> dict:
-        return {"n_views": self.n_views, "range_deg": self.range_deg, "start_deg": self.start_deg}
-
-
-@dataclass(frozen=True)
-class ProjectorSpec:
-    """How line integrals are computed: exact (``analytic``) or through a voxelised phantom."""
-
-    kind: Literal["analytic", "voxel"] = "analytic"
-    supersample: int = 1
-    blur_px: float = 0.0
-
-    def to_dict(self) -> dict:
-        return {"kind": self.kind, "supersample": self.supersample, "blur_px": self.blur_px}
-
-
-@dataclass(frozen=True)
-class ScanSpec:
-    """A validated scan spec (see the module docstring)."""
-
-    geometry: Geometry
-    angles: AngleSpec
-    jitter: Jitter = field(default_factory=Jitter)
-    noise: NoiseModel | None = None
-    projector: ProjectorSpec = field(default_factory=ProjectorSpec)
-    seed: int = 0
-
-    @property
-    def n_views(self) -> int:
-        return self.angles.n_views
-
-    def nominal_angles_deg(self) -> np.ndarray:
-        """Commanded angles, shape (n_views,), float64, degrees."""
-        return self.angles.nominal_angles_deg()
-
-    def to_dict(self) -> dict:
-        """The mapping that parses back to this spec."""
-        return {"geometry": self.geometry.to_dict(), "angles": self.angles.to_dict(), "jitter": self.jitter.to_dict(),
-                "noise": None if self.noise is None else self.noise.to_dict(), "projector": self.projector.to_dict(),
-                "seed": self.seed}
-
-
-_ANGLE_FIELDS = {"n_views": ParamSpec("n_views", int, None, "", ge=1, le=100_000),
-                 "range_deg": ParamSpec("range_deg", float, 360.0, "", gt=0, le=36_000),
-                 "start_deg": ParamSpec("start_deg", float, 0.0, "", ge=-36_000, le=36_000)}
-_PROJECTOR_FIELDS = {"kind": ParamSpec("kind", Literal["analytic", "voxel"], "analytic", ""),
-                     "supersample": ParamSpec("supersample", int, 1, "", ge=1, le=16),
-                     "blur_px": ParamSpec("blur_px", float, 0.0, "", ge=0, le=64)}
-_SEED = ParamSpec("seed", int, 0, "", ge=0)
-
-
-def _fields(value: Any, path: str, table: dict[str, ParamSpec], required: tuple[str, ...] = ()) -> dict:
-    check_keys(value, path, allowed=tuple(table), required=required)
-    return {key: check_value(table[key], raw, f"{path}.{key}") for key, raw in value.items()}
-
-
-def parse_scan_spec(mapping: Any, path: str = "scan") -> ScanSpec:
-    """Validate a scan spec mapping; errors name the YAML path, the value and what is allowed."""
-    check_keys(mapping, path, allowed=("geometry", "angles", "jitter", "noise", "projector", "seed"),
-               required=("geometry", "angles"))
-    geometry = parse_geometry(mapping["geometry"], f"{path}.geometry")
-    angles = AngleSpec(**_fields(mapping["angles"], f"{path}.angles", _ANGLE_FIELDS, required=("n_views",)))
-    jitter = parse_jitter(mapping.get("jitter"), f"{path}.jitter")
-    noise = parse_noise(mapping.get("noise"), f"{path}.noise")
-    projector = ProjectorSpec(**_fields(mapping.get("projector") or {}, f"{path}.projector", _PROJECTOR_FIELDS))
-    seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
-    return ScanSpec(geometry, angles, jitter, noise, projector, seed)
-
-
-def load_scan_spec(path: str | Path) -> ScanSpec:
-    """Read and validate a scan spec YAML file."""
-    return parse_scan_spec(load_yaml(path), path=str(path))
-
-
-# ---------------------------------------------------------------------------------------------
-# Scan folder
 
 
 @dataclass(frozen=True, eq=False)
@@ -256,7 +144,7 @@ def _file_names(value: Any, path: str, folder: Path, allowed: tuple[str, ...] = 
 
 
 def _read_frames(folder: Path, names: list[str], shape: tuple[int, int], what: str) -> np.ndarray:
-    from ctpipe.io import read_array
+    from ctpipe.io.arrays import read_array
     from ctpipe.resources import check_fits
 
     frames = None
@@ -391,7 +279,7 @@ def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angl
     """
     import tifffile
 
-    import ctpipe
+    from ctpipe._version import __version__
 
     folder = Path(folder)
     if values not in VALUE_KINDS:
@@ -423,7 +311,7 @@ def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angl
         entry = {"files": _PATTERNS[name], "count": len(stack)}
         document[name] = {"values": values, **entry} if name == "projections" else entry
     document["provenance"] = to_jsonable(dict(provenance or {}))
-    document["written_by"] = f"ctpipe {ctpipe.__version__}"
+    document["written_by"] = f"ctpipe {__version__}"
     document["written_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -455,7 +343,7 @@ def check_scan_folder_free(folder: str | Path, *, overwrite: bool = False) -> No
     ever replaces a scan folder (one with a ``scan.yaml`` of this format), and never the
     current directory or one of its ancestors, which ``--out .`` would otherwise delete.
     """
-    from ctpipe.io import check_output_dir
+    from ctpipe.io.outputs import check_output_dir
 
     folder = check_output_dir(folder, "--out")
     if not folder.is_dir() or not any(folder.iterdir()):

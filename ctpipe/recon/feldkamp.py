@@ -2,7 +2,7 @@
 
 Geometry
 --------
-The frames of :mod:`ctpipe.geometry` and :mod:`ctpipe.volume`: an object point ``X`` is, in the
+The frames of :mod:`ctpipe.geometry` and :mod:`ctpipe.recon.volume`: an object point ``X`` is, in the
 view at turntable angle ``theta``, at ``X_cam = R(theta) X + (0, 0, SOD)`` with ``R`` of
 :func:`ctpipe.model.rotation_matrix`. The camera point ``(X, Y, Z)`` hits the detector pixel::
 
@@ -39,11 +39,11 @@ from scipy import fft as sp_fft
 
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
+from ctpipe.recon.volume import VolumeGrid
 from ctpipe.resources import check_fits, memory_guard
-from ctpipe.volume import VolumeGrid
 
 __all__ = ["FILTERS", "fdk", "view_weights", "parker_weights", "ramp_filter", "covers_full_circle",
-           "short_scan_minimum_deg"]
+           "short_scan_minimum_deg", "bin_detector", "binned_geometry"]
 
 #: Apodisation windows of the ramp filter, from sharpest to smoothest.
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
@@ -218,7 +218,7 @@ def _validate(projections, geometry, angles_deg, grid, filter, short_scan, progr
     if not isinstance(geometry, Geometry):
         raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
     if not isinstance(grid, VolumeGrid):
-        raise InputError(f"grid: must be a ctpipe.volume.VolumeGrid, got {type(grid).__name__}")
+        raise InputError(f"grid: must be a ctpipe.recon.volume.VolumeGrid, got {type(grid).__name__}")
     if not isinstance(filter, str) or filter not in FILTERS:
         raise InputError(f"filter: {filter!r} is not supported. Try one of {FILTERS}")
     if short_scan not in (None, True, False):
@@ -394,7 +394,7 @@ def fdk(
         :mod:`ctpipe.model`. Need not be sorted nor uniform: each view is weighted by half the gap
         to each neighbour in angle.
     grid : VolumeGrid
-        Where to reconstruct (object frame of :mod:`ctpipe.volume`).
+        Where to reconstruct (object frame of :mod:`ctpipe.recon.volume`).
     filter : str
         Window of the ramp filter, one of :data:`FILTERS`; ``"hann"`` trades resolution for noise.
     short_scan : bool or None

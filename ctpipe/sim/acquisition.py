@@ -8,15 +8,8 @@ sees, in one frame::
     D =                       Poisson(dark_counts)      (a dark field: no beam)
 
 with ``I0 = photons_per_pixel``, the unattenuated photons a pixel counts in one frame. The
-reconstruction starts from the flat/dark-corrected line integrals::
-
-    p_hat = -log((I - mean(D)) / (mean(F) - mean(D)))
-
-Photon starvation makes ``I - D`` zero or negative, whose log is undefined: the transmission
-is clipped from below at ``min_transmission`` (default 1e-6, i.e. ``p_hat <= 13.8``). Pixels
-whose flat is not above their dark (dead pixels) carry no information and get ``p_hat = 0``;
-when more than half the pixels are so, the flats and darks are refused (swapped, or mislabelled).
-Noise can make the transmission exceed 1: those ``p_hat`` stay negative, unbiased.
+reconstruction starts from the flat/dark-corrected line integrals of
+:func:`ctpipe.io.flatfield.log_transform`, the correction every real scan needs too.
 
 Every array this module returns is float32 (Poisson counts below 2^24 are exact in it); the
 arithmetic is float64, one view at a time, so that a 360-view 512^2 scan needs no float64
@@ -34,11 +27,7 @@ from ctpipe.config import check_keys
 from ctpipe.errors import InputError
 from ctpipe.stages import ParamSpec, check_value
 
-__all__ = ["NoiseModel", "parse_noise", "beer_lambert", "acquire", "log_transform", "MAX_DEAD_FRACTION"]
-
-#: The largest fraction of pixels whose flat is not above their dark that :func:`log_transform`
-#: takes as dead pixels; beyond it the flats and darks cannot correct the scan.
-MAX_DEAD_FRACTION = 0.5
+__all__ = ["NoiseModel", "parse_noise", "beer_lambert", "acquire"]
 
 
 @dataclass(frozen=True)
@@ -146,68 +135,3 @@ def acquire(line_integrals, noise: NoiseModel, rng: np.random.Generator
     if noise.dark_frames:
         darks = np.stack([rng.poisson(dark, size=shape).astype(np.float32) for _ in range(noise.dark_frames)])
     return intensities, flats, darks
-
-
-def log_transform(intensities, flats=None, darks=None, *, photons_per_pixel: float | None = None,
-                  min_transmission: float = 1e-6) -> np.ndarray:
-    """Flat/dark-corrected line integrals ``-log((I - D) / (F - D))`` (see the module docstring).
-
-    Parameters
-    ----------
-    intensities : ndarray of shape (V, rows, cols)
-        Raw counts (any real dtype, e.g. uint16 or float32).
-    flats : ndarray of shape (F, rows, cols) or (rows, cols), or None
-        Flat fields, averaged over frames. None needs ``photons_per_pixel``, a uniform flat.
-    darks : ndarray of shape (D, rows, cols) or (rows, cols), or None
-        Dark fields, averaged over frames; None means no offset.
-    photons_per_pixel : float or None
-        The flat level when ``flats`` is None.
-    min_transmission : float
-        Lower clip of the transmission, > 0: bounds ``p`` at ``-log(min_transmission)``.
-
-    Returns
-    -------
-    ndarray of shape (V, rows, cols), float32
-    """
-    counts = np.asarray(intensities)
-    if counts.ndim != 3 or not (np.issubdtype(counts.dtype, np.integer) or np.issubdtype(counts.dtype, np.floating)):
-        raise InputError(f"intensities: must be a real array of shape (views, rows, cols), "
-                         f"got {counts.dtype} of shape {counts.shape}")
-    if not min_transmission > 0:
-        raise InputError(f"min_transmission: must be > 0, got {min_transmission!r}")
-    shape = counts.shape[1:]
-
-    def mean_frame(frames, name: str) -> np.ndarray | None:
-        if frames is None:
-            return None
-        frames = np.asarray(frames, dtype=np.float64)
-        if frames.ndim == 3:
-            frames = frames.mean(axis=0)
-        if frames.shape != shape:
-            raise InputError(f"{name}: each frame must have the projections' shape {shape}, got {frames.shape}")
-        return frames
-
-    flat = mean_frame(flats, "flats")
-    dark = mean_frame(darks, "darks")
-    if flat is None:
-        if photons_per_pixel is None:
-            raise InputError("log_transform: give flats or photons_per_pixel (the unattenuated counts)")
-        flat = np.full(shape, float(photons_per_pixel))
-    if dark is None:
-        dark = np.zeros(shape)
-    beam = flat - dark
-    alive = beam > 0
-    # A few dead pixels are normal; most of the detector dark is not: every line integral would
-    # be 0, and the failure would only surface far downstream ("0 keypoints per view").
-    dead = 1.0 - float(np.count_nonzero(alive)) / alive.size
-    if dead > MAX_DEAD_FRACTION:
-        raise InputError(f"flats must be brighter than darks: {100.0 * dead:.0f} % of pixels have dark >= flat "
-                         f"(mean flat {float(flat.mean()):.4g}, mean dark {float(dark.mean()):.4g}; at most "
-                         f"{100.0 * MAX_DEAD_FRACTION:.0f} % may be dead pixels), so the flat/dark correction is "
-                         "impossible; are the flats and darks swapped?")
-    beam = np.where(alive, beam, 1.0)
-    out = np.empty(counts.shape, np.float32)
-    for v in range(len(counts)):
-        transmission = np.maximum((counts[v].astype(np.float64) - dark) / beam, min_transmission)
-        out[v] = np.where(alive, -np.log(transmission), 0.0)
-    return out

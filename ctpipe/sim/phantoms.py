@@ -44,7 +44,7 @@ Schema
 
 Conventions
 -----------
-Positions are in the object frame of :mod:`ctpipe.volume` (``x`` lateral, ``y`` the rotation
+Positions are in the object frame of :mod:`ctpipe.recon.volume` (``x`` lateral, ``y`` the rotation
 axis pointing down the detector rows, ``z`` towards the detector at angle 0), lengths in mm,
 densities are linear attenuation coefficients in 1/mm and *add* where objects overlap (a void
 is an object of negative density). ``centre_mm`` and ``rotation_deg`` default to zeros.
@@ -52,7 +52,7 @@ is an object of negative density). ``centre_mm`` and ``rotation_deg`` default to
 ``rotation_deg: [rx, ry, rz]`` is ``scipy.spatial.transform.Rotation.from_euler("xyz",
 [rx, ry, rz], degrees=True)``: extrinsic rotations about the object-frame ``x``, then ``y``,
 then ``z`` axes. Its matrix maps the shape's local axes to the object frame, as in
-:mod:`ctpipe.primitives`. A cylinder's own axis is its local ``y``, so an unrotated cylinder
+:mod:`ctpipe.sim.primitives`. A cylinder's own axis is its local ``y``, so an unrotated cylinder
 stands along the rotation axis; ``height_mm`` is its full length.
 
 Generators (``beads``, ``grains``) draw from ``numpy.random.default_rng(seed)`` only, so the
@@ -78,9 +78,9 @@ import numpy as np
 
 from ctpipe.config import check_keys, load_yaml
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.primitives import KINDS, Primitives
+from ctpipe.recon.volume import VolumeGrid
+from ctpipe.sim.primitives import KINDS, Primitives
 from ctpipe.stages import ParamSpec, check_value
-from ctpipe.volume import VolumeGrid
 
 __all__ = ["Phantom", "load_phantom", "parse_phantom", "list_phantoms", "OBJECT_KINDS", "rotation_from_deg"]
 
@@ -538,7 +538,7 @@ def _builtin_dir():
     except ModuleNotFoundError:
         # An editable install made before phantoms/ was mapped to ctpipe.phantoms_data: the
         # source checkout still has the folder next to the package.
-        return Path(__file__).resolve().parent.parent / "phantoms"
+        return Path(__file__).resolve().parents[2] / "phantoms"
 
 
 def list_phantoms() -> list[str]:

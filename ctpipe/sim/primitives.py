@@ -15,7 +15,7 @@ Unit shapes (local coordinates ``u = (u_x, u_y, u_z)``):
 
 Densities are linear attenuation coefficients in 1/mm and add where primitives overlap (a void
 in a container is a primitive of negative density). Positions are in the object frame of
-:mod:`ctpipe.volume`.
+:mod:`ctpipe.recon.volume`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit, prange
 
 from ctpipe.errors import InputError
-from ctpipe.volume import VolumeGrid
+from ctpipe.recon.volume import VolumeGrid
 
 __all__ = ["Primitives", "KINDS", "voxelise", "unit_interval", "local_maps"]
 
@@ -256,9 +256,9 @@ def voxelise(primitives: Primitives, grid: VolumeGrid, *, supersample: int = 2) 
         Density in 1/mm, indexed ``volume[iy, iz, ix]``.
     """
     if not isinstance(primitives, Primitives):
-        raise InputError(f"primitives: must be a ctpipe.primitives.Primitives, got {type(primitives).__name__}")
+        raise InputError(f"primitives: must be a ctpipe.sim.primitives.Primitives, got {type(primitives).__name__}")
     if not isinstance(grid, VolumeGrid):
-        raise InputError(f"grid: must be a ctpipe.volume.VolumeGrid, got {type(grid).__name__}")
+        raise InputError(f"grid: must be a ctpipe.recon.volume.VolumeGrid, got {type(grid).__name__}")
     if not (isinstance(supersample, (int, np.integer)) and not isinstance(supersample, bool) and supersample >= 1):
         raise InputError(f"supersample: must be an integer >= 1, got {supersample!r}")
     volume = np.zeros(grid.shape, dtype=np.float32)

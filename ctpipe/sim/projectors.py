@@ -2,7 +2,7 @@
 
 Geometry
 --------
-The frames of :mod:`ctpipe.geometry` and :mod:`ctpipe.volume`: an object point ``X`` is, in the
+The frames of :mod:`ctpipe.geometry` and :mod:`ctpipe.recon.volume`: an object point ``X`` is, in the
 view at turntable angle ``theta``, at ``X_cam = R(theta) X + (0, 0, SOD)`` with ``R`` of
 :func:`ctpipe.model.rotation_matrix`. The source is the camera origin, the detector the plane
 ``z = SDD``, and the camera point ``(X, Y, Z)`` hits the pixel::
@@ -39,9 +39,9 @@ from numba import njit, prange
 
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
-from ctpipe.primitives import Primitives, local_maps, unit_interval
+from ctpipe.recon.volume import VolumeGrid
 from ctpipe.resources import check_fits
-from ctpipe.volume import VolumeGrid
+from ctpipe.sim.primitives import Primitives, local_maps, unit_interval
 
 __all__ = ["project_analytic", "VoxelProjector"]
 
@@ -210,7 +210,7 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         Line integrals (dimensionless: 1/mm times mm).
     """
     if not isinstance(primitives, Primitives):
-        raise InputError(f"primitives: must be a ctpipe.primitives.Primitives, got {type(primitives).__name__}")
+        raise InputError(f"primitives: must be a ctpipe.sim.primitives.Primitives, got {type(primitives).__name__}")
     geometry = _check_geometry(geometry)
     angles = _check_angles(angles_deg)
     supersample = _check_int("supersample", supersample, 1)
@@ -455,7 +455,7 @@ class VoxelProjector:
     -----
     ``forward`` computes ``A x`` and ``back`` computes ``A^T y`` for the same matrix ``A``
     (``<A x, y> = <x, A^T y>`` up to float32 rounding), which is what iterative reconstruction
-    needs; ``back`` is not a filtered backprojection (see :func:`ctpipe.fdk.fdk`). The forward
+    needs; ``back`` is not a filtered backprojection (see :func:`ctpipe.recon.feldkamp.fdk`). The forward
     projection runs a view per thread; the back projection scatters into one volume buffer per
     thread (memory: threads x 2 padded volumes).
     """
@@ -463,7 +463,7 @@ class VoxelProjector:
     def __init__(self, geometry: Geometry, grid: VolumeGrid) -> None:
         self._geometry = _check_geometry(geometry)
         if not isinstance(grid, VolumeGrid):
-            raise InputError(f"grid: must be a ctpipe.volume.VolumeGrid, got {type(grid).__name__}")
+            raise InputError(f"grid: must be a ctpipe.recon.volume.VolumeGrid, got {type(grid).__name__}")
         self._grid = grid
         g = geometry
         # A ray can advance fastest along y (the rotation axis) only when |dy| > max(|dx|, |dz|),

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from ctpipe.geometry import Geometry
+from ctpipe.recon.volume import VolumeGrid
 from ctpipe.resources import FLOAT32, check_fits, memory_guard
-from ctpipe.volume import VolumeGrid
 
 __all__ = ["SimulatedScan", "project_phantom", "simulate", "simulation_bytes", "check_simulation_fits",
            "voxelise_phantom", "write_simulated_scan"]
@@ -50,7 +50,7 @@ class SimulatedScan:
 def project_phantom(phantom, geometry: Geometry, angles_deg, *, supersample: int = 1, blur_px: float = 0.0,
                     progress: Callable[[int], object] | None = None) -> np.ndarray:
     """Line integrals (V, rows, cols), float32, of a primitive or voxel phantom."""
-    from ctpipe.projectors import VoxelProjector, project_analytic
+    from ctpipe.sim.projectors import VoxelProjector, project_analytic
 
     if phantom.primitives is not None:
         return project_analytic(phantom.primitives, geometry, angles_deg, supersample=supersample, blur_px=blur_px,
@@ -100,8 +100,8 @@ def simulate(phantom, spec, *, rng: np.random.Generator, jitter: bool = True,
 
     Parameters
     ----------
-    phantom : ctpipe.phantoms.Phantom
-    spec : ctpipe.scan.ScanSpec
+    phantom : ctpipe.sim.phantoms.Phantom
+    spec : ctpipe.sim.scan_spec.ScanSpec
         Geometry, nominal angles, jitter, noise and projector settings.
     rng : numpy.random.Generator
         Draws the jitter, then the detector noise.
@@ -120,7 +120,8 @@ def simulate(phantom, spec, *, rng: np.random.Generator, jitter: bool = True,
 
 
 def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
-    from ctpipe.acquisition import acquire, log_transform
+    from ctpipe.io.flatfield import log_transform
+    from ctpipe.sim.acquisition import acquire
 
     nominal = spec.nominal_angles_deg()
     truth = nominal + spec.jitter.sample(nominal, rng) if jitter else nominal.copy()
@@ -140,7 +141,7 @@ def voxelise_phantom(phantom, grid: VolumeGrid, *, supersample: int = 2) -> np.n
     resampled trilinearly (zero outside their own grid).
     """
     if phantom.primitives is not None:
-        from ctpipe.primitives import voxelise
+        from ctpipe.sim.primitives import voxelise
 
         return voxelise(phantom.primitives, grid, supersample=supersample)
     from scipy.ndimage import map_coordinates
@@ -156,10 +157,10 @@ def write_simulated_scan(out: str | Path, scan: SimulatedScan, *, phantom, spec,
     """Write ``scan`` as a scan folder (raw intensities + flats/darks when it has noise)."""
     import datetime
 
-    import ctpipe
-    from ctpipe.scan import write_scan
+    from ctpipe._version import __version__
+    from ctpipe.io.scan_folder import write_scan
 
-    provenance = {"generator": f"ctpipe {ctpipe.__version__} simulate", "phantom": phantom.name,
+    provenance = {"generator": f"ctpipe {__version__} simulate", "phantom": phantom.name,
                   "scan_spec": spec.to_dict(), "seed": seed,
                   "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
     if scan.intensities is None:

@@ -1,24 +1,28 @@
 """Whole-scan solving: the view graph, feature tracks, bundle adjustment and projection matching.
 
 Pair estimates tie two views each; the functions here turn all of a scan's evidence into one
-consistent set of per-view angles. :mod:`ctpipe.solve.graph` holds the view graph (which pairs
+consistent set of per-view angles. :mod:`~ctpipe.solve.graph` holds the view graph (which pairs
 to estimate, loop closure on full turns, unwrapping pair angles against the nominal ones) and
-solves it, plainly or with a robust loss; :mod:`ctpipe.solve.tracks` and
-:mod:`ctpipe.solve.bundle` follow features over the scan and adjust every view angle and a 3-D
-point per track; :mod:`ctpipe.solve.projection_matching` matches every view against the
-reprojection of the scan's own reconstruction. ``docs/wholescan.md`` has the methods and figures.
+solves it, plainly or with a robust loss; :mod:`~ctpipe.solve.tracks` and
+:mod:`~ctpipe.solve.bundle` follow features over the scan and adjust every view angle and a 3-D
+point per track, through the camera model of :mod:`~ctpipe.solve.camera`;
+:mod:`~ctpipe.solve.reprojection` matches every view against the reprojection of the scan's own
+reconstruction (projection matching). :mod:`~ctpipe.solve.simulated` draws observations of
+known points for testing the solvers without images. ``docs/wholescan.md`` has the methods and
+figures; the refiner stages that call these are in :mod:`ctpipe.builtin`.
 """
 
 from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bundle_adjust, solve_bundle
+from ctpipe.solve.camera import pixels_to_rays, project_points
 from ctpipe.solve.graph import (LOSSES, PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
                                 unwrap_pair_angles_deg, view_pairs)
-# The function projection_matching stays in its module: imported here under the module's own
-# name it would shadow the submodule (``import ctpipe.solve.projection_matching as pm`` would give
-# the function).
-from ctpipe.solve.projection_matching import ProjectionMatchingResult, consistency_costs, matching_levels
+from ctpipe.solve.reprojection import (ProjectionMatchingResult, consistency_costs, matching_levels,
+                                       projection_matching)
+from ctpipe.solve.simulated import SyntheticScan, synthetic_scan
 from ctpipe.solve.tracks import Tracks, build_tracks, extend_tracks, static_tracks, triangulate_tracks
 
 __all__ = ["covers_full_turn", "unwrap_pair_angles_deg", "view_pairs", "chain_pair_angles", "solve_pair_graph",
            "PairGraphSolution", "LOSSES", "Tracks", "build_tracks", "extend_tracks", "static_tracks",
            "triangulate_tracks", "bundle_adjust", "solve_bundle", "BundleResult", "BundleSettings", "BundleSolution",
-           "consistency_costs", "matching_levels", "ProjectionMatchingResult"]
+           "projection_matching", "consistency_costs", "matching_levels", "ProjectionMatchingResult",
+           "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan"]

@@ -2,7 +2,7 @@
 
 Model
 -----
-An object point ``X`` (object frame of :mod:`ctpipe.volume`, mm) is seen in the view at
+An object point ``X`` (object frame of :mod:`ctpipe.recon.volume`, mm) is seen in the view at
 turntable angle ``theta`` at::
 
     P = R(theta) X,   Z = P_z + source_to_object_mm

@@ -43,9 +43,9 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from ctpipe.errors import InputError
-from ctpipe.fdk import FILTERS, bin_detector, fdk
 from ctpipe.geometry import Geometry
-from ctpipe.volume import VolumeGrid
+from ctpipe.recon.feldkamp import FILTERS, bin_detector, fdk
+from ctpipe.recon.volume import VolumeGrid
 
 __all__ = ["ProjectionMatchingResult", "projection_matching", "matching_levels", "consistency_costs", "reconstruction_grid",
            "tangential_derivative", "band_pass", "as_line_integrals"]
@@ -169,7 +169,7 @@ class _Level:
 
     def __init__(self, projections: np.ndarray, geometry: Geometry, binning: int, max_voxels: int,
                  band_px: tuple[float, float], filter: str) -> None:
-        from ctpipe.projectors import VoxelProjector
+        from ctpipe.sim.projectors import VoxelProjector
 
         self.binning = binning
         self.data, self.geometry = bin_detector(projections, geometry, binning)
@@ -281,7 +281,7 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
     max_voxels : int
         Largest grid edge; bounds time and memory at fine levels.
     filter : str
-        FDK ramp-filter window (:data:`ctpipe.fdk.FILTERS`); the sharp ``ram-lak`` matches best.
+        FDK ramp-filter window (:data:`ctpipe.recon.feldkamp.FILTERS`); the sharp ``ram-lak`` matches best.
     max_step_deg : float
         Largest change of a view's angle in one iteration.
     progress : callable, optional

@@ -1,0 +1,27 @@
+"""Evaluation: scoring estimated angles and reconstructions against a known truth.
+
+:mod:`~ctpipe.evaluate.validate` is ``ctpipe validate``, the end-to-end check: simulate a scan
+with known jitter, estimate its angles with a pipeline, reconstruct with nominal, estimated and
+true angles and score each; :mod:`~ctpipe.evaluate.experiments` runs the synthetic studies of
+``ctpipe synthetic`` on correspondences drawn from the model (:mod:`~ctpipe.evaluate.synthetic`);
+:mod:`~ctpipe.evaluate.scoring` holds the metrics (angle errors after the common offset, PSNR,
+SSIM, recovery) and :mod:`~ctpipe.evaluate.report` the figures and tables. Their built-in
+defaults are ``validate.yaml`` and ``synthetic.yaml`` in this folder.
+"""
+
+from ctpipe.evaluate.experiments import (STUDIES, SyntheticReport, SyntheticSettings, load_synthetic_settings,
+                                         run_synthetic)
+from ctpipe.evaluate.report import angle_errors_png, keypoints_png, slices_png, synthetic_table, write_synthetic_outputs
+from ctpipe.evaluate.scoring import (align_offset, error_table, keypoint_agreement, pair_errors_deg, recovery,
+                                     support_mask, view_errors_deg, volume_metrics)
+from ctpipe.evaluate.synthetic import Cylinder, cylinder_points, make_correspondences
+from ctpipe.evaluate.validate import (ValidateReport, ValidateSettings, check_experiment, estimate_problems,
+                                      load_validate_settings, pair_chained_deg, parse_validate, run_validate,
+                                      write_validate_outputs)
+
+__all__ = ["run_validate", "load_validate_settings", "parse_validate", "check_experiment", "ValidateSettings",
+           "ValidateReport", "write_validate_outputs", "estimate_problems", "pair_chained_deg", "run_synthetic",
+           "load_synthetic_settings", "SyntheticSettings", "SyntheticReport", "STUDIES", "error_table",
+           "view_errors_deg", "pair_errors_deg", "align_offset", "support_mask", "volume_metrics", "recovery",
+           "keypoint_agreement", "synthetic_table", "write_synthetic_outputs", "slices_png", "angle_errors_png",
+           "keypoints_png", "Cylinder", "cylinder_points", "make_correspondences"]

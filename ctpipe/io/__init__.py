@@ -1,0 +1,21 @@
+"""Reading scans and images, writing results: files in, files out, never half-written.
+
+:mod:`~ctpipe.io.scan_folder` reads and writes ctpipe's scan folder (a ``scan.yaml`` beside
+one TIFF per frame), the format of simulated scans and of real ones given a ``scan.yaml``;
+:mod:`~ctpipe.io.arrays` reads projection stacks and images from ``.npy``, TIFF and PNG with a
+one-line error for anything else; :mod:`~ctpipe.io.flatfield` turns raw counts, flats and darks
+into line integrals; :mod:`~ctpipe.io.outputs` writes files and folders atomically (staged,
+then renamed into place) and checks output paths before any work starts.
+"""
+
+from ctpipe.io.arrays import read_array, read_image, read_projections
+from ctpipe.io.flatfield import MAX_DEAD_FRACTION, log_transform
+from ctpipe.io.outputs import (atomic_write, check_output_dir, check_output_file, csv_bytes, json_bytes,
+                               keypoints_writer, staged_folder, to_jsonable, write_csv, write_files, write_json,
+                               write_keypoints)
+from ctpipe.io.scan_folder import SCAN_FORMAT, VALUE_KINDS, Scan, check_scan_folder_free, read_scan, write_scan
+
+__all__ = ["Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS",
+           "read_projections", "read_image", "read_array", "log_transform", "MAX_DEAD_FRACTION", "atomic_write",
+           "write_files", "staged_folder", "write_json", "write_csv", "json_bytes", "csv_bytes", "to_jsonable",
+           "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer"]

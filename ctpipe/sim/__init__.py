@@ -1,0 +1,26 @@
+"""The simulator: phantoms, cone-beam projectors, angle jitter and a noisy detector.
+
+A simulated scan is made the way a real one is: a phantom (:mod:`~ctpipe.sim.phantoms`, built
+from the analytic primitives of :mod:`~ctpipe.sim.primitives` or from a voxel volume) is
+projected at the true angles, nominal angles plus the jitter of :mod:`~ctpipe.sim.jitter`, by
+the exact or the voxel projector of :mod:`~ctpipe.sim.projectors`; :mod:`~ctpipe.sim.acquisition`
+turns the line integrals into detector counts with Poisson noise, flats and darks. A scan spec
+(:mod:`~ctpipe.sim.scan_spec`) says what to acquire and :mod:`~ctpipe.sim.simulator` runs the
+chain and writes a scan folder. Reconstruction is in :mod:`ctpipe.recon`, reading and writing
+scans in :mod:`ctpipe.io`. ``docs/simulation.md`` has the conventions and figures.
+"""
+
+from ctpipe.sim.acquisition import NoiseModel, acquire, beer_lambert, parse_noise
+from ctpipe.sim.jitter import JITTER_KINDS, Jitter, nominal_angles_deg, parse_jitter
+from ctpipe.sim.phantoms import Phantom, list_phantoms, load_phantom, parse_phantom
+from ctpipe.sim.primitives import Primitives, voxelise
+from ctpipe.sim.projectors import VoxelProjector, project_analytic
+from ctpipe.sim.scan_spec import AngleSpec, ProjectorSpec, ScanSpec, load_scan_spec, parse_scan_spec
+from ctpipe.sim.simulator import (SimulatedScan, project_phantom, simulate, simulation_bytes, voxelise_phantom,
+                                  write_simulated_scan)
+
+__all__ = ["simulate", "SimulatedScan", "write_simulated_scan", "project_phantom", "voxelise_phantom",
+           "simulation_bytes", "Phantom", "load_phantom", "parse_phantom", "list_phantoms", "Primitives", "voxelise",
+           "project_analytic", "VoxelProjector", "Jitter", "parse_jitter", "nominal_angles_deg", "JITTER_KINDS",
+           "NoiseModel", "parse_noise", "acquire", "beer_lambert", "ScanSpec", "AngleSpec", "ProjectorSpec",
+           "parse_scan_spec", "load_scan_spec"]

@@ -1,0 +1,115 @@
+"""Scan specs: what ``ctpipe simulate PHANTOM --scan SCAN.yaml`` acquires::
+
+    geometry: {...}                                  # as in a scan folder (ctpipe.io.scan_folder)
+    angles: {n_views: 360, range_deg: 360.0, start_deg: 0.0}   # see ctpipe.sim.jitter.nominal_angles_deg
+    jitter: [{gaussian: {sigma_deg: 0.2}}, {jumps: {count: 3, size_deg: 1.0}}]   # ctpipe.sim.jitter
+    noise: {photons_per_pixel: 100000, flat_frames: 8, dark_frames: 4, dark_counts: 100}
+                                                     # ctpipe.sim.acquisition; null: exact line integrals
+    projector: {kind: analytic, supersample: 2, blur_px: 0.5}   # analytic or voxel
+    seed: 0
+
+``geometry`` and ``angles`` are required; ``jitter`` defaults to none, ``noise`` to null,
+``projector`` to ``{kind: analytic, supersample: 1, blur_px: 0}``, ``seed`` to 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from ctpipe.config import check_keys, load_yaml, parse_geometry
+from ctpipe.geometry import Geometry
+from ctpipe.sim.acquisition import NoiseModel, parse_noise
+from ctpipe.sim.jitter import Jitter, nominal_angles_deg, parse_jitter
+from ctpipe.stages import ParamSpec, check_value
+
+__all__ = ["AngleSpec", "ProjectorSpec", "ScanSpec", "parse_scan_spec", "load_scan_spec"]
+
+
+@dataclass(frozen=True)
+class AngleSpec:
+    """Nominal angles: ``n_views`` over ``range_deg`` from ``start_deg``."""
+
+    n_views: int
+    range_deg: float = 360.0
+    start_deg: float = 0.0
+
+    def nominal_angles_deg(self) -> np.ndarray:
+        """Shape (n_views,), float64; see :func:`ctpipe.sim.jitter.nominal_angles_deg`."""
+        return nominal_angles_deg(self.n_views, self.range_deg, self.start_deg)
+
+    def to_dict(self) -> dict:
+        return {"n_views": self.n_views, "range_deg": self.range_deg, "start_deg": self.start_deg}
+
+
+@dataclass(frozen=True)
+class ProjectorSpec:
+    """How line integrals are computed: exact (``analytic``) or through a voxelised phantom."""
+
+    kind: Literal["analytic", "voxel"] = "analytic"
+    supersample: int = 1
+    blur_px: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "supersample": self.supersample, "blur_px": self.blur_px}
+
+
+@dataclass(frozen=True)
+class ScanSpec:
+    """A validated scan spec (see the module docstring)."""
+
+    geometry: Geometry
+    angles: AngleSpec
+    jitter: Jitter = field(default_factory=Jitter)
+    noise: NoiseModel | None = None
+    projector: ProjectorSpec = field(default_factory=ProjectorSpec)
+    seed: int = 0
+
+    @property
+    def n_views(self) -> int:
+        return self.angles.n_views
+
+    def nominal_angles_deg(self) -> np.ndarray:
+        """Commanded angles, shape (n_views,), float64, degrees."""
+        return self.angles.nominal_angles_deg()
+
+    def to_dict(self) -> dict:
+        """The mapping that parses back to this spec."""
+        return {"geometry": self.geometry.to_dict(), "angles": self.angles.to_dict(), "jitter": self.jitter.to_dict(),
+                "noise": None if self.noise is None else self.noise.to_dict(), "projector": self.projector.to_dict(),
+                "seed": self.seed}
+
+
+_ANGLE_FIELDS = {"n_views": ParamSpec("n_views", int, None, "", ge=1, le=100_000),
+                 "range_deg": ParamSpec("range_deg", float, 360.0, "", gt=0, le=36_000),
+                 "start_deg": ParamSpec("start_deg", float, 0.0, "", ge=-36_000, le=36_000)}
+_PROJECTOR_FIELDS = {"kind": ParamSpec("kind", Literal["analytic", "voxel"], "analytic", ""),
+                     "supersample": ParamSpec("supersample", int, 1, "", ge=1, le=16),
+                     "blur_px": ParamSpec("blur_px", float, 0.0, "", ge=0, le=64)}
+_SEED = ParamSpec("seed", int, 0, "", ge=0)
+
+
+def _fields(value: Any, path: str, table: dict[str, ParamSpec], required: tuple[str, ...] = ()) -> dict:
+    check_keys(value, path, allowed=tuple(table), required=required)
+    return {key: check_value(table[key], raw, f"{path}.{key}") for key, raw in value.items()}
+
+
+def parse_scan_spec(mapping: Any, path: str = "scan") -> ScanSpec:
+    """Validate a scan spec mapping; errors name the YAML path, the value and what is allowed."""
+    check_keys(mapping, path, allowed=("geometry", "angles", "jitter", "noise", "projector", "seed"),
+               required=("geometry", "angles"))
+    geometry = parse_geometry(mapping["geometry"], f"{path}.geometry")
+    angles = AngleSpec(**_fields(mapping["angles"], f"{path}.angles", _ANGLE_FIELDS, required=("n_views",)))
+    jitter = parse_jitter(mapping.get("jitter"), f"{path}.jitter")
+    noise = parse_noise(mapping.get("noise"), f"{path}.noise")
+    projector = ProjectorSpec(**_fields(mapping.get("projector") or {}, f"{path}.projector", _PROJECTOR_FIELDS))
+    seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
+    return ScanSpec(geometry, angles, jitter, noise, projector, seed)
+
+
+def load_scan_spec(path: str | Path) -> ScanSpec:
+    """Read and validate a scan spec YAML file."""
+    return parse_scan_spec(load_yaml(path), path=str(path))

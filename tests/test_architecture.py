@@ -1,0 +1,170 @@
+"""The layout's rules, checked on the source: layers only import downwards, areas name their API.
+
+``LAYERS`` is the order of ``docs/architecture.md``, lowest first. Each entry is a unit: a
+top-level module of the framework or a whole area folder. A module may import its own unit and
+units listed before it, never one listed after; imports inside functions count, since a lazy
+import is still a dependency. A new module or folder must be placed in ``LAYERS`` deliberately.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import pkgutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import ctpipe
+
+PACKAGE = Path(ctpipe.__file__).parent
+
+LAYERS = (
+    # foundation: no ctpipe imports beyond this group
+    "ctpipe._version", "ctpipe.errors", "ctpipe._checks", "ctpipe.resources", "ctpipe.model", "ctpipe.geometry",
+    "ctpipe.images",
+    # the framework's contracts: data passed between stages, stages, registry, hooks, configuration
+    "ctpipe.data", "ctpipe.stages", "ctpipe.registry", "ctpipe.hookspecs", "ctpipe.config",
+    # the areas, each a folder
+    "ctpipe.io", "ctpipe.recon", "ctpipe.sim", "ctpipe.solve", "ctpipe.builtin",
+    # assembly: loading plugins, running a pipeline
+    "ctpipe.plugins", "ctpipe.pipeline",
+    # what uses a whole pipeline: evaluation, helpers for tests and benchmarks, entry points
+    "ctpipe.evaluate", "ctpipe.testing", "ctpipe.cli", "ctpipe",
+)
+
+AREAS = ("ctpipe.builtin", "ctpipe.solve", "ctpipe.sim", "ctpipe.recon", "ctpipe.io", "ctpipe.evaluate")
+
+
+def _modules() -> dict[str, Path]:
+    found = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        found[".".join(parts)] = path
+    return found
+
+
+MODULES = _modules()
+
+
+def _unit(module: str) -> str:
+    for unit in sorted(LAYERS, key=len, reverse=True):
+        if module == unit or module.startswith(unit + "."):
+            return unit
+    raise AssertionError(f"{module} is in no layer of LAYERS; place it there deliberately")
+
+
+def _imports(module: str, path: Path) -> set[str]:
+    """ctpipe modules that ``module`` imports, anywhere in its body."""
+    is_package = path.name == "__init__.py"
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names if alias.name.split(".")[0] == "ctpipe")
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".")
+                base = base[:len(base) - node.level + (1 if is_package else 0)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target.split(".")[0] != "ctpipe":
+                continue
+            for alias in node.names:
+                # 'from ctpipe.x import y' imports the submodule ctpipe.x.y when there is one.
+                found.add(f"{target}.{alias.name}" if f"{target}.{alias.name}" in MODULES else target)
+    return found
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_modules_import_only_their_own_layer_and_the_layers_below(module):
+    rank = {unit: i for i, unit in enumerate(LAYERS)}
+    own = _unit(module)
+    upward = sorted(f"{target} ({_unit(target)})" for target in _imports(module, MODULES[module])
+                    if target in MODULES and rank[_unit(target)] > rank[own])
+    assert not upward, f"{module} (layer {own}) imports higher layers: {', '.join(upward)}"
+
+
+def test_no_import_cycles_between_modules():
+    graph = {module: {t for t in _imports(module, path) if t in MODULES and t != module}
+             for module, path in MODULES.items()}
+    # A package's __init__ importing its own submodules is how it names its API, not a cycle.
+    for module in graph:
+        graph[module] = {t for t in graph[module] if not (MODULES[t].name == "__init__.py" and module.startswith(t + "."))}
+    state: dict[str, int] = {}
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle = stack[stack.index(nxt):] + [nxt] if nxt in stack else [node, nxt]
+                raise AssertionError("import cycle: " + " -> ".join(cycle))
+            if nxt not in state:
+                visit(nxt, stack + [nxt])
+        state[node] = 2
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+
+
+@pytest.mark.parametrize("area", AREAS)
+def test_every_area_names_its_api_with_a_docstring(area):
+    package = importlib.import_module(area)
+    assert package.__doc__ and len(package.__doc__.split()) >= 30, f"{area}: needs a paragraph of docstring"
+    assert package.__all__, f"{area}: __all__ is empty"
+    missing = [name for name in package.__all__ if not hasattr(package, name)]
+    assert not missing, f"{area}.__all__ names what it does not define: {missing}"
+    assert len(set(package.__all__)) == len(package.__all__), f"{area}.__all__ has duplicates"
+    # A name equal to a submodule's would shadow it: 'import ctpipe.recon.feldkamp as m' must give the module.
+    submodules = {info.name for info in pkgutil.iter_modules(package.__path__)}
+    assert not submodules & set(package.__all__), f"{area}: __all__ shadows submodules {submodules & set(package.__all__)}"
+
+
+@pytest.mark.parametrize("area", AREAS)
+def test_every_public_name_of_an_area_module_is_in_the_area_api_or_private(area):
+    package = importlib.import_module(area)
+    for info in pkgutil.iter_modules(package.__path__):
+        if info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"{area}.{info.name}")
+        own = [name for name in getattr(module, "__all__", ())
+               if getattr(getattr(module, name), "__module__", module.__name__) == module.__name__]
+        missing = sorted(set(own) - set(package.__all__) - _INTERNAL.get(module.__name__, set()))
+        assert not missing, f"{module.__name__} exports {missing}, which {area}.__all__ does not name"
+
+
+# Names a module exports for its neighbours in the area (or for tests), not for users.
+_INTERNAL = {
+    "ctpipe.sim.primitives": {"KINDS", "unit_interval", "local_maps"},
+    "ctpipe.sim.phantoms": {"OBJECT_KINDS", "rotation_from_deg"},
+    "ctpipe.sim.jitter": {"JitterModel", "GaussianJitter", "RandomWalkJitter", "PeriodicJitter", "JumpJitter"},
+    "ctpipe.sim.simulator": {"check_simulation_fits"},
+    "ctpipe.solve.bundle": {"robust_loss", "pair_graph_angles"},
+    "ctpipe.solve.tracks": {"descriptor_distances", "verified_match_distances"},
+    "ctpipe.solve.camera": {"projection_jacobians"},
+    "ctpipe.solve.reprojection": {"reconstruction_grid", "tangential_derivative", "band_pass", "as_line_integrals"},
+    "ctpipe.evaluate.synthetic": {"project", "PIXEL_NORMALISED"},
+    "ctpipe.builtin.refiners": {"chain_pair_angles"},
+    "ctpipe.builtin.surf": {"surf"},
+}
+
+
+def test_the_package_exposes_what_a_user_needs_first():
+    for name in ("Pipeline", "Geometry", "read_scan", "simulate", "fdk", "VolumeGrid", "load_phantom", "run_validate"):
+        assert name in ctpipe.__all__
+        assert getattr(ctpipe, name).__name__ == name
+    assert ctpipe.fdk is importlib.import_module("ctpipe.recon.feldkamp").fdk
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        ctpipe.nope
+
+
+def test_importing_ctpipe_loads_neither_numba_nor_opencv():
+    # The 'ctpipe' command imports the package first; its --help must not pay for numba and cv2.
+    code = "import sys, ctpipe; print(sorted(m for m in ('numba', 'cv2', 'scipy') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
