@@ -1,6 +1,6 @@
 """FDK speed and accuracy against mbirjax's ``direct_recon`` on the same data, in the same run.
 
-Data: exact line integrals through the ellipsoid phantom of ``tests/test_fdk.py`` (closed form,
+Data: exact line integrals through the ellipsoid phantom of ``ctpipe.testing`` (closed form,
 no projector involved), a full circle of uniformly spaced views, SOD 200 mm, SDD 400 mm, an
 80 mm square detector and a 32 mm cube of voxels. Two sizes: 128^3 from 180 views of 128^2 and
 256^3 from 360 views of 256^2.
@@ -22,20 +22,16 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 
 from ctpipe.geometry import Geometry
 from ctpipe.recon.feldkamp import fdk
 from ctpipe.recon.volume import VolumeGrid
+from ctpipe.testing import phantom_volume, project_ellipsoids, relative_rmse
 
-# The phantom and its closed-form projections live with the tests, one definition for both.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_fdk import phantom_volume, project_ellipsoids, relative_rmse  # noqa: E402
 
 SIZES = ((128, 180), (256, 360))
 

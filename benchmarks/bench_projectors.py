@@ -3,7 +3,7 @@ analytic projector on the default phantom, in one run.
 
 Voxel projector, two sizes as in ``bench_fdk.py``: a 128^3 volume into 180 views of 128^2 and
 256^3 into 360 views of 256^2 (SOD 200 mm, SDD 400 mm, 80 mm detector, 32 mm cube of voxels),
-the ellipsoid phantom of ``tests/test_fdk.py`` voxelised on the grid. Printed: ctpipe's warm
+the ellipsoid phantom of ``ctpipe.testing`` voxelised on the grid. Printed: ctpipe's warm
 median, mbirjax's first call (with JAX compilation) and its best warm call, their ratio, and the
 relative difference between the two projectors' outputs (both integrate the same voxels along
 the same rays, with different interpolation: Joseph vs mbirjax's separable footprints).
@@ -33,12 +33,10 @@ from ctpipe.geometry import Geometry
 from ctpipe.plugins import get_registry
 from ctpipe.sim.phantoms import load_phantom
 from ctpipe.sim.projectors import VoxelProjector, project_analytic
+from ctpipe.testing import phantom_volume
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_fdk import SIZES, load_mbirjax, parse_args, print_peer_timing, setup, time_call  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_fdk import phantom_volume  # noqa: E402
 
 
 def mbirjax_forward(mbirjax, volume, geometry, grid, angles_deg, repeats):

@@ -379,7 +379,7 @@ def test_cli_refuses_a_150_deg_short_scan_before_simulating(tmp_path, monkeypatc
 def test_every_experiment_in_configs_experiments_parses_and_says_what_it_is():
     from pathlib import Path
 
-    folder = Path(__file__).parents[1] / "configs" / "experiments"
+    folder = Path(__file__).parents[2] / "configs" / "experiments"
     experiments = sorted(folder.glob("*.yaml"))
     assert len(experiments) >= 8
     registry = get_registry()

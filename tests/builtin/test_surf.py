@@ -18,7 +18,7 @@ from ctpipe.model import rotation_matrix
 from ctpipe.pipeline import Pipeline
 from ctpipe.plugins import get_registry
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 REFERENCE = Path(os.environ.get("CTPIPE_SURF_REFERENCE", ROOT.parent / "shared" / "surf-reference"))
 needs_reference = pytest.mark.skipif(not (REFERENCE / "surf").is_dir(),
                                      reason=f"OpenCV SURF reference outputs not found at {REFERENCE} "

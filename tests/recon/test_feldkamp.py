@@ -1,8 +1,8 @@
 """FDK against closed-form line integrals through ellipsoids.
 
 The projections are exact line integrals through a phantom of a few ellipsoids (solve the
-quadratic of the ray in each ellipsoid's unit frame), computed here with numpy so that the test
-depends on nothing but the geometry convention. Errors are measured in the interior: voxels at
+quadratic of the ray in each ellipsoid's unit frame), computed with numpy by
+:mod:`ctpipe.testing` so that the test depends on nothing but the geometry convention. Errors are measured in the interior: voxels at
 least ``MARGIN_MM`` from every ellipsoid surface, where a band-limited reconstruction can match
 the piecewise-constant phantom.
 """
@@ -14,86 +14,15 @@ import pytest
 
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
-from ctpipe.model import rotation_matrix
 from ctpipe.recon.feldkamp import FILTERS, fdk, parker_weights, view_weights
 from ctpipe.recon.volume import VolumeGrid
+from ctpipe.testing import phantom_volume, project_ellipsoids, relative_rmse
 
 # SOD 200, SDD 400, 160^2 pixels of 0.5 mm: half fan angle 5.7 deg, a field of view of radius
 # 19.9 mm at the axis; the phantom reaches 14 mm in x and z, 13 mm along the axis.
 GEOMETRY = Geometry(source_to_object_mm=200.0, source_to_detector_mm=400.0, detector_cols=160,
                     detector_rows=160, pixel_pitch_u_mm=0.5, pixel_pitch_v_mm=0.5)
 GRID = VolumeGrid.cube(128, 0.25)
-MARGIN_MM = 1.0
-
-
-def _rot_y(deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    return np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
-
-
-def _rot_x(deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    return np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
-
-
-# (centre_mm, semi-axes_mm, rotation, density_per_mm); densities add. Off-centre in z and tilted,
-# so that a mirrored reconstruction (what negated angles give) is clearly wrong.
-PHANTOM = [
-    ((0.0, 0.0, 0.0), (14.0, 13.0, 13.0), np.eye(3), 0.02),
-    ((-4.0, -3.0, 5.0), (4.0, 5.0, 3.0), _rot_y(30.0), 0.015),
-    ((5.0, 4.0, -4.0), (3.5, 3.0, 5.0), _rot_x(20.0) @ _rot_y(-25.0), -0.01),
-    ((2.0, -5.0, 6.0), (2.5, 2.5, 2.5), np.eye(3), 0.03),
-]
-
-
-def project_ellipsoids(geometry: Geometry, angles_deg, phantom=PHANTOM) -> np.ndarray:
-    """Exact line integrals, float32 (V, rows, cols).
-
-    In each view, the ray of pixel (col, row) leaves the source (camera origin) along
-    ``d = ((col - u0) pu / SDD, (row - v0) pv / SDD, 1)``; the ellipsoid centred at ``c`` with
-    axes ``A = R(theta) Q`` in the camera frame is ``|diag(1/a) A^T (X - c)| <= 1``. With
-    ``X = t d`` that is a quadratic in ``t``; its root gap times ``|d|`` is the chord.
-    """
-    rows, cols = np.mgrid[0:geometry.detector_rows, 0:geometry.detector_cols].astype(np.float64)
-    d = np.stack([(cols - geometry.u0_px) * geometry.pixel_pitch_u_mm / geometry.source_to_detector_mm,
-                  (rows - geometry.v0_px) * geometry.pixel_pitch_v_mm / geometry.source_to_detector_mm,
-                  np.ones_like(cols)], axis=-1).reshape(-1, 3)
-    d_norm = np.linalg.norm(d, axis=1)
-    out = np.zeros((len(angles_deg), geometry.detector_rows * geometry.detector_cols))
-    for k, angle in enumerate(angles_deg):
-        rot = rotation_matrix(np.deg2rad(angle))
-        for centre, semi, q, density in phantom:
-            axes = rot @ q
-            c_cam = rot @ np.asarray(centre) + [0.0, 0.0, geometry.source_to_object_mm]
-            p0 = (axes.T @ -c_cam) / np.asarray(semi)
-            dl = (d @ axes) / np.asarray(semi)
-            a = np.einsum("ij,ij->i", dl, dl)
-            b = 2.0 * dl @ p0
-            disc = b * b - 4.0 * a * (p0 @ p0 - 1.0)
-            out[k] += density * d_norm * np.sqrt(np.clip(disc, 0.0, None)) / a
-    return out.reshape(len(angles_deg), geometry.detector_rows, geometry.detector_cols).astype(np.float32)
-
-
-def phantom_volume(grid: VolumeGrid, phantom=PHANTOM) -> tuple[np.ndarray, np.ndarray]:
-    """Density at voxel centres (grid.shape) and the interior mask (``MARGIN_MM`` from every surface)."""
-    y, z, x = np.meshgrid(grid.axis_mm("y"), grid.axis_mm("z"), grid.axis_mm("x"), indexing="ij")
-    points = np.stack([x, y, z], axis=-1)
-    volume = np.zeros(grid.shape)
-    interior = np.ones(grid.shape, dtype=bool)
-    for i, (centre, semi, q, density) in enumerate(phantom):
-        local = ((points - centre) @ q) / np.asarray(semi)
-        radius = np.linalg.norm(local, axis=-1)
-        volume += density * (radius <= 1.0)
-        # |grad radius| <= 1 / min(semi), so |1 - radius| min(semi) bounds the distance to the surface.
-        interior &= np.abs(1.0 - radius) * min(semi) >= MARGIN_MM
-        if i == 0:
-            interior &= radius < 1.0
-    return volume.astype(np.float32), interior
-
-
-def relative_rmse(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
-    err = volume[mask].astype(np.float64) - truth[mask]
-    return float(np.sqrt(np.mean(err**2)) / np.sqrt(np.mean(truth[mask].astype(np.float64) ** 2)))
 
 
 @pytest.fixture(scope="module")
