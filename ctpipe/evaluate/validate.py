@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 import platform
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from importlib import resources
@@ -55,7 +55,6 @@ import numpy as np
 
 from ctpipe.config import PipelineConfig, check_keys, load_yaml, parse_pipeline
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.geometry import Geometry
 from ctpipe.recon.feldkamp import bin_detector, binned_geometry
 from ctpipe.recon.volume import VolumeGrid
 from ctpipe.registry import StageRegistry

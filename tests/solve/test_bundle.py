@@ -10,10 +10,10 @@ import pytest
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.pipeline import Pipeline
-from ctpipe.solve.bundle import BundleSettings, bundle_adjust, pair_graph_angles, solve_bundle
+from ctpipe.solve.bundle import bundle_adjust, pair_graph_angles, solve_bundle
 from ctpipe.solve.camera import project_points, projection_jacobians
 from ctpipe.solve.simulated import synthetic_scan
-from ctpipe.solve.tracks import Tracks, build_tracks, triangulate_tracks
+from ctpipe.solve.tracks import Tracks, triangulate_tracks
 from ctpipe.testing import check_refiner
 
 GEOMETRY = Geometry(150.0, 390.0, 256, 256, 0.8, 0.8)

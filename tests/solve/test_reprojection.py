@@ -9,7 +9,6 @@ from ctpipe.builtin.projection_matching import ProjectionMatchingRefiner
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.evaluate.scoring import view_errors_deg
 from ctpipe.geometry import Geometry
-from ctpipe.recon.feldkamp import fdk
 from ctpipe.sim.phantoms import load_phantom
 from ctpipe.sim.projectors import VoxelProjector
 from ctpipe.sim.scan_spec import parse_scan_spec
