@@ -27,7 +27,7 @@ simulation would refuse late are refused before the first projection (:func:`che
 An experiment file::
 
     phantom: granular                 # a built-in name or a phantom YAML path
-    scan: {...}                       # a scan spec (see ctpipe.io.scan_folder), or a path to one
+    scan: {...}                       # a scan spec (see ctpipe.sim.scan_spec), or a path to one
     pipeline: null                    # null: the default pipeline; a path or a mapping
     reconstruction:
       grid_size: 160                  # voxels per edge of the cubic grid around the object

@@ -1,10 +1,10 @@
 """FDK against closed-form line integrals through ellipsoids.
 
 The projections are exact line integrals through a phantom of a few ellipsoids (solve the
-quadratic of the ray in each ellipsoid's unit frame), computed with numpy by
-:mod:`ctpipe.testing` so that the test depends on nothing but the geometry convention. Errors are measured in the interior: voxels at
-least ``MARGIN_MM`` from every ellipsoid surface, where a band-limited reconstruction can match
-the piecewise-constant phantom.
+quadratic of the ray in each ellipsoid's unit frame), computed with numpy by :mod:`ctpipe.testing`
+so that the test depends on nothing but the geometry convention. Errors are measured in the
+interior: voxels at least ``MARGIN_MM`` from every ellipsoid surface, where a band-limited
+reconstruction can match the piecewise-constant phantom.
 """
 
 from __future__ import annotations
