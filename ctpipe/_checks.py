@@ -12,7 +12,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["short_repr", "as_real", "as_integer"]
+from ctpipe.errors import InputError
+
+__all__ = ["short_repr", "as_real", "as_integer", "as_angles_deg"]
 
 #: Longest repr of a value in an error message; messages are one line.
 REPR_LIMIT = 80
@@ -51,3 +53,15 @@ def as_integer(value: Any) -> int | None:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         return None
     return int(value)
+
+
+def as_angles_deg(value: Any, name: str = "angles_deg") -> np.ndarray:
+    """``value`` as a non-empty 1-D float64 array of finite angles, or an ``InputError`` naming ``name``."""
+    angles = np.asarray(value)
+    if angles.ndim != 1 or angles.size == 0 or not np.issubdtype(angles.dtype, np.number) or np.iscomplexobj(angles):
+        raise InputError(f"{name}: must be a non-empty 1-D array of real numbers (degrees), got shape "
+                         f"{angles.shape} and dtype {angles.dtype}")
+    angles = angles.astype(np.float64)
+    if not np.all(np.isfinite(angles)):
+        raise InputError(f"{name}: must be finite, got NaN or infinite values")
+    return angles

@@ -37,6 +37,7 @@ import numpy as np
 from numba import njit, prange
 from scipy import fft as sp_fft
 
+from ctpipe._checks import as_angles_deg
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.recon.volume import VolumeGrid
@@ -225,14 +226,7 @@ def _validate(projections, geometry, angles_deg, grid, filter, short_scan, progr
         raise InputError(f"short_scan: must be None (decide from the angles), True or False, got {short_scan!r}")
     if progress is not None and not callable(progress):
         raise InputError(f"progress: must be a callable taking a number of views, or None, got {progress!r}")
-    angles = np.asarray(angles_deg)
-    if angles.ndim != 1 or angles.size == 0 or not np.issubdtype(angles.dtype, np.number) \
-            or np.iscomplexobj(angles):
-        raise InputError(f"angles_deg: must be a non-empty 1-D array of real numbers, got shape {angles.shape} "
-                         f"and dtype {angles.dtype}")
-    angles = angles.astype(np.float64)
-    if not np.all(np.isfinite(angles)):
-        raise InputError("angles_deg: must be finite, got NaN or infinite values")
+    angles = as_angles_deg(angles_deg)
     proj = np.asarray(projections)
     if proj.ndim != 3 or not np.issubdtype(proj.dtype, np.floating):
         raise InputError(f"projections: must be a 3-D float array (views, rows, cols), got shape {proj.shape} "

@@ -37,6 +37,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from ctpipe._checks import as_angles_deg
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.recon.volume import VolumeGrid
@@ -55,18 +56,6 @@ def _check_geometry(geometry) -> Geometry:
     if not isinstance(geometry, Geometry):
         raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
     return geometry
-
-
-def _check_angles(angles_deg) -> np.ndarray:
-    angles = np.asarray(angles_deg)
-    if angles.ndim != 1 or angles.size == 0 or not np.issubdtype(angles.dtype, np.number) \
-            or np.iscomplexobj(angles):
-        raise InputError(f"angles_deg: must be a non-empty 1-D array of real numbers (degrees), got shape "
-                         f"{angles.shape} and dtype {angles.dtype}")
-    angles = angles.astype(np.float64)
-    if not np.all(np.isfinite(angles)):
-        raise InputError("angles_deg: must be finite, got NaN or infinite values")
-    return angles
 
 
 def _check_array(name: str, value, expected: tuple[int, ...], axes: str) -> np.ndarray:
@@ -212,7 +201,7 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     if not isinstance(primitives, Primitives):
         raise InputError(f"primitives: must be a ctpipe.sim.primitives.Primitives, got {type(primitives).__name__}")
     geometry = _check_geometry(geometry)
-    angles = _check_angles(angles_deg)
+    angles = as_angles_deg(angles_deg)
     supersample = _check_int("supersample", supersample, 1)
     if not (isinstance(blur_px, (int, float, np.floating, np.integer)) and not isinstance(blur_px, bool)
             and math.isfinite(blur_px) and blur_px >= 0):
@@ -481,7 +470,7 @@ class VoxelProjector:
 
     def _common(self, angles_deg):
         g, grid = self._geometry, self._grid
-        theta = np.deg2rad(_check_angles(angles_deg))
+        theta = np.deg2rad(as_angles_deg(angles_deg))
         return (np.cos(theta), np.sin(theta), float(g.source_to_object_mm), float(g.source_to_detector_mm),
                 float(g.pixel_pitch_u_mm), float(g.pixel_pitch_v_mm), float(g.u0_px), float(g.v0_px),
                 np.asarray(grid.origin_mm, dtype=np.float64), float(grid.voxel_size_mm), grid.n_x, grid.n_y, grid.n_z)
