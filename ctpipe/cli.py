@@ -65,14 +65,14 @@ def _cmd_estimate(args) -> int:
     truth = nominal = None
     if not source.exists():
         raise InputError(f"{source}: no such file or scan folder")
-    if source.is_dir():
-        from ctpipe.io.scan_folder import read_scan
+    if source.is_dir() or source.suffix.lower() in (".txrm", ".txm"):
+        from ctpipe.io.scans import open_scan
 
-        scan = read_scan(source)
+        scan = open_scan(source)
         projections, geometry, truth = scan.projections, scan.geometry, scan.true_angles_deg
         nominal = scan.nominal_angles_deg
         if args.geometry:
-            raise InputError(f"{source} is a scan folder with its own geometry in scan.yaml; drop --geometry")
+            raise InputError(f"{source} is a {scan.format} scan with its own geometry; drop --geometry")
     else:
         if not args.geometry:
             raise InputError(f"{source}: a projection file needs --geometry GEOMETRY.yaml (or give a scan folder)")

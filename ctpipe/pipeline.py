@@ -18,6 +18,7 @@ from ctpipe.data import Features, ScanObservations
 from ctpipe.errors import EstimationError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
+from ctpipe.io.scans import ViewStack
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
 from ctpipe.solve.graph import view_pairs
@@ -143,8 +144,10 @@ class Pipeline:
 
         Parameters
         ----------
-        projections : ndarray of shape (V, rows, cols)
-            uint8 or float images (float: e.g. ``-log`` line integrals); no NaN.
+        projections : ndarray of shape (V, rows, cols), or ViewStack
+            uint8 or float images (float: e.g. ``-log`` line integrals); no NaN. A
+            :class:`ctpipe.io.scans.ViewStack` (what :func:`ctpipe.io.open_scan` gives) is read
+            one view at a time and never held whole.
         geometry : Geometry or mapping
             Must match the projections' (rows, cols). A mapping of the :class:`Geometry`
             fields is validated as a geometry YAML is (:func:`ctpipe.config.parse_geometry`).
@@ -263,7 +266,15 @@ def _check_geometry(geometry) -> Geometry:
                      f"got {type(geometry).__name__} {short_repr(geometry)}")
 
 
-def _check_projections(projections, geometry: Geometry) -> np.ndarray:
+def _check_projections(projections, geometry: Geometry) -> np.ndarray | ViewStack:
+    if isinstance(projections, ViewStack):
+        # Read lazily: each view is checked as it is read.
+        if len(projections) < 2:
+            raise InputError(f"projections need at least 2 views to estimate an angle, got {len(projections)}")
+        if projections.shape[1:] != geometry.shape:
+            raise InputError(f"projections have (rows, cols) = {projections.shape[1:]} but the geometry says "
+                             f"{geometry.shape} (detector_rows, detector_cols)")
+        return projections
     projections = np.asarray(projections)
     if projections.ndim != 3:
         raise InputError(f"projections must be a 3-D array (views, rows, cols), got shape {projections.shape}")

@@ -1,6 +1,8 @@
 """Reading scans and images, writing results: files in, files out, never half-written.
 
-:mod:`~ctpipe.io.scan_folder` reads and writes ctpipe's scan folder (a ``scan.yaml`` beside
+:func:`open_scan` opens a scan in any format ctpipe reads (:mod:`~ctpipe.io.scans`): the
+geometry and angles in ctpipe's conventions, the projections as a :class:`ViewStack` read and
+corrected one view at a time. :mod:`~ctpipe.io.scan_folder` reads and writes ctpipe's scan folder (a ``scan.yaml`` beside
 one TIFF per frame), the format of simulated scans and of real ones given a ``scan.yaml``;
 :mod:`~ctpipe.io.arrays` reads projection stacks and images from ``.npy``, TIFF and PNG with a
 one-line error for anything else; :mod:`~ctpipe.io.flatfield` turns raw counts, flats and darks
@@ -13,9 +15,12 @@ from ctpipe.io.flatfield import MAX_DEAD_FRACTION, log_transform
 from ctpipe.io.outputs import (atomic_write, check_output_dir, check_output_file, csv_bytes, json_bytes,
                                keypoints_writer, staged_folder, to_jsonable, write_csv, write_files, write_json,
                                write_keypoints)
-from ctpipe.io.scan_folder import SCAN_FORMAT, VALUE_KINDS, Scan, check_scan_folder_free, read_scan, write_scan
+from ctpipe.io.scan_folder import (SCAN_FORMAT, VALUE_KINDS, Scan, check_scan_folder_free, open_scan_folder, read_scan,
+                                   write_scan)
+from ctpipe.io.scans import FORMATS, ScanFiles, ViewStack, check_angles, open_scan, register_format
 
-__all__ = ["Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS",
+__all__ = ["open_scan", "ScanFiles", "ViewStack", "FORMATS", "register_format", "check_angles", "open_scan_folder",
+           "Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS",
            "read_projections", "read_image", "read_array", "log_transform", "MAX_DEAD_FRACTION", "atomic_write",
            "write_files", "staged_folder", "write_json", "write_csv", "json_bytes", "csv_bytes", "to_jsonable",
            "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer"]

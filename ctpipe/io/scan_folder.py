@@ -57,9 +57,11 @@ from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.io.flatfield import log_transform
 from ctpipe.io.outputs import to_jsonable
+from ctpipe.io.scans import ScanFiles, ViewStack, register_format
 from ctpipe.stages import ParamSpec, check_value
 
-__all__ = ["Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS"]
+__all__ = ["Scan", "read_scan", "open_scan_folder", "write_scan", "check_scan_folder_free", "SCAN_FORMAT",
+           "VALUE_KINDS"]
 
 #: The ``format`` value of a scan.yaml this version reads and writes.
 SCAN_FORMAT = "ctpipe-scan/1"
@@ -168,17 +170,8 @@ def _read_frames(folder: Path, names: list[str], shape: tuple[int, int], what: s
     return frames
 
 
-def read_scan(folder: str | Path) -> Scan:
-    """Read a scan folder (see the module docstring).
-
-    Raises
-    ------
-    ConfigError
-        ``scan.yaml`` is malformed (the message names the YAML path).
-    InputError
-        Missing or unreadable files, shapes that disagree with the geometry, a count mismatch.
-    """
-    folder = Path(folder)
+def _parse(folder: Path) -> dict[str, Any]:
+    """Everything ``scan.yaml`` says, checked, with the file names resolved (nothing read yet)."""
     if not folder.is_dir():
         raise InputError(f"{folder}: not a folder")
     source = folder / "scan.yaml"
@@ -213,11 +206,30 @@ def read_scan(folder: str | Path) -> Scan:
         if mapping.get(kind) is not None:
             frames[kind] = _read_frames(folder, _file_names(mapping[kind], f"{path}.{kind}", folder), geometry.shape,
                                         kind[:-1])
-    raw = _read_frames(folder, names, geometry.shape, "projection")
-    flats, darks = frames.get("flats"), frames.get("darks")
+    if values == "intensities" and frames.get("flats") is None:
+        raise ConfigError(f"{path}.flats: missing; intensities need flat fields to be turned into line integrals")
+    provenance = mapping.get("provenance") or {}
+    if not isinstance(provenance, Mapping):
+        raise ConfigError(f"{path}.provenance: must be a mapping, got {provenance!r}")
+    return {"geometry": geometry, "nominal": nominal, "truth": truth, "values": values, "names": names,
+            "flats": frames.get("flats"), "darks": frames.get("darks"), "provenance": dict(provenance)}
+
+
+def read_scan(folder: str | Path) -> Scan:
+    """Read a scan folder (see the module docstring).
+
+    Raises
+    ------
+    ConfigError
+        ``scan.yaml`` is malformed (the message names the YAML path).
+    InputError
+        Missing or unreadable files, shapes that disagree with the geometry, a count mismatch.
+    """
+    folder = Path(folder)
+    parsed = _parse(folder)
+    geometry, values, flats, darks = parsed["geometry"], parsed["values"], parsed["flats"], parsed["darks"]
+    raw = _read_frames(folder, parsed["names"], geometry.shape, "projection")
     if values == "intensities":
-        if flats is None:
-            raise ConfigError(f"{path}.flats: missing; intensities need flat fields to be turned into line integrals")
         from ctpipe.resources import FLOAT32, check_fits
 
         check_fits(f"the -log of {raw.shape[0]} views of {raw.shape[1]} x {raw.shape[2]}", raw[:1].size * len(raw) * FLOAT32)
@@ -227,10 +239,31 @@ def read_scan(folder: str | Path) -> Scan:
             raise InputError(f"{folder}: {exc}") from None
     else:
         line_integrals = raw.astype(np.float32, copy=False)
-    provenance = mapping.get("provenance") or {}
-    if not isinstance(provenance, Mapping):
-        raise ConfigError(f"{path}.provenance: must be a mapping, got {provenance!r}")
-    return Scan(line_integrals, geometry, nominal, truth, values, raw, flats, darks, dict(provenance), folder)
+    return Scan(line_integrals, geometry, parsed["nominal"], parsed["truth"], values, raw, flats, darks,
+                parsed["provenance"], folder)
+
+
+def open_scan_folder(folder: str | Path) -> ScanFiles:
+    """Open a scan folder lazily: geometry, angles and calibration frames read, views on demand."""
+    from ctpipe.io.arrays import read_array
+
+    folder = Path(folder)
+    parsed = _parse(folder)
+    geometry, names = parsed["geometry"], parsed["names"]
+
+    def read(index: int) -> np.ndarray:
+        file = folder / names[index]
+        if not file.is_file():
+            raise InputError(f"{file}: no such file (projection {index} of {len(names)})")
+        return read_array(file, kind=".tif")
+
+    try:
+        stack = ViewStack(read, len(names), geometry.shape, values=parsed["values"], flats=parsed["flats"],
+                          darks=parsed["darks"], name=str(folder))
+    except InputError as exc:
+        raise InputError(f"{folder}: {exc}") from None
+    return ScanFiles("ctpipe", folder, geometry, parsed["nominal"], stack, true_angles_deg=parsed["truth"],
+                     metadata={"provenance": parsed["provenance"]})
 
 
 def _check_stack(array, name: str, geometry: Geometry, count: int | None = None) -> np.ndarray:
@@ -386,3 +419,6 @@ def _swap_into_place(tmp: Path, folder: Path, overwrite: bool) -> None:
         os.rename(old, folder)
         raise
     shutil.rmtree(old, ignore_errors=True)
+
+
+register_format("ctpipe", lambda path: path.is_dir() and (path / "scan.yaml").is_file(), open_scan_folder, "a folder with scan.yaml (ctpipe's scan folder)")

@@ -1,0 +1,246 @@
+"""Scans on disk in any format ctpipe reads: detect the format, open the scan, read views on demand.
+
+:func:`open_scan` looks at a path (a folder, or a single file for formats that keep the whole
+scan in one), asks every format in :data:`FORMATS` whether it is theirs, and returns a
+:class:`ScanFiles`: the geometry in ctpipe's names and conventions, the nominal angles, the
+angles the scanner logged if it did, and the projections as a :class:`ViewStack`, which reads,
+flat/dark-corrects and returns one view at a time. Nothing the size of the whole scan is read
+until a caller asks for it, view by view.
+
+Every format module (:mod:`ctpipe.io.nikon`, ...) has a ``detect(path) -> bool`` and an
+``open(path) -> ScanFiles``; their docstrings and ``docs/real-scans.md`` say which keys they
+read, how their units and signs become ctpipe's, and what is left unclear.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctpipe.errors import InputError
+from ctpipe.geometry import Geometry
+from ctpipe.images import check_image
+from ctpipe.io.flatfield import log_transform
+
+__all__ = ["ViewStack", "ScanFiles", "open_scan", "register_format", "FORMATS", "check_angles"]
+
+
+class ViewStack:
+    """A projection stack read one view at a time, as float32 line integrals.
+
+    Indexing with an integer reads that view's file(s), checks it, and for intensities applies
+    the flat/dark correction of :func:`ctpipe.io.flatfield.log_transform` with the mean flat and
+    dark computed once; the arithmetic is the one of correcting the whole stack at once, so a
+    view read here is bitwise the view of the corrected stack. ``shape``, ``dtype``, ``ndim`` and
+    ``len`` behave like those of the (V, rows, cols) float32 array it stands for, so the pipeline
+    takes either. Reads are safe from several threads.
+
+    Parameters
+    ----------
+    read : callable
+        ``read(index) -> ndarray`` of shape (rows, cols): the view as stored (uint16, float32, ...).
+    n_views : int
+    shape : (rows, cols)
+    values : {"intensities", "line_integrals"}
+        What ``read`` returns.
+    flats, darks : ndarray of shape (F, rows, cols) or (rows, cols), or None
+        For intensities: flat fields (required unless ``white_level``) and dark fields.
+    white_level : float or None
+        For intensities without flat frames: the counts of an unattenuated pixel (the scanner's
+        own flat correction scaled its output to this level).
+    name : str
+        How errors name the stack (usually the folder).
+    """
+
+    def __init__(self, read: Callable[[int], np.ndarray], n_views: int, shape: tuple[int, int], *,
+                 values: str = "line_integrals", flats=None, darks=None, white_level: float | None = None,
+                 name: str = "projections") -> None:
+        if values not in ("intensities", "line_integrals"):
+            raise InputError(f"{name}: values must be 'intensities' or 'line_integrals', got {values!r}")
+        if n_views < 1:
+            raise InputError(f"{name}: no projections")
+        self._read = read
+        self._n_views = int(n_views)
+        self._shape = (int(shape[0]), int(shape[1]))
+        self.values = values
+        self.name = name
+        self._flat = self._dark = None
+        if values == "intensities":
+            if flats is None:
+                if white_level is None or not np.isfinite(white_level) or white_level <= 0:
+                    raise InputError(f"{name}: intensities need flat fields or a positive white level, got neither")
+                flats = np.full(self._shape, float(white_level))
+            self._flat = _mean_frame(flats, self._shape, f"{name}: flats")
+            self._dark = None if darks is None else _mean_frame(darks, self._shape, f"{name}: darks")
+            # Refuse swapped or mislabelled calibration frames now, not at the first view.
+            log_transform(np.zeros((1, *self._shape), np.float32), self._flat, self._dark)
+        self._lock = threading.Lock()
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self._n_views, *self._shape)
+
+    ndim = 3
+    dtype = np.dtype(np.float32)
+
+    def __len__(self) -> int:
+        return self._n_views
+
+    def raw(self, index: int) -> np.ndarray:
+        """View ``index`` as stored, checked against the stack's shape."""
+        index = self._index(index)
+        view = np.asarray(self._read(index))
+        if view.shape != self._shape:
+            raise InputError(f"{self.name}: view {index} has shape {view.shape}, the others {self._shape}")
+        if view.dtype == bool or not (np.issubdtype(view.dtype, np.integer) or np.issubdtype(view.dtype, np.floating)):
+            raise InputError(f"{self.name}: view {index} must hold real numbers, got {view.dtype}")
+        return view
+
+    def __getitem__(self, index) -> np.ndarray:
+        if isinstance(index, (slice, Sequence, np.ndarray)):
+            indices = range(self._n_views)[index] if isinstance(index, slice) else np.asarray(index)
+            return np.stack([self[int(i)] for i in indices]) if len(indices) else np.empty((0, *self._shape),
+                                                                                            np.float32)
+        raw = self.raw(index)
+        if self.values == "intensities":
+            view = log_transform(raw[None], self._flat, self._dark)[0]
+        else:
+            view = raw.astype(np.float32, copy=False)
+        check_image(view, name=f"{self.name}: view {self._index(index)}")
+        return view
+
+    def __iter__(self):
+        return (self[i] for i in range(self._n_views))
+
+    def __array__(self, dtype=None, copy=None):
+        out = np.empty(self.shape, np.float32)
+        for i in range(self._n_views):
+            out[i] = self[i]
+        return out if dtype is None else out.astype(dtype)
+
+    def _index(self, index) -> int:
+        if isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer)):
+            raise InputError(f"{self.name}: a view index must be an integer, got {index!r}")
+        if not -self._n_views <= index < self._n_views:
+            raise InputError(f"{self.name}: view {index} out of range: the scan has {self._n_views} views")
+        return int(index) % self._n_views
+
+
+def _mean_frame(frames, shape: tuple[int, int], name: str) -> np.ndarray:
+    frames = np.asarray(frames, dtype=np.float64)
+    if frames.ndim == 3:
+        frames = frames.mean(axis=0)
+    if frames.shape != shape:
+        raise InputError(f"{name}: each frame must have the projections' shape {shape}, got {frames.shape}")
+    return frames
+
+
+def check_angles(angles, n_views: int, what: str) -> np.ndarray:
+    """``angles`` as a (n_views,) float64 array of finite degrees, or an InputError naming ``what``."""
+    angles = np.asarray(angles, dtype=np.float64)
+    if angles.shape != (n_views,):
+        raise InputError(f"{what}: {angles.size} angles for {n_views} projections; there must be one per view")
+    if not np.all(np.isfinite(angles)):
+        raise InputError(f"{what}: angles must be finite numbers (degrees)")
+    return angles
+
+
+@dataclass(frozen=True, eq=False)
+class ScanFiles:
+    """A scan on disk, opened: geometry and angles read, projections read on demand.
+
+    Attributes
+    ----------
+    format : str
+        The name of the format in :data:`FORMATS` that read it.
+    path : Path
+        What was opened (a folder, or the file of a one-file format).
+    geometry : Geometry
+        In ctpipe's names and conventions (see each format's docstring).
+    nominal_angles_deg : ndarray of shape (V,), float64
+        The commanded angles in ctpipe's sign convention (a turntable turn of +a is +a).
+    projections : ViewStack
+        Line integrals, one float32 view per index.
+    recorded_angles_deg : ndarray of shape (V,) or None
+        The angles the scanner logged per view (its encoder), in ctpipe's convention.
+    true_angles_deg : ndarray of shape (V,) or None
+        Known only for simulations.
+    angle_log : Path or None
+        The scanner's own per-view angle file, beside which corrected angles are written.
+    notes : tuple of str
+        What the reader assumed or could not read, said once in the summary.
+    metadata : dict
+        The raw keys the reader used, for the report.
+    """
+
+    format: str
+    path: Path
+    geometry: Geometry
+    nominal_angles_deg: np.ndarray
+    projections: ViewStack
+    recorded_angles_deg: np.ndarray | None = None
+    true_angles_deg: np.ndarray | None = None
+    angle_log: Path | None = None
+    notes: tuple[str, ...] = ()
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_views(self) -> int:
+        return len(self.projections)
+
+
+@dataclass(frozen=True)
+class _Format:
+    name: str
+    detect: Callable[[Path], bool]
+    open: Callable[[Path], ScanFiles]
+    description: str
+
+
+#: The formats :func:`open_scan` tries, in order: name -> (detect, open, description).
+FORMATS: dict[str, _Format] = {}
+
+
+def register_format(name: str, detect: Callable[[Path], bool], open: Callable[[Path], ScanFiles],
+                    description: str) -> None:
+    """Add a format :func:`open_scan` recognises (the built-in ones register on import)."""
+    FORMATS[name] = _Format(name, detect, open, description)
+
+
+def _load_builtin_formats() -> None:
+    # The format modules register themselves; imported here so that open_scan knows them all.
+    import importlib
+
+    for module in ("scan_folder", "nikon", "zeiss", "bruker", "waygate", "tiff_stack"):
+        try:
+            importlib.import_module(f"ctpipe.io.{module}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"ctpipe.io.{module}":
+                raise
+
+
+def open_scan(path: str | Path) -> ScanFiles:
+    """Open the scan at ``path`` in whichever supported format it is (see :data:`FORMATS`).
+
+    Raises
+    ------
+    InputError
+        ``path`` does not exist, or no format recognises it (the message lists the formats), or
+        the format's files are inconsistent.
+    ConfigError
+        A format's settings file is malformed.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file or folder")
+    _load_builtin_formats()
+    for fmt in FORMATS.values():
+        if fmt.detect(path):
+            return fmt.open(path)
+    known = "; ".join(f"{f.name}: {f.description}" for f in FORMATS.values())
+    raise InputError(f"{path}: not a scan in any format ctpipe reads ({known})")

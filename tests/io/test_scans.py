@@ -1,0 +1,66 @@
+"""Opening scans lazily: a view read through ViewStack is bitwise the view of the stack read whole."""
+
+import numpy as np
+import pytest
+
+from ctpipe.errors import InputError
+from ctpipe.io import ViewStack, open_scan, read_scan
+from ctpipe.pipeline import Pipeline
+
+from conftest import FAST_PIPELINE, estimate_angles, write_reference
+
+
+def test_a_scan_folder_opened_lazily_reads_the_views_read_scan_reads(raw_scan, tmp_path):
+    folder = write_reference(tmp_path / "scan", raw_scan, raw_scan.intensities, flats=raw_scan.flats,
+                             darks=raw_scan.darks)
+    whole, lazy = read_scan(folder), open_scan(folder)
+    assert lazy.format == "ctpipe" and lazy.geometry == whole.geometry
+    assert lazy.projections.shape == whole.projections.shape
+    np.testing.assert_array_equal(lazy.nominal_angles_deg, whole.nominal_angles_deg)
+    np.testing.assert_array_equal(lazy.true_angles_deg, whole.true_angles_deg)
+    for view in (0, 17, -1):
+        np.testing.assert_array_equal(lazy.projections[view], whole.projections[view])
+    np.testing.assert_array_equal(np.asarray(lazy.projections), whole.projections)
+
+
+def test_the_pipeline_gives_the_same_angles_on_a_view_stack_as_on_the_array(raw_scan, tmp_path):
+    folder = write_reference(tmp_path / "scan", raw_scan, raw_scan.intensities, flats=raw_scan.flats,
+                             darks=raw_scan.darks)
+    whole, lazy = read_scan(folder), open_scan(folder)
+    pipeline = Pipeline.from_config(FAST_PIPELINE)
+    on_array = pipeline.run(whole.projections, whole.geometry, nominal_angles_deg=whole.nominal_angles_deg)
+    on_stack = pipeline.run(lazy.projections, lazy.geometry, nominal_angles_deg=lazy.nominal_angles_deg)
+    np.testing.assert_array_equal(on_stack.angles_deg, on_array.angles_deg)
+
+
+def test_cli_estimate_on_a_scan_folder_scores_against_its_true_angles(raw_scan, tmp_path, capsys):
+    folder = write_reference(tmp_path / "scan", raw_scan, raw_scan.intensities, flats=raw_scan.flats,
+                             darks=raw_scan.darks)
+    angles = estimate_angles(folder, tmp_path, capsys)
+    truth = raw_scan.true_deg - raw_scan.true_deg[0]
+    errors = angles - truth
+    assert np.abs(errors - np.median(errors)).max() < 0.2
+
+
+def test_view_stack_says_what_is_wrong():
+    read = lambda i: np.ones((4, 5), np.uint16)  # noqa: E731
+    with pytest.raises(InputError, match="flat fields or a positive white level"):
+        ViewStack(read, 3, (4, 5), values="intensities")
+    with pytest.raises(InputError, match="dark >= flat"):
+        ViewStack(read, 3, (4, 5), values="intensities", flats=np.zeros((4, 5)), darks=np.ones((4, 5)))
+    stack = ViewStack(read, 3, (4, 6), values="intensities", white_level=100.0, name="scanX")
+    with pytest.raises(InputError, match=r"scanX: view 0 has shape \(4, 5\), the others \(4, 6\)"):
+        stack[0]
+    with pytest.raises(InputError, match="view 3 out of range: the scan has 3 views"):
+        ViewStack(read, 3, (4, 5))[3]
+    nan = ViewStack(lambda i: np.full((4, 5), np.nan, np.float32), 2, (4, 5), name="scanY")
+    with pytest.raises(InputError, match="scanY: view 1"):
+        nan[1]
+
+
+def test_open_scan_lists_the_formats_it_knows(tmp_path):
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(InputError, match="not a scan in any format ctpipe reads.*ctpipe: a folder with scan.yaml"):
+        open_scan(tmp_path)
+    with pytest.raises(InputError, match="no such file or folder"):
+        open_scan(tmp_path / "nope")
