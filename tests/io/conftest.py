@@ -48,9 +48,14 @@ class RawScan:
 
 @pytest.fixture(scope="session")
 def raw_scan() -> RawScan:
+    return simulate_raw_scan()
+
+
+def simulate_raw_scan(phantom: str = "bead-cylinder", **spec_changes) -> RawScan:
+    """The acquisition of :func:`raw_scan`, with top-level scan-spec keys replaced by ``spec_changes``."""
     from ctpipe.sim import load_phantom, parse_scan_spec, simulate
 
-    spec = parse_scan_spec({
+    spec = {
         "geometry": {"source_to_object_mm": 130.0, "source_to_detector_mm": 300.0, "detector_cols": 128,
                      "detector_rows": 96, "pixel_pitch_u_mm": 1.6, "pixel_pitch_v_mm": 1.6,
                      "u0_px": 66.25, "v0_px": 45.5},
@@ -59,8 +64,9 @@ def raw_scan() -> RawScan:
         "noise": {"photons_per_pixel": 20000, "flat_frames": 4, "dark_frames": 2, "dark_counts": 100},
         "projector": {"kind": "analytic", "supersample": 1, "blur_px": 0.5},
         "seed": 5,
-    })
-    scan = simulate(load_phantom("bead-cylinder"), spec, rng=np.random.default_rng(5))
+    }
+    spec = parse_scan_spec({**spec, **spec_changes})
+    scan = simulate(load_phantom(phantom), spec, rng=np.random.default_rng(5))
     as_counts = lambda a: np.round(a).astype(np.uint16)  # noqa: E731 (Poisson counts are integers already)
     return RawScan(spec.geometry, scan.nominal_angles_deg, scan.true_angles_deg, as_counts(scan.intensities),
                    as_counts(scan.flats), as_counts(scan.darks))
