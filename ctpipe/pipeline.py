@@ -26,6 +26,9 @@ from ctpipe.stages import Detector, Estimator, Matcher, Refiner
 
 __all__ = ["Pipeline", "ScanResult", "consecutive_pairs"]
 
+#: Most memory the static background's median may take: 90 views of 512^2, 32 of 2,048^2.
+_BACKGROUND_BYTES = 512 * 2**20
+
 
 def consecutive_pairs(n_views: int, baselines: tuple[int, ...] = (1,)) -> np.ndarray:
     """View pairs ``(i, i + k)`` for every baseline ``k``, shape (P, 2)."""
@@ -238,7 +241,8 @@ class Pipeline:
     def _background(self, projections: np.ndarray, nominal: np.ndarray | None) -> np.ndarray | None:
         """The static part of the scan to remove before detection, or None (see ``static_background``).
 
-        The per-pixel median over (up to 90 evenly spread) views: what every view shares, i.e.
+        The per-pixel median over (up to 90, and at most ``_BACKGROUND_BYTES`` of) evenly spread
+        views, read one at a time when the projections are a ViewStack: what every view shares, i.e.
         the rotationally symmetric part of the object (container, matrix, detector pattern).
         Features sitting on that static profile are localised a few percent short of their
         motion, which biases every pair angle low (docs/wholescan.md). ``auto`` removes it when
@@ -253,7 +257,10 @@ class Pipeline:
             step = float(np.median(np.abs(np.diff(nominal))))
             if float(np.ptp(nominal)) + step < 180.0:
                 return None
-        views = np.unique(np.linspace(0, len(projections) - 1, min(len(projections), 90)).round().astype(int))
+        # Up to 90 views, fewer on a detector so large that 90 would take more than _BACKGROUND_BYTES.
+        rows, cols = projections.shape[1:]
+        count = int(min(len(projections), 90, max(16, _BACKGROUND_BYTES // (rows * cols * 4))))
+        views = np.unique(np.linspace(0, len(projections) - 1, count).round().astype(int))
         return np.median(np.asarray(projections[views], dtype=np.float32), axis=0)
 
 

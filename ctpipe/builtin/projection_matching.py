@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Literal
@@ -10,7 +11,8 @@ import numpy as np
 
 from ctpipe.data import ScanObservations, ScanSolution
 from ctpipe.hookspecs import hookimpl
-from ctpipe.recon.feldkamp import FILTERS
+from ctpipe.geometry import Geometry
+from ctpipe.recon.feldkamp import FILTERS, bin_detector
 from ctpipe.solve.reprojection import consistency_costs, matching_levels, projection_matching
 from ctpipe.stages import Refiner, param
 
@@ -41,6 +43,20 @@ def _fill(angles_deg: np.ndarray, nominal_deg: np.ndarray | None) -> tuple[np.nd
         return np.where(missing, nominal_deg + offset, angles_deg), int(missing.sum())
     views = np.arange(len(angles_deg))
     return np.interp(views, views[~missing], angles_deg[~missing]), int(missing.sum())
+
+
+def _binned_views(projections, geometry: Geometry, factor: int) -> tuple[np.ndarray, Geometry]:
+    """The projections binned by ``factor``, read and binned one view at a time.
+
+    A :class:`~ctpipe.io.scans.ViewStack` is never held whole: only the binned copy is, which at
+    the default levels is at most 256^2 pixels a view whatever the detector size.
+    """
+    rows, cols = geometry.shape
+    binned_geometry = bin_detector(np.zeros((1, rows, cols), np.float32), geometry, factor)[1]
+    out = np.empty((len(projections), binned_geometry.detector_rows, binned_geometry.detector_cols), np.float32)
+    for index in range(len(projections)):
+        out[index] = bin_detector(np.asarray(projections[index], dtype=np.float32)[None], geometry, factor)[0][0]
+    return out, binned_geometry
 
 
 @dataclass(frozen=True)
@@ -111,6 +127,10 @@ class ProjectionMatchingRefiner(Refiner):
         if nominal is not None:
             start_deg = start_deg + float(np.median(nominal - start_deg))
         begin = time.perf_counter()
+        # Bin once by what every level shares, view by view: the levels then bin that copy further.
+        prebin = math.gcd(*(b for b, _ in levels))
+        projections, geometry = _binned_views(projections, observations.geometry, prebin)
+        levels = [(b // prebin, n) for b, n in levels]
         band = (self.band_low_px, self.band_high_px)
         costs = {}
         candidates = {"start": start_deg}
@@ -118,7 +138,7 @@ class ProjectionMatchingRefiner(Refiner):
             candidates["nominal"] = np.asarray(nominal, dtype=np.float64)
         def cost_the_rest() -> None:
             """Consistency cost of every candidate not costed yet, in one reconstruct-and-reproject pass."""
-            costs.update(consistency_costs(projections, observations.geometry,
+            costs.update(consistency_costs(projections, geometry,
                                            {name: a for name, a in candidates.items() if name not in costs},
                                            binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
                                            filter=self.filter))
@@ -128,11 +148,12 @@ class ProjectionMatchingRefiner(Refiner):
             # astray (too few features, a degenerate object) must not be the one refined.
             cost_the_rest()
         origin = min(candidates, key=lambda name: (costs.get(name, 0.0), name != "start"))
-        result = projection_matching(projections, observations.geometry, candidates[origin],
+        result = projection_matching(projections, geometry, candidates[origin],
                                      binning=[b for b, _ in levels], iterations=[n for _, n in levels], band_px=band,
                                      max_voxels=self.max_voxels, filter=self.filter, max_step_deg=self.max_step_deg)
-        info["matching"] = {"from": origin, "levels": [{"binning": b, "iterations": n} for b, n in levels],
-                            "history": list(result.history), "stopped": result.stopped}
+        info["matching"] = {"from": origin, "levels": [{"binning": b * prebin, "iterations": n} for b, n in levels],
+                            "history": [{**h, "binning": h["binning"] * prebin} for h in result.history],
+                            "stopped": result.stopped}
         chosen, angles = "matched", result.angles_deg
         if self.select:
             candidates["matched"] = result.angles_deg

@@ -66,3 +66,23 @@ def test_open_scan_lists_the_formats_it_knows(tmp_path):
         open_scan(tmp_path)
     with pytest.raises(InputError, match="no such file or folder"):
         open_scan(tmp_path / "nope")
+
+
+def test_projection_matching_on_a_view_stack_never_reads_the_stack_whole(raw_scan, tmp_path, monkeypatch):
+    folder = write_reference(tmp_path / "scan", raw_scan, raw_scan.intensities, flats=raw_scan.flats,
+                             darks=raw_scan.darks)
+    whole, lazy = read_scan(folder), open_scan(folder)
+    config = {**FAST_PIPELINE, "refiner": {"name": "projection-matching", "level_px": [24, 48],
+                                           "iterations": [2, 1], "max_voxels": 48}}
+    on_array = Pipeline.from_config(config).run(whole.projections, whole.geometry,
+                                                nominal_angles_deg=whole.nominal_angles_deg)
+
+    def whole_stack(*args, **kwargs):
+        raise AssertionError("the whole stack was read into memory")
+
+    monkeypatch.setattr(ViewStack, "__array__", whole_stack)
+    on_stack = Pipeline.from_config(config).run(lazy.projections, lazy.geometry,
+                                                nominal_angles_deg=lazy.nominal_angles_deg)
+    np.testing.assert_array_equal(on_stack.angles_deg, on_array.angles_deg)
+    # The levels are reported at the detector's own scale (binned 4 then 2), not the shared pre-binning.
+    assert [level["binning"] for level in on_stack.refiner_info["matching"]["levels"]] == [4, 2]
