@@ -18,8 +18,10 @@ from ctpipe.io.outputs import (atomic_write, check_output_dir, check_output_file
 from ctpipe.io.scan_folder import (SCAN_FORMAT, VALUE_KINDS, Scan, check_scan_folder_free, open_scan_folder, read_scan,
                                    write_scan)
 from ctpipe.io.scans import FORMATS, ScanFiles, ViewStack, check_angles, open_scan, register_format
+from ctpipe.io.tiff_stack import open_tiff_stack
 
 __all__ = ["open_scan", "ScanFiles", "ViewStack", "FORMATS", "register_format", "check_angles", "open_scan_folder",
+           "open_tiff_stack",
            "Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS",
            "read_projections", "read_image", "read_array", "log_transform", "MAX_DEAD_FRACTION", "atomic_write",
            "write_files", "staged_folder", "write_json", "write_csv", "json_bytes", "csv_bytes", "to_jsonable",
