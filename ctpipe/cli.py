@@ -54,7 +54,7 @@ def _cmd_plugins(args) -> int:
 def _cmd_estimate(args) -> int:
     from ctpipe.config import load_geometry, load_yaml, parse_pipeline
     from ctpipe.io.arrays import read_projections
-    from ctpipe.io.outputs import check_output_dir, csv_bytes, json_bytes, to_jsonable, write_files
+    from ctpipe.io.outputs import check_output_dir, to_jsonable, write_files
     from ctpipe.pipeline import Pipeline
 
     if args.out is not None:
@@ -62,7 +62,7 @@ def _cmd_estimate(args) -> int:
     registry = _registry(args)
     config = parse_pipeline(load_yaml(args.pipeline) if args.pipeline else None, registry)
     source = Path(args.projections)
-    truth = nominal = None
+    truth = nominal = scan = None
     if not source.exists():
         raise InputError(f"{source}: no such file or scan folder")
     if source.is_dir() or source.suffix.lower() in (".txrm", ".txm"):
@@ -81,8 +81,54 @@ def _cmd_estimate(args) -> int:
     pipeline = Pipeline.from_config(config, registry=registry)
     with _progress(len(projections), "views", quiet=args.json) as advance:
         result = pipeline.run(projections, geometry, nominal_angles_deg=nominal, progress=advance)
-    report = {"pipeline": config.to_dict(), "geometry": geometry.to_dict(), **result.to_dict()}
-    header, columns = ["view", "angle_deg", "n_keypoints"], [result.angles_deg, result.n_keypoints]
+    report, columns = _estimate_report(config, geometry, result, scan, nominal, truth)
+    files = _estimate_files(Path(args.out), report, columns, geometry, result, scan) if args.out is not None else {}
+    if files:
+        write_files(files)
+    if args.json:
+        print(json.dumps(to_jsonable(report), indent=2))
+    else:
+        print(_estimate_summary(report, result, scan, source, sorted(path.name for path in files)))
+        failed = [s for s in result.pair_status if s != "ok"]
+        if failed:
+            print(f"warning: {len(failed)} pairs failed, e.g. {failed[0]}", file=sys.stderr)
+    return 0
+
+
+def _difference_table(estimated: np.ndarray, reference: np.ndarray) -> dict:
+    """Estimated minus reference after their median offset: RMS, max and where."""
+    difference = estimated - reference
+    finite = np.isfinite(difference)
+    if not finite.any():
+        return {"views": 0}
+    difference = difference - float(np.median(difference[finite]))
+    worst = int(np.nanargmax(np.abs(difference)))
+    return {"views": int(finite.sum()), "rms_deg": float(np.sqrt(np.mean(difference[finite] ** 2))),
+            "max_deg": float(abs(difference[worst])), "worst_view": worst}
+
+
+def _estimate_report(config, geometry, result, scan, nominal, truth) -> tuple[dict, dict]:
+    """The report ``--json`` prints and result.json holds, and the per-view columns of angles.csv."""
+    from ctpipe.io.corrected import scanner_frame_deg
+
+    estimated = scanner_frame_deg(result.angles_deg, nominal)
+    report = {"pipeline": config.to_dict(), "geometry": geometry.to_dict(), **result.to_dict(),
+              "estimated_deg": estimated}
+    columns = {"angle_deg": estimated, "n_keypoints": result.n_keypoints}
+    if scan is not None:
+        report["scan"] = {"format": scan.format, "path": str(scan.path), "notes": list(scan.notes),
+                          "angle_log": None if scan.angle_log is None else str(scan.angle_log)}
+    if nominal is not None:
+        report["nominal_deg"] = nominal
+        report["against_nominal"] = _difference_table(estimated, nominal)
+        columns["nominal_deg"] = nominal
+        columns["estimated_minus_nominal_deg"] = estimated - nominal
+    recorded = None if scan is None else scan.recorded_angles_deg
+    if recorded is not None:
+        report["recorded_deg"] = recorded
+        report["against_recorded"] = _difference_table(estimated, recorded)
+        columns["recorded_deg"] = recorded
+        columns["estimated_minus_recorded_deg"] = estimated - recorded
     if truth is not None:
         from ctpipe.evaluate.scoring import error_table, pair_errors_deg, view_errors_deg
 
@@ -91,27 +137,86 @@ def _cmd_estimate(args) -> int:
             "views": error_table(errors),
             "pairs": error_table(pair_errors_deg(result.pairs, result.pair_angles_deg, truth)),
         }
-        header, columns = header + ["true_deg", "error_deg"], columns + [truth - truth[0], errors]
-    if args.out is not None:
-        out = Path(args.out)
-        angles_csv = csv_bytes(header, [[v, *row] for v, row in enumerate(zip(*columns))])
-        result_json = json_bytes(report)
-        write_files({out / "angles.csv": lambda h: h.write(angles_csv), out / "result.json": lambda h: h.write(result_json)})
-    if args.json:
-        print(json.dumps(to_jsonable(report), indent=2))
-    else:
-        failed = [s for s in result.pair_status if s != "ok"]
-        print(f"{len(result.pairs) - len(failed)}/{len(result.pairs)} pairs estimated, "
-              f"median {np.median(result.n_inliers):.0f} inliers of {np.median(result.n_matches):.0f} matches")
-        for view, angle in enumerate(result.angles_deg):
-            print(f"view {view:5d}  {angle:12.5f} deg")
-        if truth is not None:
-            table = report["angle_errors"]["views"]
-            print(f"against the true angles in scan.yaml: RMS {table['rms_deg']:.4f} deg, MAE {table['mae_deg']:.4f} deg, "
-                  f"max {table['max_deg']:.4f} deg ({table['estimated']}/{table['total']} views)")
-        if failed:
-            print(f"warning: {len(failed)} pairs failed, e.g. {failed[0]}", file=sys.stderr)
-    return 0
+        columns["true_deg"] = truth
+        columns["error_deg"] = errors
+    return report, columns
+
+
+def _estimate_files(out: Path, report: dict, columns: dict, geometry, result, scan) -> dict:
+    """What ``ctpipe estimate --out`` writes, as {path: writer} for one atomic write_files call."""
+    import dataclasses
+
+    from ctpipe.evaluate.report import angle_errors_png
+    from ctpipe.io.corrected import CONE_VECTOR_COLUMNS, cone_vectors
+    from ctpipe.io.outputs import csv_bytes, json_bytes
+
+    info = result.refiner_info
+    corrected = dataclasses.replace(geometry, **{k: float(info[k]) for k in ("u0_px", "v0_px") if k in info})
+    vectors = cone_vectors(corrected, report["estimated_deg"], tilt_deg=float(info.get("tilt_deg", 0.0)))
+    blobs = {
+        "angles.csv": csv_bytes(["view", *columns], [[v, *row] for v, row in enumerate(zip(*columns.values()))]),
+        "result.json": json_bytes(report),
+        "geometry_vectors.csv": csv_bytes(["view", *CONE_VECTOR_COLUMNS], [[v, *row] for v, row in enumerate(vectors)]),
+    }
+    curves = {name.replace("_", " "): columns[name] for name in ("estimated_minus_nominal_deg",
+                                                                  "estimated_minus_recorded_deg") if name in columns}
+    if "error_deg" in columns:
+        curves["estimated minus true"] = columns["error_deg"]
+    if curves:
+        title = f"{scan.format} scan {scan.path.name}" if scan is not None else ""
+        blobs["angles.png"] = angle_errors_png({k[:-4] if k.endswith(" deg") else k: v for k, v in curves.items()},
+                                               title, ylabel="difference (deg), median offset removed")
+    writer = None if scan is None else _angle_log_writer(scan.format)
+    if writer is not None and scan.angle_log is not None:
+        blobs[scan.angle_log.name] = writer(report["estimated_deg"])
+    return {out / name: (lambda blob: lambda handle: handle.write(blob))(blob) for name, blob in blobs.items()}
+
+
+def _angle_log_writer(format_name: str):
+    from ctpipe.io.scans import FORMATS
+
+    fmt = FORMATS.get(format_name)
+    return None if fmt is None else fmt.angle_log_bytes
+
+
+def _estimate_summary(report: dict, result, scan, source: Path, written: list[str]) -> str:
+    """One screen: what was read, how the estimate went, how far it is from the nominal and logged angles."""
+    g = report["geometry"]
+    lines = []
+    what = f"{scan.format} scan" if scan is not None else "projections"
+    lines.append(f"{what} {source}: {len(result.angles_deg)} views of {g['detector_rows']} x {g['detector_cols']} "
+                 f"px, SOD {g['source_to_object_mm']:g} mm, SDD {g['source_to_detector_mm']:g} mm")
+    for note in ([] if scan is None else scan.notes):
+        lines.append(f"  note: {note}")
+    stages = report["pipeline"]
+    lines.append("pipeline: " + " -> ".join(stages[k]["name"] for k in ("detector", "matcher", "estimator", "refiner")))
+    failed = sum(s != "ok" for s in result.pair_status)
+    lines.append(f"pairs: {len(result.pairs) - failed}/{len(result.pairs)} estimated, median "
+                 f"{np.median(result.n_inliers):.0f} inliers of {np.median(result.n_matches):.0f} matches; "
+                 f"{int(np.isfinite(result.angles_deg).sum())}/{len(result.angles_deg)} views have an angle")
+    matching = result.refiner_info.get("matching")
+    if isinstance(matching, dict):
+        lines.append(f"refiner: projection matching from the {matching.get('from')} angles, kept the "
+                     f"{result.refiner_info.get('chosen', 'matched')} ones")
+    for key, label in (("against_nominal", "nominal angles"), ("against_recorded", "scanner's angle log")):
+        table = report.get(key)
+        if table and table.get("views"):
+            lines.append(f"estimated minus {label}: RMS {table['rms_deg']:.4f} deg, max {table['max_deg']:.4f} deg "
+                         f"(view {table['worst_view']}), median offset removed")
+    if "angle_errors" in report:
+        table = report["angle_errors"]["views"]
+        lines.append(f"against the true angles: RMS {table['rms_deg']:.4f} deg, MAE {table['mae_deg']:.4f} deg, "
+                     f"max {table['max_deg']:.4f} deg ({table['estimated']}/{table['total']} views)")
+    info = result.refiner_info
+    if any(k in info for k in ("u0_px", "tilt_deg")):
+        lines.append(f"geometry: u0 {info.get('u0_px', g['u0_px']):.3f} px (was {g['u0_px']:.3f}), v0 "
+                     f"{info.get('v0_px', g['v0_px']):.3f} px, detector tilt {info.get('tilt_deg', 0.0):.4f} deg")
+    estimated = report["estimated_deg"]
+    lines.append(f"estimated angles: {estimated[0]:.4f} .. {estimated[-1]:.4f} deg "
+                 f"(in the nominal angles' frame{'' if 'nominal_deg' in report else ': relative to view 0'})")
+    if written:
+        lines.append("written: " + ", ".join(written))
+    return "\n".join(lines)
 
 
 def _cmd_detect(args) -> int:

@@ -156,7 +156,8 @@ def slices_png(volumes: dict[str, np.ndarray], reference: np.ndarray, *, axial_i
     return _figure_png(fig)
 
 
-def angle_errors_png(view_errors_deg: dict[str, np.ndarray], title: str = "") -> bytes:
+def angle_errors_png(view_errors_deg: dict[str, np.ndarray], title: str = "", *,
+                     ylabel: str = "angle error (deg), common offset removed") -> bytes:
     """Per-view angle error (degrees) of each angle set against the truth, one line each (NaN: a gap)."""
     plt = _pyplot()
 
@@ -169,7 +170,7 @@ def angle_errors_png(view_errors_deg: dict[str, np.ndarray], title: str = "") ->
         ax.plot(np.arange(len(errors)), errors, lw=1, label=f"{label} (RMS {rms:.3g}, MAE {mae:.3g} deg)")
     ax.axhline(0.0, color="k", lw=0.5)
     ax.set_xlabel("view")
-    ax.set_ylabel("angle error (deg), common offset removed")
+    ax.set_ylabel(ylabel)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
     if title:

@@ -200,6 +200,7 @@ class _Format:
     detect: Callable[[Path], bool]
     open: Callable[[Path], ScanFiles]
     description: str
+    angle_log_bytes: Callable[[np.ndarray], bytes] | None = None
 
 
 #: The formats :func:`open_scan` tries, in order: name -> (detect, open, description).
@@ -207,9 +208,14 @@ FORMATS: dict[str, _Format] = {}
 
 
 def register_format(name: str, detect: Callable[[Path], bool], open: Callable[[Path], ScanFiles],
-                    description: str) -> None:
-    """Add a format :func:`open_scan` recognises (the built-in ones register on import)."""
-    FORMATS[name] = _Format(name, detect, open, description)
+                    description: str, *, angle_log_bytes: Callable[[np.ndarray], bytes] | None = None) -> None:
+    """Add a format :func:`open_scan` recognises (the built-in ones register on import).
+
+    ``angle_log_bytes(angles_deg)``, for formats whose scanner keeps a per-view angle file, gives
+    that file's contents for ctpipe-convention angles, so corrected angles go back in the
+    scanner's own file format.
+    """
+    FORMATS[name] = _Format(name, detect, open, description, angle_log_bytes)
 
 
 def _load_builtin_formats() -> None:

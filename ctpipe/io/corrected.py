@@ -1,0 +1,94 @@
+"""Corrected angles and geometry back out, in forms the user's reconstructor reads.
+
+The pipeline's angles are relative to view 0; a reconstructor wants them in the scanner's own
+frame, where the volume sits as the nominal angles put it. :func:`scanner_frame_deg` moves them
+there (the common offset that makes estimated minus nominal zero in the median).
+
+:func:`cone_vectors` gives the per-view vector geometry of ASTRA's ``cone_vec`` (and of any
+reconstructor that takes a source, a detector centre and the detector's row and column vectors
+per view, as TIGRE's and CIL's vector geometries do): it carries the angle and, when bundle
+adjustment estimated them, the centre of rotation (``u0_px``), ``v0_px`` and the detector tilt.
+
+Frame of the vectors
+--------------------
+ASTRA's frame has ``z`` vertical (the rotation axis) and ``x, y`` horizontal; ctpipe's object
+frame (:mod:`ctpipe.recon.volume`) has ``y`` along the rotation axis pointing the way detector
+rows increase (down the image) and ``z`` from the source towards the detector at angle 0. A
+ctpipe object point ``(x, y, z)`` is the ASTRA point ``(x, z, -y)`` (a proper rotation, so
+nothing is mirrored). Per view, with ``R`` the turntable rotation of
+:func:`ctpipe.model.rotation_matrix` and the detector map of :mod:`ctpipe.solve.camera`::
+
+    source       S = R^T (0, 0, -SOD)
+    column step  u = R^T ( cos(tilt) pitch_u, -sin(tilt) pitch_u, 0)
+    row step     v = R^T ( sin(tilt) pitch_v,  cos(tilt) pitch_v, 0)
+    centre       d = R^T (0, 0, SDD - SOD) + (c_col - u0) u + (c_row - v0) v
+
+with ``(c_col, c_row) = ((cols - 1) / 2, (rows - 1) / 2)`` the detector's centre pixel, then
+each mapped to ASTRA's frame. ASTRA's ``u`` runs from pixel (row 0, col 0) to (row 0, col 1) and
+``v`` from (row 0, col 0) to (row 1, col 0), as here; the projections go to ASTRA as
+``(rows, views, cols)``. ``tests/io/test_corrected.py`` checks that these vectors put every
+point on the pixel ctpipe's camera model does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ctpipe.geometry import Geometry
+from ctpipe.model import rotation_matrix
+
+__all__ = ["scanner_frame_deg", "cone_vectors", "CONE_VECTOR_COLUMNS", "TO_ASTRA"]
+
+#: Column names of :func:`cone_vectors`' rows (ASTRA's ``cone_vec`` order).
+CONE_VECTOR_COLUMNS = ("src_x", "src_y", "src_z", "d_x", "d_y", "d_z", "u_x", "u_y", "u_z", "v_x", "v_y", "v_z")
+
+#: ctpipe object frame -> ASTRA frame: (x, y, z) -> (x, z, -y).
+TO_ASTRA = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def scanner_frame_deg(angles_deg, nominal_deg) -> np.ndarray:
+    """Angles relative to view 0 moved into the nominal angles' frame (median offset of the views with both).
+
+    Without nominal angles (None) the angles are returned as they are.
+    """
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    if nominal_deg is None:
+        return angles.copy()
+    nominal = np.asarray(nominal_deg, dtype=np.float64)
+    both = np.isfinite(angles) & np.isfinite(nominal)
+    return angles + (float(np.median(nominal[both] - angles[both])) if both.any() else 0.0)
+
+
+def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0) -> np.ndarray:
+    """ASTRA ``cone_vec`` rows, one per view: source, detector centre, column step, row step (mm).
+
+    Parameters
+    ----------
+    geometry : Geometry
+        With the principal point (centre of rotation) to use.
+    angles_deg : array_like of shape (V,)
+        Turntable angles in ctpipe's convention.
+    tilt_deg : float
+        In-plane detector tilt, as bundle adjustment reports it.
+
+    Returns
+    -------
+    ndarray of shape (V, 12)
+        Columns :data:`CONE_VECTOR_COLUMNS`, in ASTRA's frame (see the module docstring).
+    """
+    g = geometry
+    tilt = np.deg2rad(float(tilt_deg))
+    ct, st = np.cos(tilt), np.sin(tilt)
+    u_cam = np.array([ct * g.pixel_pitch_u_mm, -st * g.pixel_pitch_u_mm, 0.0])
+    v_cam = np.array([st * g.pixel_pitch_v_mm, ct * g.pixel_pitch_v_mm, 0.0])
+    centre_cam = (np.array([0.0, 0.0, g.source_to_detector_mm])
+                  + ((g.detector_cols - 1) / 2.0 - g.u0_px) * u_cam + ((g.detector_rows - 1) / 2.0 - g.v0_px) * v_cam)
+    shift = np.array([0.0, 0.0, g.source_to_object_mm])
+    rows = []
+    for angle in np.deg2rad(np.asarray(angles_deg, dtype=np.float64)):
+        to_object = rotation_matrix(angle).T
+        source = to_object @ (-shift)
+        centre = to_object @ (centre_cam - shift)
+        rows.append(np.concatenate([TO_ASTRA @ source, TO_ASTRA @ centre, TO_ASTRA @ (to_object @ u_cam),
+                                    TO_ASTRA @ (to_object @ v_cam)]))
+    return np.array(rows).reshape(-1, 12)
