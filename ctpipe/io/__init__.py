@@ -6,11 +6,13 @@ corrected one view at a time. :mod:`~ctpipe.io.scan_folder` reads and writes ctp
 one TIFF per frame), the format of simulated scans and of real ones given a ``scan.yaml``;
 :mod:`~ctpipe.io.arrays` reads projection stacks and images from ``.npy``, TIFF and PNG with a
 one-line error for anything else; :mod:`~ctpipe.io.flatfield` turns raw counts, flats and darks
-into line integrals; :mod:`~ctpipe.io.outputs` writes files and folders atomically (staged,
+into line integrals; :mod:`~ctpipe.io.corrected` hands corrected angles and per-view vector
+geometry back to the user's reconstructor; :mod:`~ctpipe.io.outputs` writes files and folders atomically (staged,
 then renamed into place) and checks output paths before any work starts.
 """
 
 from ctpipe.io.arrays import read_array, read_image, read_projections
+from ctpipe.io.corrected import CONE_VECTOR_COLUMNS, TO_ASTRA, cone_vectors, scanner_frame_deg
 from ctpipe.io.flatfield import MAX_DEAD_FRACTION, log_transform
 from ctpipe.io.outputs import (atomic_write, check_output_dir, check_output_file, csv_bytes, json_bytes,
                                keypoints_writer, staged_folder, to_jsonable, write_csv, write_files, write_json,
@@ -20,7 +22,7 @@ from ctpipe.io.scan_folder import (SCAN_FORMAT, VALUE_KINDS, Scan, check_scan_fo
 from ctpipe.io.scans import FORMATS, ScanFiles, ViewStack, check_angles, open_scan, register_format
 from ctpipe.io.tiff_stack import open_tiff_stack
 
-__all__ = ["open_scan", "ScanFiles", "ViewStack", "FORMATS", "register_format", "check_angles", "open_scan_folder",
+__all__ = ["cone_vectors", "scanner_frame_deg", "CONE_VECTOR_COLUMNS", "TO_ASTRA", "open_scan", "ScanFiles", "ViewStack", "FORMATS", "register_format", "check_angles", "open_scan_folder",
            "open_tiff_stack",
            "Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS",
            "read_projections", "read_image", "read_array", "log_transform", "MAX_DEAD_FRACTION", "atomic_write",
