@@ -1,0 +1,687 @@
+"""GE / Waygate Technologies phoenix scans (datos|x acquisition): a ``.pca`` settings file beside one TIFF per view.
+
+Files
+-----
+A scan folder as datos|x 2 acquisition leaves it, ``<name>`` being the scan's name (the stem of
+its ``.pca``)::
+
+    <name>.pca                    settings, INI text: [Geometry], [CT], [Image], [Detector], ...
+    <name>00001.tif ...           the projections, numbered from 1 with (at least) 5 digits, one
+                                  16-bit image of [Image] DimY rows x DimX columns each
+    <name>.pcp                    acquisition protocol: a title line, then one tab-separated row
+                                  per image: ImgNr RotPos U I MeanGV DevGV Dose Use CValue XDShift Time
+    <name>.pcj                    per-image axis positions (XS YS ZS RS XD ...); not read
+    <name>_bright_<kV>kV_<uA>uA_<ms>ms_1Det.tif, <name>_Dark_<ms>.tif
+                                  the gain and offset images of [CalibImages]; not read (see below)
+    <name>.pcr                    reconstruction settings, written later by datos|x rec; not read
+
+A full turn ([CT] RotationSector = 360) has NumberImages + 1 images: the last one, at
+RotPos = 360, repeats the first. Only images 1 .. NumberImages are the scan's views, as in
+datos|x rec's own ``.pcr`` (StartImage=1, LastImage=NumberImages).
+
+Keys read, and what they become
+-------------------------------
+========================  ======================  =============================================
+key (section, name)       ctpipe                  unit and conversion
+========================  ======================  =============================================
+[Geometry] FDD            source_to_detector_mm   mm (focus-detector distance)
+[Geometry] FOD            source_to_object_mm     mm (focus-object distance = source to axis)
+[Geometry] cx, cy         u0_px, v0_px            pixels of the stored image, 0-based from the
+                                                  left column and the top row (see below)
+[Detector] PixelsizeX/Y   pixel_pitch_u/v_mm      mm (checked against VoxelSizeX * FDD / FOD)
+[Image] DimX, DimY        detector_cols, _rows    pixels of the stored images
+[CT] NumberImages         number of views         images 1 .. NumberImages
+[CT] RotationSector       nominal angles          deg: view i at i * RotationSector / NumberImages
+[Image] FreeRay           white level             counts of an unattenuated pixel
+<name>.pcp RotPos         recorded_angles_deg     deg, rows ImgNr = 1 .. NumberImages, as logged
+========================  ======================  =============================================
+
+Also read, to refuse what ctpipe cannot model or to say what it leaves out: [Detector] Binning,
+[Geometry] VoxelSizeX, CalibValue, DetectorRot, Tilt, [Image] Rotation, MirrorX, MirrorY,
+[Trajectory] Active, [CT] NoRotation, [CT] Type, [DetectorShift] Enable/Amplitude and the
+``Use`` column of the ``.pcp``. Keys are matched case-insensitively, sections exactly.
+
+Conventions, and what is unclear
+--------------------------------
+* **Flat correction.** The TIFFs are taken to be corrected by datos|x acquisition with its
+  offset (dark) and (multi-point) gain (bright) images before saving, on a scale where an
+  unattenuated pixel reads about [Image] FreeRay. This is inferred, not documented: datos|x
+  rec's ``.pcr`` turns the projections into line integrals with ``FreeRay`` alone (or, with
+  ``UseFreeRayFromPCP=1``, presumably with each image's MeanGV from the ``.pcp``) and never
+  names the calibration images, which only the ``.pca`` [CalibImages] (the acquisition's own
+  settings) lists; and the ``.pcp`` MeanGV of the free-ray window ([CT] Wnd_L/T/R/B) runs at
+  the FreeRay level (3151 to 3250 in FEG230530_409, whose FreeRay is 3250). ctpipe therefore
+  applies ``-log(I / FreeRay)`` (a :class:`~ctpipe.io.scans.ViewStack` with
+  ``white_level=FreeRay``), with the one FreeRay for every view, and does not apply the
+  calibration images again.
+* **Principal point.** In every public ``.pca`` found, cx = (DimX - 1) / 2 and
+  cy = (DimY - 1) / 2 exactly, also when DimX is NrPixelsX minus the detector-shift margin: cx
+  and cy are pixels of the stored image with pixel centres at integers, as ctpipe's u0_px and
+  v0_px. Whether they count from the left/top or the right/bottom edge cannot be told from
+  centred values; ctpipe takes left/top (the image as stored), the usual image convention.
+* **Rotation-axis offset.** [Geometry] CalibValue (copied to the ``.pcr`` as CorrectionValue)
+  is the correction datos|x rec applies for the rotation axis not crossing the central ray; its
+  unit (detector pixels?) and sign are undocumented. ctpipe's axis passes through (u0, v0), and
+  the usual approximation of an axis offset of ``d`` detector pixels is ``u0 = cx + d``; since
+  neither the unit nor the sign of CalibValue is known, ctpipe does not apply it: it takes
+  u0_px = cx and says so in the scan's notes whenever CalibValue is not 0.
+* **Detector shift.** With [DetectorShift] Enable=1 the detector moves sideways between images
+  by XDShift pixels (``.pcp``; the ``.pcj`` logs the same move as XD = XDShift * PixelsizeX
+  mm). The public files have DimX = NrPixelsX - 2 Amplitude and cx = (DimX - 1) / 2, so the
+  stored images were shifted back and cropped by Amplitude columns on each side: they are
+  aligned, their geometry is DimX x DimY with cx as above, and XDShift needs no correction.
+* **Angle sign.** RotPos (``.pcp``, deg) counts up with ImgNr, RotPos = (ImgNr - 1) *
+  RotationSector / NumberImages in the public files. No public reader (CIL, dxchange, tomopy,
+  TIGRE, ODL, RTK have none for datos|x) and no vendor document says which way the turntable
+  turns seen from above relative to the stored image, so ctpipe takes RotPos with its own sign
+  (a turn of +a is +a; no negation) and says so in the notes: a real scan whose estimated
+  angles run against the nominal ones would show that datos|x counts the other way. In the
+  public logs RotPos equals the commanded position to its 3 decimals, so the ``.pcp`` may log
+  commands rather than encoder readings.
+* **Binning.** Whether PixelsizeX is the binned or the physical pixel is undocumented: with
+  [Detector] Binning = 0 ctpipe uses PixelsizeX/Y; otherwise it uses VoxelSizeX * FDD / FOD
+  (the effective pitch datos|x's own voxel size implies) and refuses the scan without VoxelSizeX.
+* **Refused:** non-circular trajectories ([Trajectory] Active=1), [CT] NoRotation=1, rotated or
+  mirrored images ([Image] Rotation, MirrorX, MirrorY not 0: whether cx and the angle log refer
+  to the image before or after the flip is undocumented), RotationSector outside (0, 360].
+* **Not modelled, said in the notes:** DetectorRot and Tilt (detector roll and tilt) when not 0,
+  images the ``.pcp`` marks Use = 0, a missing ``.pcp``.
+
+Anchors
+-------
+* xray-imaging/meta-cli, ``docs/source/demo/ge/FEG230530_409-run-files/FEG230530_409.pca``,
+  ``.pcp``, ``.pcj``, ``.pcr`` (and the 410-413 scans beside them): real datos|x 2.4.0 files of a
+  phoenix v|tome|x m. Key names and sections, the ``.pcp`` columns, ImgNr 1 .. NumberImages + 1
+  with RotPos = (ImgNr - 1) * RotationSector / NumberImages, cx = (DimX - 1) / 2,
+  DimX = NrPixelsX - 2 Amplitude, VoxelSizeX = PixelsizeX * FOD / FDD, the calibration image
+  names, and the ``.pcr`` (FreeRay, UseFreeRayFromPCP, CorrectionValue = CalibValue,
+  LastImage = NumberImages).
+* johntrue15/Rosetta, ``scripts/pca_to_json.py``: reads the ``.pca`` as INI with configparser
+  ([Geometry] FDD, FOD, VoxelSizeX, Magnification; [Detector] Binning, 0 meaning 1x1; [Image]
+  DimX, DimY; [CalibImages]); no geometry or angle conventions.
+* Two public scripts found by content in the code index (their repositories were not
+  resolved): an ODL example quoting a whole datos|x 2 ``.pca`` that reads
+  ``<name>{n:05d}.tif`` from n = 1, and a Waygate archive-replay script that reads
+  ``<name>{n:05d}.tif``, n = 1 .. 1200 of 1201, takes its angles from the ``.pcp`` RotPos column
+  in increasing order (saying its orientation was not verified) and computes
+  ``-log(I / FreeRay)``.
+* CIL (``NikonDataReader``, ``ZEISSDataReader``), dxchange and tomopy have no datos|x reader, so
+  none settles the sign.
+"""
+
+from __future__ import annotations
+
+import ast
+import configparser
+import contextlib
+import datetime
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ctpipe.errors import ConfigError, InputError
+from ctpipe.geometry import Geometry
+from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
+
+__all__ = ["detect", "open_waygate", "write_waygate", "write_waygate_angles"]
+
+#: Largest ``.pca`` read (real ones are a few kB).
+_PCA_MAX_BYTES = 4 << 20
+#: Largest ``.pcp`` read (about 90 bytes per image).
+_PCP_MAX_BYTES = 64 << 20
+#: How far into the ``.pcp`` its column header may be.
+_PCP_HEADER_LINES = 10
+_REQUIRED = object()
+
+
+def detect(path: Path) -> bool:
+    """True if ``path`` is a ``.pca`` file, or a folder holding one, that starts like an INI file."""
+    path = Path(path)
+    try:
+        if path.is_file():
+            candidates = [path] if path.suffix.lower() == ".pca" else []
+        elif path.is_dir():
+            with os.scandir(path) as entries:
+                candidates = [Path(e.path) for e in entries if e.name.lower().endswith(".pca") and e.is_file()]
+        else:
+            return False
+        return any(_starts_like_ini(file) for file in candidates)
+    except OSError:
+        return False
+
+
+def _starts_like_ini(file: Path) -> bool:
+    with open(file, "rb") as handle:
+        head = handle.read(512)
+    return head.removeprefix(b"\xef\xbb\xbf").lstrip().startswith(b"[")
+
+
+def open_waygate(path: str | Path) -> ScanFiles:
+    """Open a datos|x scan lazily: settings and angle log read, projections on demand.
+
+    Parameters
+    ----------
+    path : str or Path
+        The scan folder (holding one ``.pca``) or its ``.pca`` file.
+
+    Returns
+    -------
+    ScanFiles
+        ``format="waygate"``; the projections are corrected counts with white level
+        [Image] FreeRay; ``recorded_angles_deg`` is the ``.pcp`` RotPos column (None without a
+        ``.pcp``), with ctpipe's sign (see the module docstring).
+
+    Raises
+    ------
+    ConfigError
+        The ``.pca`` or ``.pcp`` is malformed, misses a key, or holds a value ctpipe refuses.
+    InputError
+        A projection is missing, the files disagree with [CT] NumberImages, or the geometry is
+        impossible.
+    """
+    path = Path(path)
+    pca, folder = _find_pca(path)
+    settings = _Settings(pca)
+    name = pca.stem
+    notes: list[str] = []
+
+    if settings.integer("Trajectory", "Active", 0) != 0:
+        raise ConfigError(f"{pca}: [Trajectory] Active=1: only circular scans are read; allowed: 0")
+    if settings.integer("CT", "NoRotation", 0) != 0:
+        raise ConfigError(f"{pca}: [CT] NoRotation=1: a scan without rotation has no angles to estimate; allowed: 0")
+    for key in ("Rotation", "MirrorX", "MirrorY"):
+        if settings.integer("Image", key, 0) != 0:
+            raise ConfigError(f"{pca}: [Image] {key}={settings.text('Image', key)}: rotated or mirrored images are not "
+                              f"read (whether cx/cy and the angle log refer to the image before or after it is "
+                              f"undocumented); allowed: 0")
+    n_views = settings.integer("CT", "NumberImages", minimum=1)
+    sector = settings.number("CT", "RotationSector")
+    if not 0.0 < sector <= 360.0:
+        raise ConfigError(f"{pca}: [CT] RotationSector: must be in (0, 360] degrees, got {sector!r}")
+    scan_type = settings.integer("CT", "Type", 0)
+    if scan_type != 0:
+        notes.append(f"[CT] Type={scan_type} (not the 0 of the public scans) read as a plain circular scan")
+    cols = settings.integer("Image", "DimX", minimum=1)
+    rows = settings.integer("Image", "DimY", minimum=1)
+    sdd = settings.number("Geometry", "FDD", positive=True)
+    sod = settings.number("Geometry", "FOD", positive=True)
+    cx = settings.number("Geometry", "cx")
+    cy = settings.number("Geometry", "cy")
+    pitch_u, pitch_v = _pixel_pitch(settings, sdd, sod, notes)
+    free_ray = settings.number("Image", "FreeRay", positive=True)
+    calib = settings.number("Geometry", "CalibValue", 0.0)
+    if calib != 0.0:
+        notes.append(f"[Geometry] CalibValue={calib:g} (datos|x rec's rotation-axis correction, unit and sign "
+                     f"undocumented) is not applied: u0_px is [Geometry] cx={cx:g}")
+    for key in ("DetectorRot", "Tilt"):
+        value = settings.number("Geometry", key, 0.0)
+        if value != 0.0:
+            notes.append(f"[Geometry] {key}={value:g} is not modelled (ctpipe's detector is upright and "
+                         f"perpendicular to the central ray)")
+    try:
+        geometry = Geometry(source_to_object_mm=sod, source_to_detector_mm=sdd, detector_cols=cols,
+                            detector_rows=rows, pixel_pitch_u_mm=pitch_u, pixel_pitch_v_mm=pitch_v, u0_px=cx, v0_px=cy)
+    except InputError as exc:
+        raise InputError(f"{pca}: {exc}") from None
+
+    files = _projection_files(folder, name, n_views, pca)
+    pcp = folder / f"{name}.pcp"
+    recorded = None
+    if pcp.is_file():
+        recorded, use = _read_pcp(pcp, n_views, pca)
+        unused = np.flatnonzero(use != 1)
+        if unused.size:
+            notes.append(f"{pcp.name} marks {unused.size} image(s) Use != 1 (first: ImgNr {unused[0] + 1}); "
+                         f"they are kept as views")
+        notes.append(f"{pcp.name} RotPos is read with ctpipe's sign (no negation); datos|x does not document its "
+                     f"rotation direction, so estimated angles running against the nominal ones would mean it "
+                     f"counts the other way")
+    else:
+        notes.append(f"no {pcp.name}: no per-view angle log, only the nominal angles")
+    nominal = np.arange(n_views) * (sector / n_views)
+
+    def read(index: int) -> np.ndarray:
+        from ctpipe.io.arrays import read_array
+
+        file = files[index]
+        if not file.is_file():
+            raise InputError(f"{file}: no such file (projection {index + 1} of [CT] NumberImages={n_views} in {pca})")
+        image = read_array(file, kind=".tif")
+        if image.shape != (rows, cols):
+            raise InputError(f"{file}: must be a {rows} x {cols} image ([Image] DimY x DimX in {pca}), "
+                             f"got shape {image.shape}")
+        return image
+
+    try:
+        stack = ViewStack(read, n_views, (rows, cols), values="intensities", white_level=free_ray, name=str(folder))
+    except InputError as exc:
+        raise InputError(f"{pca}: {exc}") from None
+    metadata = {"pca": str(pca), "name": name, "free_ray": free_ray, "calib_value": calib,
+                "rotation_sector_deg": sector, "settings": settings.used}
+    return ScanFiles("waygate", path, geometry, nominal, stack, recorded_angles_deg=recorded,
+                     angle_log=pcp if recorded is not None else None, notes=tuple(notes), metadata=metadata)
+
+
+def _find_pca(path: Path) -> tuple[Path, Path]:
+    """The scan's ``.pca`` and its folder, from either."""
+    if path.is_file():
+        if path.suffix.lower() != ".pca":
+            raise InputError(f"{path}: not a datos|x settings file; give the scan folder or its .pca file")
+        return path, path.parent
+    if not path.is_dir():
+        raise InputError(f"{path}: no such file or folder")
+    found = sorted(p for p in path.iterdir() if p.suffix.lower() == ".pca" and p.is_file())
+    if not found:
+        raise InputError(f"{path}: no .pca file; a datos|x scan folder holds <name>.pca beside its TIFFs")
+    if len(found) > 1:
+        raise InputError(f"{path}: holds {len(found)} .pca files ({', '.join(p.name for p in found[:4])}); "
+                         f"a datos|x scan folder holds one, so give the .pca of the scan")
+    return found[0], path
+
+
+def _read_text(path: Path, limit: int, what: str) -> str:
+    try:
+        size = path.stat().st_size
+        if size > limit:
+            raise InputError(f"{path}: {size} bytes is too large for a datos|x {what} (at most {limit})")
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        # datos|x runs on Windows and writes ANSI text (the µ of "µCT" in SystemName).
+        return data.decode("latin-1")
+
+
+class _Settings:
+    """The ``.pca``, parsed, with typed look-ups whose errors name the file, section and key."""
+
+    def __init__(self, pca: Path) -> None:
+        self.pca = pca
+        self.used: dict[str, str] = {}
+        parser = configparser.ConfigParser(interpolation=None, strict=True, delimiters=("=",),
+                                           comment_prefixes=(";", "#"), inline_comment_prefixes=None,
+                                           empty_lines_in_values=False)
+        try:
+            parser.read_string(_read_text(pca, _PCA_MAX_BYTES, "settings file"), source=str(pca))
+        except configparser.MissingSectionHeaderError as exc:
+            raise ConfigError(f"{pca}: line {exc.lineno}: {exc.line.strip()!r} comes before any [Section]; "
+                              f"not a datos|x settings file") from None
+        except configparser.ParsingError as exc:
+            lineno, line = exc.errors[0]
+            with contextlib.suppress(ValueError, SyntaxError):
+                line = ast.literal_eval(line)  # configparser keeps the repr of the line
+            raise ConfigError(f"{pca}: line {lineno}: {str(line).strip()!r} is neither [Section] nor key=value; "
+                              f"not a datos|x settings file") from None
+        except configparser.DuplicateSectionError as exc:
+            raise ConfigError(f"{pca}: line {exc.lineno}: section [{exc.section}] appears twice") from None
+        except configparser.DuplicateOptionError as exc:
+            raise ConfigError(f"{pca}: line {exc.lineno}: [{exc.section}] {exc.option} appears twice") from None
+        except configparser.Error as exc:
+            raise ConfigError(f"{pca}: not a datos|x settings file ({' '.join(str(exc).split())})") from None
+        self._parser = parser
+
+    def text(self, section: str, key: str, default=_REQUIRED) -> str | None:
+        if self._parser.has_option(section, key):
+            value = self._parser.get(section, key).strip()
+            self.used[f"[{section}] {key}"] = value
+            return value
+        if default is _REQUIRED:
+            where = f"section [{section}]" if self._parser.has_section(section) else f"no section [{section}]"
+            raise ConfigError(f"{self.pca}: [{section}] {key}: missing ({where} has no {key}=); a datos|x scan "
+                              f"needs it")
+        return default
+
+    def number(self, section: str, key: str, default=_REQUIRED, *, positive: bool = False) -> float:
+        value = self.text(section, key, None if default is not _REQUIRED else _REQUIRED)
+        if value is None:
+            return default
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not math.isfinite(number) or (positive and not number > 0):
+            allowed = "a number > 0" if positive else "a finite number"
+            raise ConfigError(f"{self.pca}: [{section}] {key}: must be {allowed}, got {value!r}")
+        return number
+
+    def integer(self, section: str, key: str, default=_REQUIRED, *, minimum: int | None = None) -> int:
+        value = self.text(section, key, None if default is not _REQUIRED else _REQUIRED)
+        if value is None:
+            return default
+        try:
+            number = int(value)
+        except ValueError:
+            raise ConfigError(f"{self.pca}: [{section}] {key}: must be an integer, got {value!r}") from None
+        if minimum is not None and number < minimum:
+            raise ConfigError(f"{self.pca}: [{section}] {key}: must be an integer >= {minimum}, got {value!r}")
+        return number
+
+
+def _pixel_pitch(settings: _Settings, sdd: float, sod: float, notes: list[str]) -> tuple[float, float]:
+    """(u, v) pixel pitch in mm of the stored images (see "Binning" in the module docstring)."""
+    pca = settings.pca
+    binning = settings.integer("Detector", "Binning", 0)
+    voxel = settings.number("Geometry", "VoxelSizeX", None, positive=True)
+    implied = None if voxel is None else voxel * sdd / sod
+    if binning != 0:
+        if implied is None:
+            raise ConfigError(f"{pca}: [Detector] Binning={binning} without [Geometry] VoxelSizeX: whether "
+                              f"[Detector] PixelsizeX is the binned pixel is undocumented; allowed: Binning=0, "
+                              f"or a VoxelSizeX to take the pitch from")
+        notes.append(f"[Detector] Binning={binning}: pixel pitch {implied:.6g} mm taken from [Geometry] VoxelSizeX "
+                     f"* FDD / FOD, not from [Detector] PixelsizeX")
+        return implied, implied
+    pitch_u = settings.number("Detector", "PixelsizeX", positive=True)
+    pitch_v = settings.number("Detector", "PixelsizeY", positive=True)
+    if implied is not None and abs(implied / pitch_u - 1.0) > 1e-3:
+        notes.append(f"[Geometry] VoxelSizeX * FDD / FOD = {implied:.6g} mm disagrees with [Detector] "
+                     f"PixelsizeX = {pitch_u:.6g} mm; PixelsizeX is used")
+    return pitch_u, pitch_v
+
+
+def _projection_name(name: str, number: int) -> str:
+    return f"{name}{number:05d}.tif"
+
+
+def _projection_files(folder: Path, name: str, n_views: int, pca: Path) -> list[Path]:
+    """The files of images 1 .. n_views, each checked to exist (one at a time: a huge count stops early)."""
+    files = []
+    for number in range(1, n_views + 1):
+        file = folder / _projection_name(name, number)
+        if not file.is_file():
+            raise InputError(f"{file}: no such file; [CT] NumberImages={n_views} in {pca.name} but only {number - 1} "
+                             f"projections {_projection_name(name, 1)}... exist, and the count must match the files")
+        files.append(file)
+    # Image NumberImages + 1 closes a full turn; one more means NumberImages undercounts the files.
+    beyond = folder / _projection_name(name, n_views + 2)
+    if beyond.is_file():
+        raise InputError(f"{beyond}: exists, but [CT] NumberImages={n_views} in {pca.name} allows images 1 .. "
+                         f"{n_views + 1}; NumberImages must match the projections")
+    return files
+
+
+def _read_pcp(pcp: Path, n_views: int, pca: Path) -> tuple[np.ndarray, np.ndarray]:
+    """RotPos (deg) and Use of images 1 .. n_views from the acquisition protocol."""
+    lines = _read_text(pcp, _PCP_MAX_BYTES, "acquisition protocol").splitlines()
+    header = next((i for i, line in enumerate(lines[:_PCP_HEADER_LINES])
+                   if {"ImgNr", "RotPos"} <= {c.strip() for c in line.split("\t")}), None)
+    if header is None:
+        raise ConfigError(f"{pcp}: no tab-separated column header with ImgNr and RotPos in its first "
+                          f"{_PCP_HEADER_LINES} lines; not a datos|x acquisition protocol")
+    columns = [c.strip() for c in lines[header].split("\t")]
+    i_nr, i_rot = columns.index("ImgNr"), columns.index("RotPos")
+    i_use = columns.index("Use") if "Use" in columns else None
+    needed = max(i for i in (i_nr, i_rot, i_use) if i is not None) + 1
+    angles = np.full(n_views, np.nan)
+    use = np.ones(n_views, np.int64)
+    for lineno, line in enumerate(lines[header + 1:], start=header + 2):
+        if not line.strip():
+            continue
+        fields = line.split("\t")
+        if len(fields) < needed:
+            raise ConfigError(f"{pcp}: line {lineno}: {len(fields)} tab-separated fields, but the header puts "
+                              f"{columns[needed - 1]} in column {needed}")
+        try:
+            number, angle = int(fields[i_nr]), float(fields[i_rot])
+            flag = 1 if i_use is None else int(fields[i_use])
+        except ValueError:
+            raise ConfigError(f"{pcp}: line {lineno}: ImgNr, RotPos{', Use' if i_use is not None else ''} must be "
+                              f"numbers, got {line.strip()!r}") from None
+        if not math.isfinite(angle):
+            raise ConfigError(f"{pcp}: line {lineno}: RotPos must be a finite angle (deg), got {fields[i_rot]!r}")
+        if 1 <= number <= n_views:
+            if not np.isnan(angles[number - 1]):
+                raise ConfigError(f"{pcp}: line {lineno}: ImgNr {number} appears twice")
+            angles[number - 1], use[number - 1] = angle, flag
+    missing = np.flatnonzero(np.isnan(angles))
+    if missing.size:
+        raise InputError(f"{pcp}: no row for ImgNr {missing[0] + 1}; {missing.size} of the {n_views} images of "
+                         f"[CT] NumberImages in {pca.name} are not logged, and the protocol must list every projection")
+    return angles, use
+
+
+# --- writing ------------------------------------------------------------------------------------
+
+#: Tube settings and exposure the writer puts in the .pca and the calibration-image names.
+_KV, _UA, _MS = 90, 100, 500
+#: The free-ray window ([CT] Wnd_L, Wnd_T, Wnd_R, Wnd_B) whose mean is the .pcp MeanGV.
+_WINDOW = (0, 0, 10, 10)
+
+
+def write_waygate(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, recorded_angles_deg, intensities,
+                  flats, darks=None, free_ray: int | None = None, detector_shift_px: int = 0,
+                  calib_value: float = 0.0, name: str | None = None) -> Path:
+    """Write a scan as datos|x acquisition would: ``.pca``, corrected 16-bit TIFFs, ``.pcp``, ``.pcj``.
+
+    The projections are stored as the scanner stores them: offset- and gain-corrected,
+    ``rint((I - dark) / (flat - dark) * FreeRay)`` clipped to uint16, with the mean flat and mean
+    dark as the gain and offset images (also written, as ``<name>_bright_...tif`` and
+    ``<name>_Dark_...tif``). A full turn gets image NumberImages + 1, a copy of the first, at
+    RotPos = first + 360. Numbers are written as datos|x writes them: 8 decimals in the
+    ``.pca``, 3 for RotPos.
+
+    Parameters
+    ----------
+    folder : path
+        The scan folder; it must not exist or be empty.
+    geometry : Geometry
+        Becomes [Geometry] FDD, FOD, cx, cy, [Detector] PixelsizeX/Y and [Image] DimX, DimY.
+    nominal_angles_deg : array of shape (V,)
+        Must be ``i * RotationSector / V`` from 0 (what the ``.pca`` can say), with
+        0 < RotationSector <= 360.
+    recorded_angles_deg : array of shape (V,) or None
+        The turntable's angles in ctpipe's convention, logged as the ``.pcp`` RotPos with the
+        same sign (see the module docstring); None logs the nominal angles.
+    intensities : ndarray of shape (V, rows, cols)
+        Raw counts.
+    flats, darks : ndarray of shape (F, rows, cols) or (rows, cols); darks may be None
+    free_ray : int or None
+        [Image] FreeRay, the level of an unattenuated pixel after correction; None takes the
+        mean of ``flat - dark``.
+    detector_shift_px : int
+        [DetectorShift] Amplitude: > 0 records a detector shift whose images were shifted back and
+        cropped (NrPixelsX = cols + 2 * amplitude, XDShift per image in the ``.pcp``).
+    calib_value : float
+        [Geometry] CalibValue (not applied by the reader; see the module docstring).
+    name : str or None
+        The scan's name (file prefix); None takes the folder's name.
+
+    Returns
+    -------
+    Path of the folder.
+    """
+    import tifffile
+
+    from ctpipe.io.outputs import check_output_dir, staged_folder
+
+    folder = Path(folder)
+    if not isinstance(geometry, Geometry):
+        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    counts = np.asarray(intensities)
+    if counts.ndim != 3 or counts.shape[1:] != geometry.shape or not np.issubdtype(counts.dtype, np.number):
+        raise InputError(f"intensities: must be a real array of shape (views, {geometry.detector_rows}, "
+                         f"{geometry.detector_cols}) to match the geometry, got {counts.dtype} {counts.shape}")
+    n_views = len(counts)
+    nominal = check_angles(nominal_angles_deg, n_views, "nominal_angles_deg")
+    sector = 360.0 if n_views == 1 else float(nominal[-1] - nominal[0]) * n_views / (n_views - 1)
+    if not (0.0 < sector <= 360.0 + 1e-9 and np.allclose(nominal, np.arange(n_views) * (sector / n_views),
+                                                          rtol=0.0, atol=1e-9)):
+        raise InputError("nominal_angles_deg: a .pca can only say i * RotationSector / NumberImages from 0 with "
+                         f"0 < RotationSector <= 360; got {nominal[:3].tolist()}...")
+    sector = min(sector, 360.0)
+    recorded = nominal if recorded_angles_deg is None else check_angles(recorded_angles_deg, n_views,
+                                                                        "recorded_angles_deg")
+    flat = _mean_frame(flats, geometry.shape, "flats")
+    dark = np.zeros(geometry.shape) if darks is None else _mean_frame(darks, geometry.shape, "darks")
+    gain = flat - dark
+    alive = gain > 0
+    if not alive.any():
+        raise InputError("flats: must be brighter than darks somewhere; every pixel has flat <= dark")
+    if free_ray is None:
+        free_ray = int(round(float(gain[alive].mean())))
+    if isinstance(free_ray, bool) or not isinstance(free_ray, (int, np.integer)) or not 0 < free_ray <= 65535:
+        raise InputError(f"free_ray: must be an integer in 1 .. 65535 (a 16-bit level), got {free_ray!r}")
+    if isinstance(detector_shift_px, bool) or not isinstance(detector_shift_px, (int, np.integer)) \
+            or detector_shift_px < 0:
+        raise InputError(f"detector_shift_px: must be an integer >= 0, got {detector_shift_px!r}")
+    shift = int(detector_shift_px)
+    if not math.isfinite(calib_value):
+        raise InputError(f"calib_value: must be a finite number, got {calib_value!r}")
+    name = folder.name if name is None else name
+    if not name or any(c in name for c in '\\/:*?"<>|'):
+        raise InputError(f"name: must be a file-name prefix without \\ / : * ? \" < > |, got {name!r}")
+    check_output_dir(folder, "folder")
+    if folder.is_dir() and any(folder.iterdir()):
+        raise InputError(f"{folder}: exists and is not empty; a datos|x scan is written into a new or empty folder")
+
+    full_turn = abs(sector - 360.0) <= 1e-9
+    numbers = list(range(1, n_views + 1)) + ([n_views + 1] if full_turn else [])
+    rot_pos = list(recorded) + ([recorded[0] + 360.0] if full_turn else [])
+    xd_shift = [0 if shift == 0 else (7 * i) % (2 * shift + 1) - shift for i in range(len(numbers))]
+    scale = np.where(alive, float(free_ray) / np.where(alive, gain, 1.0), 0.0)
+
+    def corrected(view: np.ndarray) -> np.ndarray:
+        values = np.where(alive, (view.astype(np.float64) - dark) * scale, float(free_ray))
+        return np.clip(np.rint(values), 0, 65535).astype(np.uint16)
+
+    bright_name = f"{name}_bright_{_KV}kV_{_UA}uA_{_MS}ms_1Det.tif"
+    dark_name = f"{name}_Dark_{_MS}.tif"
+    with staged_folder(folder, "folder") as tmp:
+        mean_gv = []
+        first = None
+        for number in numbers:
+            stored = corrected(counts[number - 1]) if number <= n_views else first
+            first = stored if number == 1 else first
+            tifffile.imwrite(tmp / _projection_name(name, number), stored)
+            left, top, right, bottom = _WINDOW
+            mean_gv.append(float(stored[top:bottom + 1, left:right + 1].mean()))
+        tifffile.imwrite(tmp / bright_name, np.clip(np.rint(flat), 0, 65535).astype(np.uint16))
+        tifffile.imwrite(tmp / dark_name, np.clip(np.rint(dark), 0, 65535).astype(np.uint16))
+        frames = 1 if np.ndim(flats) == 2 else len(flats)
+        pca = _pca_text(geometry, n_views, sector, len(numbers), free_ray, shift, calib_value, frames,
+                        bright_name, dark_name)
+        (tmp / f"{name}.pca").write_bytes(pca.encode("ascii"))
+        (tmp / f"{name}.pcp").write_bytes(_pcp_text(numbers, rot_pos, mean_gv, xd_shift).encode("ascii"))
+        (tmp / f"{name}.pcj").write_bytes(_pcj_text(numbers, rot_pos, xd_shift, geometry, n_views).encode("ascii"))
+    return folder
+
+
+def _mean_frame(frames, shape: tuple[int, int], what: str) -> np.ndarray:
+    frames = np.asarray(frames, dtype=np.float64)
+    if frames.ndim == 3 and len(frames):
+        frames = frames.mean(axis=0)
+    if frames.shape != shape or not np.all(np.isfinite(frames)):
+        raise InputError(f"{what}: must be finite frames of shape (F, {shape[0]}, {shape[1]}) or {shape}, "
+                         f"got shape {frames.shape}")
+    return frames
+
+
+def _ini(sections: dict[str, dict[str, object]]) -> str:
+    # datos|x writes Windows text: CRLF line ends.
+    lines = []
+    for section, keys in sections.items():
+        lines.append(f"[{section}]")
+        lines.extend(f"{key}={value}" for key, value in keys.items())
+        lines.append("")
+    return "\r\n".join(lines)
+
+
+def _pca_text(geometry: Geometry, n_views: int, sector: float, n_images: int, free_ray: int, shift: int,
+              calib_value: float, frames: int, bright_name: str, dark_name: str) -> str:
+    from ctpipe._version import __version__
+
+    g = geometry
+    f8 = "{:.8f}".format
+    return _ini({
+        "General": {"Version": "2.4.0", "Version-pca": 2,
+                    "Comment": f"simulated scan written by ctpipe {__version__} (ctpipe.io.waygate.write_waygate)",
+                    "SystemName": "ctpipe simulation"},
+        "Geometry": {"FDD": f8(g.source_to_detector_mm), "FOD": f8(g.source_to_object_mm),
+                     "Magnification": f8(g.magnification),
+                     "VoxelSizeX": f8(g.pixel_pitch_u_mm / g.magnification),
+                     "VoxelSizeY": f8(g.pixel_pitch_v_mm / g.magnification),
+                     "CalibValue": f"{calib_value:.3f}", "cx": f8(g.u0_px), "cy": f8(g.v0_px),
+                     "DetectorRot": f8(0.0), "Tilt": f8(0.0)},
+        "CT": {"Type": 0, "NumberImages": n_views, "StartImg": n_images, "RotationSector": f8(sector),
+               "NoRotation": 0, "NrImgDone": n_images, "NrImgCmplScan": n_images, "SkipAcc": 1,
+               "Wnd_L": _WINDOW[0], "Wnd_T": _WINDOW[1], "Wnd_R": _WINDOW[2], "Wnd_B": _WINDOW[3]},
+        "Trajectory": {"Active": 0},
+        "Image": {"Top": 0, "Left": 0, "Bottom": g.detector_rows - 1, "Right": g.detector_cols + 2 * shift - 1,
+                  "DimX": g.detector_cols, "DimY": g.detector_rows, "Rotation": 0, "MirrorX": 0, "MirrorY": 0,
+                  "BitPP": 16, "FreeRay": free_ray},
+        "CalibImages": {"MGainPoints": 1, "Avg": frames, "Skip": 0, "GainImg": bright_name, "MGainImg": bright_name,
+                        "OffsetImg": dark_name},
+        "DetectorShift": {"Enable": int(shift > 0), "Mode": 0, "Amplitude": shift, "Interval": 1, "Step": 1},
+        "Detector": {"Name": "ctpipe simulation", "PixelsizeX": f8(g.pixel_pitch_u_mm),
+                     "PixelsizeY": f8(g.pixel_pitch_v_mm), "NrPixelsX": g.detector_cols + 2 * shift,
+                     "NrPixelsY": g.detector_rows, "TimingVal": f"{_MS:.3f}", "Avg": 1, "Skip": 0, "Binning": 0,
+                     "BitPP": 16},
+        "Xray": {"Voltage": _KV, "Current": _UA},
+    })
+
+
+def _pcp_lines(title: str, columns: list[str], rows: list[list[str]]) -> str:
+    return "\r\n".join([title, "\t".join(columns), *("\t".join(row) for row in rows)]) + "\r\n"
+
+
+def _pcp_text(numbers, rot_pos, mean_gv, xd_shift) -> str:
+    start = datetime.datetime(2026, 1, 1, 9, 0, 0)
+    rows = [[str(n), f"{a:.3f}", str(_KV), str(_UA), f"{gv:.1f}", "0.0", "0.0", "1", "0.000", str(xd),
+             (start + datetime.timedelta(seconds=2 * i)).strftime("%Y-%m-%d %H:%M:%S")]
+            for i, (n, a, gv, xd) in enumerate(zip(numbers, rot_pos, mean_gv, xd_shift))]
+    return _pcp_lines("datos|x 2 acquisition 2.4.0",
+                      ["ImgNr", "RotPos", "U", "I", "MeanGV", "DevGV", "Dose", "Use", "CValue", "XDShift", "Time"],
+                      rows)
+
+
+def _pcj_text(numbers, rot_pos, xd_shift, geometry: Geometry, n_views: int) -> str:
+    rows = [f"{n}\t0.0000000\t0.0000000\t{-geometry.source_to_object_mm:.7f}\t{a:.7f}\t"
+            f"{xd * geometry.pixel_pitch_u_mm:.7f}\t0\t0\t{2000 * i}\t0\t"
+            for i, (n, a, xd) in enumerate(zip(numbers, rot_pos, xd_shift))]
+    head = ["[Info]", "TrajectoryType=0", f"NumImages={n_views}", "NumSensors=1", "", "[Data]",
+            ";ImgNr\tXS\t\tYS\t\tZS\t\tRS\t\tXD\t\tWarmup\tVSenCnt\tTimeStamp\tChangeCnt"]
+    return "\r\n".join(head + rows) + "\r\n"
+
+
+def write_waygate_angles(path: str | Path, angles_deg) -> Path:
+    """Write per-view angles (ctpipe's convention) as a datos|x acquisition protocol (``.pcp``).
+
+    One row per view, ``ImgNr`` from 1 and ``RotPos`` in degrees with 3 decimals, the sign kept
+    (the reader takes RotPos with ctpipe's sign; see the module docstring). Only these two
+    columns are written: the tube and grey-value columns of a scanner's ``.pcp`` are not ctpipe's
+    to invent, and :func:`open_waygate` needs only ImgNr and RotPos. The title line says that
+    ctpipe wrote the file. Whether datos|x rec reads angles back from a ``.pcp`` is undocumented.
+
+    Parameters
+    ----------
+    path : path
+        A new ``.pcp`` file; an existing file is never overwritten.
+    angles_deg : array of shape (V,)
+        Finite degrees, view 0 first.
+
+    Returns
+    -------
+    Path of the file.
+    """
+    from ctpipe._version import __version__
+    from ctpipe.io.outputs import atomic_write, check_output_file
+
+    path = Path(path)
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    if angles.ndim != 1 or not angles.size:
+        raise InputError(f"angles_deg: must be a non-empty 1-D array (one angle per view), got shape {angles.shape}")
+    angles = check_angles(angles, angles.size, "angles_deg")
+    check_output_file(path, "path", ".pcp")
+    if path.exists() or path.is_symlink():
+        raise InputError(f"{path}: exists; corrected angles go to a new file, an angle log is never overwritten")
+    text = _pcp_lines(f"datos|x 2 acquisition protocol written by ctpipe {__version__}: corrected angles",
+                      ["ImgNr", "RotPos"], [[str(i + 1), f"{a:.3f}"] for i, a in enumerate(angles)])
+    return atomic_write(path, lambda handle: handle.write(text.encode("ascii")))
+
+
+register_format("waygate", detect, open_waygate,
+                "a folder with <name>.pca beside <name>00001.tif ... (GE/Waygate phoenix datos|x)")
