@@ -1,0 +1,704 @@
+"""Nikon / X-Tek scans (Inspect-X, CT Pro): an ``.xtekct`` settings file beside 16-bit TIFF projections.
+
+Files
+-----
+A scan folder as CT Pro leaves it::
+
+    <Name>.xtekct              # INI text, section [XTekCT] (plus [Xrays], [CTPro], ...)
+    <Name>_0001.tif ...        # one 16-bit TIFF per projection, numbered from 1
+    _ctdata.txt                # the scanner's per-projection angle log (tab-separated)
+    <Name>.ang                 # optional: a per-projection angle file CT Pro can read
+
+Projections are ``<InputName><InputSeparator><number>.tif`` in the folder ``InputFolderName``
+(relative to the ``.xtekct``; empty means the same folder), the number counting from 1 with
+``InputDigits`` digits (``%04d`` when the key is missing, as CIL's predecessor of 2019 and
+CCPi's ``XtekReader`` assume). They are flat-corrected by the scanner before they are
+saved and scaled so that an unattenuated pixel reads ``WhiteLevel``: there are no flat or dark
+frames, and the views become line integrals ``-log(I / WhiteLevel)`` through
+:class:`~ctpipe.io.scans.ViewStack` with ``white_level=WhiteLevel``.
+
+Keys read from ``[XTekCT]``
+---------------------------
+=========================  =========================================================  ======
+key                        meaning, and what ctpipe makes of it                       unit
+=========================  =========================================================  ======
+SrcToObject                source to rotation axis -> ``source_to_object_mm``         mm
+SrcToDetector              source to detector -> ``source_to_detector_mm``            mm
+DetectorPixelsX, ...Y      columns, rows -> ``detector_cols``, ``detector_rows``      px
+DetectorPixelSizeX, ...Y   pixel pitch -> ``pixel_pitch_u_mm``, ``pixel_pitch_v_mm``  mm
+DetectorOffsetX, ...Y      detector shift (optional, 0) -> ``u0_px``, ``v0_px``       mm
+ObjectOffsetX              rotation-axis shift at the object (newer files) -> u0_px   mm
+CentreOfRotationTop, ...   axis shift at the detector, top and bottom rows (older     mm
+Bottom                     files; used when ObjectOffsetX is absent) -> ``u0_px``
+ObjectRoll, ObjectTilt     axis roll and tilt (optional): not modelled, a note        deg
+ObjectOffsetY              axis shift along the beam (optional): not modelled, a note mm
+Projections                number of projections (must match the files and logs)
+InitialAngle, AngularStep  nominal angle of projection i: InitialAngle + i * Step     deg
+WhiteLevel                 counts of an unattenuated pixel -> ``white_level``
+Name, InputName,           file names of the projections (InputName defaults to
+InputSeparator,            Name, InputSeparator to ``_``, InputDigits to 4,
+InputDigits,               InputFolderName to the folder of the .xtekct)
+InputFolderName
+Scattering                 a scatter percentage CT Pro subtracts: not applied, a note  %
+=========================  =========================================================  ======
+
+Angle logs
+----------
+``_ctdata.txt`` (a real one: xray-imaging/meta-cli, ``docs/source/demo/nikon/``)::
+
+    Projections<TAB>Frames<TAB>Exposure(ms)
+    1570<TAB>1<TAB>708.00
+    Projection<TAB>Angle(deg)<TAB>Time(s)
+    1<TAB>000.0342<TAB>002.8319
+    ...
+
+``<Name>.ang`` (the ``AngleFile`` of ``[CTPro] AngleFile_Use``): a header line
+``Proj<TAB>Angle(deg)``, then ``<projection>:<TAB><angle>`` per projection, numbered from 1;
+the readers that parse it (CCPi's ``XtekReader``, TIGRE, OMEGA, CIL's predecessor of 2019)
+agree on that layout, and the reader here accepts the colon or not and any blank separator.
+``<Name>.ang`` is preferred when both exist; the one read is ``angle_log`` and is said in
+``notes``.
+
+Both logs count the angles from the start of the scan: in the real ``_ctdata.txt`` above the
+first projection is at 0.0342 deg while the ``.xtekct`` says ``InitialAngle=40.20631``. The
+recorded angles are therefore ``InitialAngle + logged angle``, in the frame of the nominal
+ones (CIL's predecessor of 2019 added ``InitialAngle`` to both logs too), and
+:func:`write_nikon_angles` subtracts it again.
+
+Sign of the angles
+------------------
+Neither the ``.xtekct`` nor the logs are negated: an angle that grows by +a is a turn of +a in
+ctpipe's convention, for the images as they are stored. The anchor is CIL's
+``NikonDataReader`` (TomographicImaging/CIL, ``Wrappers/Python/cil/io/NikonDataReader.py``):
+it sets ``angles = -(InitialAngle + i * AngularStep) + 180`` *and* declares the panel origin
+``top-right``, i.e. stored column 0 lies at CIL's +x. In CIL's frame (source at -y, detector at
++y, axis +z, ``cil/plugins/astra/utilities/convert_geometry_to_astra_vec_3D.py`` turning the
+source by ``-angle``) a CIL angle +t moves a point between axis and source towards +x, i.e.
+towards *smaller* stored columns; in ctpipe a turn of +t moves it towards *larger* columns.
+So ctpipe's angle is ``-(CIL angle)`` plus a constant, which is ``+(InitialAngle + i * Step)``:
+CIL's two reversals (of the angle and of the column axis) cancel for a reader that keeps the
+stored image as it is. The conclusion holds whichever way round the real turntable turns, as
+long as CIL's angle and panel origin are right relative to each other.
+
+The logs count the same way as ``AngularStep``: in the real ``_ctdata.txt`` the angle grows by
+0.23 deg per projection, the ``AngularStep`` of its ``.xtekct``. Older readers disagree on the
+``.ang``: CCPi's ``XtekReader::readAngFile`` (``XtekReader.cpp``, the Avizo plug-in whose header
+is vais-ral/CCPi-Reconstruction ``branches/tune/Avizo/src/CCPiReconstruction/XtekReader.h``)
+and CIL's predecessor of 2019 (``ccpi.io.NikonDataReader``, vais-ral/CCPi-Framework) reverse
+its order, OMEGA (villekf/OMEGA, ``source/Python/omegatomo/fileio/loadNikonData.py``) negates
+it and TIGRE (CERN/TIGRE, ``Python/tigre/utilities/io/NikonDataLoader.py``) takes it as it is.
+For uniform steps, reversing and negating are the same correction (each turns an increasing
+list into a decreasing one), the one CIL applies to the nominal angles for its own frame; read
+that way, all of them describe an ``.ang`` that counts like ``AngularStep``, which is what
+this reader assumes. CIL has ignored both logs since 2020 ("appear to hold angular data but
+it's not correct", TomographicImaging/CIL#703).
+
+Offsets and the principal point
+-------------------------------
+After CIL (the version of 2022 that still read ``DetectorOffsetX/Y``; the current one ignores
+them and scanners write 0): the detector centre lies at -DetectorOffsetX along CIL's x and
++DetectorOffsetY along z, and the rotation axis at -ObjectOffsetX, or at
+``-(CentreOfRotationTop + CentreOfRotationBottom) / 2 * SrcToObject / SrcToDetector`` in
+files without ``ObjectOffsetX``. With stored columns running towards -x and rows downwards::
+
+    v0_px = (rows - 1) / 2 + DetectorOffsetY / DetectorPixelSizeY                     (exact)
+    u0_px = (cols - 1) / 2 + (shift - DetectorOffsetX) / DetectorPixelSizeX
+    shift = ObjectOffsetX * SrcToDetector / SrcToObject   (or the mean CentreOfRotation)
+
+``v0_px`` is where the ray perpendicular to the detector hits it. ctpipe has no separate
+centre of rotation, so ``u0_px`` is the column the rotation axis projects to, and the source is
+taken to lie on the perpendicular through the axis: exact when the axis offset is zero, else
+the usual approximation that neglects a detector yaw of ``atan(ObjectOffsetX / SrcToObject)``
+(0.05 deg in the real file above). A note gives the offset whenever it is not zero.
+
+A tilted axis (``CentreOfRotationTop != CentreOfRotationBottom``, or ``ObjectRoll`` /
+``ObjectTilt`` not zero) cannot be represented: the reader takes the mean of top and bottom
+(CIL's ``ObjectOffsetX`` for such files) and adds a note with how far the axis leans, in pixels,
+between the top and bottom rows. Refusing would turn away every older scan whose two values
+differ at all, however little; the estimate degrades with the lean, and the note says how much.
+
+What is unclear
+---------------
+* Whether ``.ang`` values include ``InitialAngle`` (taken: they do not, like ``_ctdata.txt``),
+  and whether a real ``.ang`` numbers its lines ``1:`` or ``0001:`` (both are read).
+* Whether the ``.ang`` lists projections in reverse order, as CCPi's ``XtekReader`` assumes
+  (taken: it does not; see above).
+* ``DetectorOffsetX``'s sign and use: the current CIL ignores it, the one of 2022 used it as
+  above, TIGRE passes it to ``offDetector`` unsigned and says it is untested.
+* ``Scattering``: CT Pro subtracts ``WhiteLevel * Scattering / 100`` in some way before the
+  log (CCPi's early Python ``Xtek`` reader did so); ctpipe does not, and says so in a note.
+* Which way the real turntable turns (the chirality of a reconstruction): it does not matter
+  here, see above, but nothing public states it.
+
+Public readers used as anchors: CIL ``NikonDataReader`` (current and of 2022), its test
+``Wrappers/Python/test/test_io.py`` and its predecessor of 2019; CCPi ``XtekReader``; TIGRE
+``NikonDataLoader``; OMEGA ``loadNikonData``; real files in xray-imaging/meta-cli
+``docs/source/demo/nikon/``.
+"""
+
+from __future__ import annotations
+
+import configparser
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctpipe.errors import ConfigError, InputError
+from ctpipe.geometry import Geometry
+from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
+
+__all__ = ["detect", "open_nikon", "write_nikon", "write_nikon_angles", "read_xtekct", "OFFSET_KEYS",
+           "ANGLE_LOGS"]
+
+#: How :func:`write_nikon` stores the principal point's column: in ``ObjectOffsetX`` (files of
+#: Inspect-X 6 and later), ``CentreOfRotationTop/Bottom`` (older files) or ``DetectorOffsetX``.
+OFFSET_KEYS = ("object_offset", "centre_of_rotation", "detector_offset")
+#: Which angle log :func:`write_nikon` writes: the scanner's ``_ctdata.txt``, CT Pro's ``.ang``, or none.
+ANGLE_LOGS = ("ctdata", "ang", None)
+
+_SECTION = "XTekCT"
+_CTDATA = "_ctdata.txt"
+_ANG_HEADER = "Proj\tAngle(deg)"
+_CTDATA_HEADERS = ("Projections\tFrames\tExposure(ms)", "Projection\tAngle(deg)\tTime(s)")
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def detect(path: Path) -> bool:
+    """A ``.xtekct`` file, or a folder holding one (names only, nothing is read)."""
+    path = Path(path)
+    try:
+        if path.is_file():
+            return path.suffix.lower() == ".xtekct"
+        return path.is_dir() and any(p.suffix.lower() == ".xtekct" and p.is_file() for p in path.iterdir())
+    except OSError:
+        return False
+
+
+def _xtekct_file(path: Path) -> Path:
+    if path.is_file():
+        if path.suffix.lower() != ".xtekct":
+            raise InputError(f"{path}: not a Nikon .xtekct file")
+        return path
+    found = sorted(p for p in path.iterdir() if p.suffix.lower() == ".xtekct" and p.is_file())
+    if not found:
+        raise InputError(f"{path}: no .xtekct file in this folder, so not a Nikon scan")
+    if len(found) > 1:
+        raise InputError(f"{path}: holds {len(found)} .xtekct files ({', '.join(p.name for p in found)}); "
+                         "open the one you mean")
+    return found[0]
+
+
+def read_xtekct(file: str | Path) -> dict[str, str]:
+    """The ``[XTekCT]`` section of ``file`` as a dict of strings (keys as written).
+
+    Raises
+    ------
+    InputError
+        The file cannot be read.
+    ConfigError
+        It is not an INI file or has no ``[XTekCT]`` section.
+    """
+    file = Path(file)
+    try:
+        text = file.read_text(encoding="utf-8-sig", errors="replace")
+    except OSError as exc:
+        raise InputError(f"{file}: cannot be read: {exc.strerror or exc}") from None
+    parser = configparser.ConfigParser(delimiters=("=",), interpolation=None, strict=False,
+                                       comment_prefixes=(";", "#"), inline_comment_prefixes=None)
+    parser.optionxform = str  # keys keep their case: SrcToObject, not srctoobject
+    try:
+        parser.read_string(text, source=str(file))
+    except configparser.Error as exc:
+        first = " ".join(str(exc).split())[:160]
+        raise ConfigError(f"{file}: not a readable .xtekct (INI) file ({type(exc).__name__}: {first})") from None
+    section = next((s for s in parser.sections() if s.lower() == _SECTION.lower()), None)
+    if section is None:
+        raise ConfigError(f"{file}: no [{_SECTION}] section, so not a Nikon .xtekct file")
+    return {key: value.strip() for key, value in parser[section].items()}
+
+
+#: Marks a key that has no default: its absence is an error.
+_REQUIRED = object()
+
+
+class _Keys:
+    """Typed, checked access to the [XTekCT] keys; errors name the file and the key."""
+
+    def __init__(self, file: Path, values: Mapping[str, str]) -> None:
+        self.file, self.values, self.used = file, values, {}
+
+    def _raw(self, key: str, default: Any) -> str | None:
+        value = self.values.get(key)
+        if value is None or value == "":
+            if default is _REQUIRED:
+                raise ConfigError(f"{self.file}: [{_SECTION}] {key}: missing")
+            return None
+        self.used[key] = value
+        return value
+
+    def number(self, key: str, default: Any = None, *, positive: bool = False, unit: str = "") -> float:
+        value = self._raw(key, default)
+        if value is None:
+            return default
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not math.isfinite(number) or (positive and number <= 0):
+            what = "a finite number > 0" if positive else "a finite number"
+            raise ConfigError(f"{self.file}: [{_SECTION}] {key}: must be {what}{f' ({unit})' if unit else ''}, "
+                              f"got {value!r}")
+        return number
+
+    def integer(self, key: str, default: Any = None) -> int:
+        value = self._raw(key, default)
+        if value is None:
+            return default
+        try:
+            number = int(value)
+        except ValueError:
+            number = 0
+        if number < 1:
+            raise ConfigError(f"{self.file}: [{_SECTION}] {key}: must be an integer >= 1, got {value!r}")
+        return number
+
+    def text(self, key: str, default: Any = None) -> str | None:
+        value = self._raw(key, default)
+        return default if value is None else value
+
+
+
+def _parse(file: Path) -> dict[str, Any]:
+    """Everything the .xtekct says, checked and in ctpipe's terms (no projection is read)."""
+    keys = _Keys(file, read_xtekct(file))
+    sod = keys.number("SrcToObject", _REQUIRED, positive=True, unit="mm")
+    sdd = keys.number("SrcToDetector", _REQUIRED, positive=True, unit="mm")
+    cols = keys.integer("DetectorPixelsX", _REQUIRED)
+    rows = keys.integer("DetectorPixelsY", _REQUIRED)
+    pitch_u = keys.number("DetectorPixelSizeX", _REQUIRED, positive=True, unit="mm")
+    pitch_v = keys.number("DetectorPixelSizeY", _REQUIRED, positive=True, unit="mm")
+    n_views = keys.integer("Projections", _REQUIRED)
+    initial = keys.number("InitialAngle", _REQUIRED, unit="deg")
+    step = keys.number("AngularStep", _REQUIRED, unit="deg")
+    white = keys.number("WhiteLevel", _REQUIRED, positive=True)
+    offset_u = keys.number("DetectorOffsetX", 0.0, unit="mm")
+    offset_v = keys.number("DetectorOffsetY", 0.0, unit="mm")
+    object_offset = keys.number("ObjectOffsetX", None, unit="mm")
+    cor_top = keys.number("CentreOfRotationTop", 0.0, unit="mm")
+    cor_bottom = keys.number("CentreOfRotationBottom", 0.0, unit="mm")
+    roll = keys.number("ObjectRoll", 0.0, unit="deg")
+    tilt = keys.number("ObjectTilt", 0.0, unit="deg")
+    object_offset_y = keys.number("ObjectOffsetY", 0.0, unit="mm")
+    scattering = keys.number("Scattering", 0.0, unit="%")
+    name = keys.text("Name", _REQUIRED)
+    input_name = keys.text("InputName", name)
+    # A missing InputSeparator is CT Pro's "_"; one written empty means none.
+    separator = keys.values.get("InputSeparator", "_")
+    keys.used["InputSeparator"] = separator
+    digits = keys.integer("InputDigits", 4)
+    input_folder = keys.text("InputFolderName", "")
+
+    notes = []
+    centre_u, centre_v = (cols - 1) / 2.0, (rows - 1) / 2.0
+    if object_offset is not None:
+        shift_mm = object_offset * sdd / sod
+        source = f"ObjectOffsetX={object_offset:g} mm"
+    else:
+        shift_mm = (cor_top + cor_bottom) / 2.0
+        source = f"CentreOfRotationTop/Bottom={cor_top:g}/{cor_bottom:g} mm"
+        if cor_top != cor_bottom:
+            lean_px = (cor_top - cor_bottom) / pitch_u
+            notes.append(f"CentreOfRotationTop={cor_top:g} mm and CentreOfRotationBottom={cor_bottom:g} mm differ: the "
+                         f"rotation axis leans by {lean_px:+.2f} px between the top and bottom rows; ctpipe models a "
+                         "vertical axis and uses their mean")
+    u0 = centre_u + (shift_mm - offset_u) / pitch_u
+    v0 = centre_v + offset_v / pitch_v
+    if shift_mm != 0.0:
+        yaw = math.degrees(math.atan(shift_mm / sdd))  # = atan(axis offset at the object / SrcToObject)
+        notes.append(f"{source} puts the rotation axis at column {u0:.2f}, used as the principal point u0_px; the "
+                     f"source is taken to lie on the perpendicular through the axis (a detector yaw of {yaw:.3g} deg "
+                     "is neglected)")
+    if roll != 0.0 or tilt != 0.0:
+        notes.append(f"ObjectRoll={roll:g} deg and ObjectTilt={tilt:g} deg (a tilted rotation axis) are not modelled; "
+                     "ctpipe assumes a vertical axis")
+    if object_offset_y != 0.0:
+        notes.append(f"ObjectOffsetY={object_offset_y:g} mm is not modelled")
+    if scattering != 0.0:
+        notes.append(f"Scattering={scattering:g} % is not subtracted; the views are -log(I / WhiteLevel)")
+    try:
+        geometry = Geometry(sod, sdd, cols, rows, pitch_u, pitch_v, u0, v0)
+    except InputError as exc:
+        raise ConfigError(f"{file}: {exc} (from SrcToObject, SrcToDetector, DetectorPixels*, DetectorPixelSize*)") from None
+    return {"geometry": geometry, "n_views": n_views, "initial": initial, "step": step, "white": white,
+            "name": name, "input_name": input_name, "separator": separator, "digits": digits,
+            "input_folder": input_folder, "notes": notes, "used": dict(keys.used)}
+
+
+def _projection_names(parsed: Mapping[str, Any]) -> list[str]:
+    pattern = f"{parsed['input_name']}{parsed['separator']}{{:0{parsed['digits']}d}}.tif"
+    return [pattern.format(i + 1) for i in range(parsed["n_views"] + 1)]
+
+
+def _data_folder(file: Path, parsed: Mapping[str, Any]) -> Path:
+    folder = file.parent
+    sub = parsed["input_folder"]
+    if sub:
+        candidate = folder / sub.replace("\\", "/")
+        if not candidate.is_dir():
+            raise InputError(f"{file}: [{_SECTION}] InputFolderName={sub!r}: no such folder beside the .xtekct")
+        folder = candidate
+    return folder
+
+
+def _check_projection_files(file: Path, folder: Path, names: list[str], shape: tuple[int, int]) -> None:
+    """Every projection file exists, no extra one follows the last, and the first has the detector's size."""
+    import tifffile
+
+    n_views = len(names) - 1
+    for i, name in enumerate(names[:-1]):
+        if not (folder / name).is_file():
+            raise InputError(f"{folder / name}: no such file; {file.name} says Projections={n_views} but projection "
+                             f"{i + 1} is missing")
+    if (folder / names[-1]).is_file():
+        raise InputError(f"{folder / names[-1]}: exists, but {file.name} says Projections={n_views}; the count must "
+                         "match the projection files")
+    first = folder / names[0]
+    try:
+        with tifffile.TiffFile(first) as tif:
+            page_shape = tuple(tif.pages[0].shape)
+    except Exception as exc:  # noqa: BLE001 (tifffile raises many types for a damaged file)
+        raise InputError(f"{first}: not a readable TIFF file ({type(exc).__name__})") from None
+    if page_shape != shape:
+        raise InputError(f"{first}: must be a {shape[0]} x {shape[1]} image (DetectorPixelsY x DetectorPixelsX in "
+                         f"{file.name}), got shape {page_shape}")
+
+
+def _read_ang(path: Path, n_views: int) -> np.ndarray:
+    """Angles of ``<Name>.ang``: a header line, then ``<projection>:<TAB><angle>`` numbered from 1."""
+    lines = _text_lines(path)
+    if not lines or not lines[0].lower().startswith("proj"):
+        raise InputError(f"{path}: must start with the header line 'Proj<TAB>Angle(deg)'")
+    rows = []
+    for number, line in enumerate(lines[1:], start=2):
+        fields = line.replace(":", " ").split()
+        rows.append(_log_row(path, number, fields, line, "'<projection>:<TAB><angle>'"))
+    return _ordered(path, rows, n_views)
+
+
+def _read_ctdata(path: Path, n_views: int) -> np.ndarray:
+    """Angles of ``_ctdata.txt``: three header lines, then ``<projection> <angle> <time>`` numbered from 1."""
+    lines = _text_lines(path)
+    if len(lines) < 3:
+        raise InputError(f"{path}: must start with three header lines (Projections Frames Exposure, their values, "
+                         "Projection Angle Time)")
+    try:
+        logged = int(lines[1].split()[0])
+    except (IndexError, ValueError):
+        raise InputError(f"{path}: line 2 must give the number of projections first, got {lines[1]!r}") from None
+    if logged != n_views:
+        raise InputError(f"{path}: says {logged} projections but the .xtekct says Projections={n_views}")
+    rows = [_log_row(path, number, line.split(), line, "'<projection> <angle> <time>'")
+            for number, line in enumerate(lines[3:], start=4)]
+    return _ordered(path, rows, n_views)
+
+
+def _text_lines(path: Path) -> list[str]:
+    try:
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+    return [line.strip() for line in text.splitlines() if line.strip()]
+
+
+def _log_row(path: Path, number: int, fields: list[str], line: str, layout: str) -> tuple[int, float]:
+    try:
+        index, angle = int(fields[0]), float(fields[1])
+    except (IndexError, ValueError):
+        raise InputError(f"{path}: line {number}: expected {layout}, got {line[:60]!r}") from None
+    if not math.isfinite(angle):
+        raise InputError(f"{path}: line {number}: the angle must be a finite number (degrees), got {fields[1]!r}")
+    return index, angle
+
+
+def _ordered(path: Path, rows: list[tuple[int, float]], n_views: int) -> np.ndarray:
+    if len(rows) != n_views:
+        raise InputError(f"{path}: lists {len(rows)} angles but the .xtekct says Projections={n_views}; there must be "
+                         "one angle for every projection")
+    angles = np.full(n_views, np.nan)
+    for index, angle in rows:
+        if not 1 <= index <= n_views:
+            raise InputError(f"{path}: projection number {index} is outside 1..{n_views} (Projections)")
+        if not np.isnan(angles[index - 1]):
+            raise InputError(f"{path}: projection {index} is listed twice")
+        angles[index - 1] = angle
+    return angles
+
+
+def open_nikon(path: str | Path) -> ScanFiles:
+    """Open a Nikon scan (a folder with one ``.xtekct``, or the ``.xtekct`` itself) lazily.
+
+    Reads the ``.xtekct``, the angle log and the first projection's TIFF header; the views are
+    read on demand. See the module docstring for the keys, signs and offsets.
+
+    Raises
+    ------
+    ConfigError
+        The ``.xtekct`` is malformed, lacks a key or has a value out of range.
+    InputError
+        Missing or extra projection files, a wrong image size, or an angle log that disagrees
+        with ``Projections``.
+    """
+    from ctpipe.io.arrays import read_array
+
+    path = Path(path)
+    file = _xtekct_file(path)
+    parsed = _parse(file)
+    geometry, n_views = parsed["geometry"], parsed["n_views"]
+    folder = _data_folder(file, parsed)
+    names = _projection_names(parsed)
+    _check_projection_files(file, folder, names, geometry.shape)
+    nominal = parsed["initial"] + parsed["step"] * np.arange(n_views, dtype=np.float64)
+
+    notes = list(parsed["notes"])
+    recorded, angle_log = None, None
+    ang, ctdata = file.parent / f"{parsed['name']}.ang", file.parent / _CTDATA
+    if ang.is_file():
+        recorded, angle_log = parsed["initial"] + _read_ang(ang, n_views), ang
+    elif ctdata.is_file():
+        recorded, angle_log = parsed["initial"] + _read_ctdata(ctdata, n_views), ctdata
+    if angle_log is None:
+        notes.append(f"no angle log ({ang.name} or {_CTDATA}) beside {file.name}: the recorded angles are unknown")
+    else:
+        other = ctdata if angle_log == ang and ctdata.is_file() else None
+        notes.append(f"recorded angles: InitialAngle + the angles of {angle_log.name}"
+                     + (f" ({other.name} is not read)" if other else ""))
+        recorded = check_angles(recorded, n_views, str(angle_log))
+    shape = geometry.shape
+
+    def read(index: int) -> np.ndarray:
+        view = folder / names[index]
+        image = read_array(view, kind=".tif")
+        if image.shape != shape:
+            raise InputError(f"{view}: must be a {shape[0]} x {shape[1]} image (DetectorPixelsY x DetectorPixelsX in "
+                             f"{file.name}), got shape {image.shape}")
+        return image
+
+    stack = ViewStack(read, n_views, shape, values="intensities", white_level=parsed["white"], name=str(folder))
+    metadata = {"xtekct": str(file), "projection_folder": str(folder),
+                "projection_files": f"{parsed['input_name']}{parsed['separator']}%0{parsed['digits']}d.tif",
+                **parsed["used"]}
+    return ScanFiles("nikon", path, geometry, nominal, stack, recorded_angles_deg=recorded, angle_log=angle_log,
+                     notes=tuple(notes), metadata=metadata)
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _float(value: float) -> str:
+    """Shortest text that reads back as exactly ``value`` (no exponent: CT Pro parses plain decimals)."""
+    return np.format_float_positional(float(value), unique=True, trim="0")
+
+
+def write_nikon_angles(path: str | Path, angles_deg, *, initial_angle_deg: float | None = None) -> Path:
+    """Write a CT Pro angle file (``.ang``) from angles in ctpipe's convention.
+
+    The file has the header ``Proj<TAB>Angle(deg)`` and one line ``<n>:<TAB><angle>`` per
+    projection, numbered from 1, the angle counted from the scan's ``InitialAngle`` and in the
+    sense of its ``AngularStep`` (the module docstring says why that is ctpipe's sense). To
+    have CT Pro reconstruct with it, name it ``<Name>.ang`` beside the ``.xtekct`` and set
+    ``AngleFile_Use=True`` in its ``[CTPro]`` section.
+
+    Parameters
+    ----------
+    path : path
+        The file to write, ending in ``.ang``; it must not exist.
+    angles_deg : array of shape (V,)
+        One angle per projection, degrees, ctpipe's convention, in the frame of the scan's
+        nominal angles (``InitialAngle + i * AngularStep``, as :func:`open_nikon` reads them).
+    initial_angle_deg : float or None
+        The scan's ``InitialAngle``; None reads it from the one ``.xtekct`` in the folder of ``path``.
+
+    Returns
+    -------
+    Path of the file written.
+    """
+    from ctpipe.io.outputs import atomic_write, check_output_file
+
+    path = check_output_file(path, "angle file", suffix=".ang")
+    if path.exists():
+        raise InputError(f"{path}: exists; write the angles to a new file rather than over the scanner's")
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    if angles.ndim != 1 or angles.size == 0:
+        raise InputError(f"angles_deg: must be a 1-D array with one angle per projection, got shape {angles.shape}")
+    angles = check_angles(angles, angles.size, "angles_deg")
+    if initial_angle_deg is None:
+        found = sorted(p for p in path.parent.glob("*") if p.suffix.lower() == ".xtekct" and p.is_file())
+        if len(found) != 1:
+            raise InputError(f"{path}: initial_angle_deg not given and {len(found)} .xtekct files beside it; give the "
+                             "scan's InitialAngle")
+        initial_angle_deg = _Keys(found[0], read_xtekct(found[0])).number("InitialAngle", _REQUIRED, unit="deg")
+    if not math.isfinite(initial_angle_deg):
+        raise InputError(f"initial_angle_deg: must be a finite number (degrees), got {initial_angle_deg!r}")
+    lines = [_ANG_HEADER] + [f"{i + 1}:\t{_float(a - initial_angle_deg)}" for i, a in enumerate(angles)]
+    text = "\r\n".join(lines) + "\r\n"
+    return atomic_write(path, lambda handle: handle.write(text.encode("ascii")))
+
+
+def _ctdata_text(relative: np.ndarray) -> str:
+    lines = [_CTDATA_HEADERS[0], f"{len(relative)}\t1\t0.00", _CTDATA_HEADERS[1]]
+    lines += [f"{i + 1}\t{_float(a)}\t0.0000" for i, a in enumerate(relative)]
+    return "\r\n".join(lines) + "\r\n"
+
+
+def _xtekct_text(name: str, geometry: Geometry, n_views: int, initial: float, step: float, white_level: float,
+                 offset_keys: str) -> str:
+    cols, rows = geometry.detector_cols, geometry.detector_rows
+    shift_mm = (geometry.u0_px - (cols - 1) / 2.0) * geometry.pixel_pitch_u_mm
+    offset_v = (geometry.v0_px - (rows - 1) / 2.0) * geometry.pixel_pitch_v_mm
+    sod, sdd = geometry.source_to_object_mm, geometry.source_to_detector_mm
+    cor = offset_u = object_offset = 0.0
+    if offset_keys == "centre_of_rotation":
+        cor = shift_mm
+    elif offset_keys == "detector_offset":
+        offset_u = -shift_mm
+    else:
+        object_offset = shift_mm * sod / sdd
+    voxel = geometry.pixel_pitch_u_mm * sod / sdd
+    keys = {
+        "Name": name, "OperatorID": "", "InputSeparator": "_", "InputFolderName": "", "OutputSeparator": "_",
+        "OutputFolderName": name, "VoxelsX": cols, "VoxelSizeX": _float(voxel), "OffsetX": "0.0", "VoxelsY": cols,
+        "VoxelSizeY": _float(voxel), "OffsetY": "0.0", "VoxelsZ": rows, "VoxelSizeZ": _float(voxel),
+        "OffsetZ": "0.0", "SrcToObject": _float(sod), "SrcToDetector": _float(sdd),
+        "MaskRadius": _float(cols * voxel / 2.0), "DetectorPixelsX": cols,
+        "DetectorPixelSizeX": _float(geometry.pixel_pitch_u_mm), "DetectorOffsetX": _float(offset_u),
+        "DetectorPixelsY": rows, "DetectorPixelSizeY": _float(geometry.pixel_pitch_v_mm),
+        "DetectorOffsetY": _float(offset_v), "RegionStartX": 0, "RegionPixelsX": cols, "RegionStartY": 0,
+        "RegionPixelsY": rows, "Units": "mm", "Projections": n_views, "InitialAngle": _float(initial),
+        "AngularStep": _float(step), "WhiteLevel": _float(white_level), "Scattering": "0.0",
+        "InputName": name, "InputDigits": 4, "OutputName": name, "OutputDigits": 4,
+    }
+    if offset_keys == "centre_of_rotation":
+        keys.update({"CentreOfRotationTop": _float(cor), "CentreOfRotationBottom": _float(cor)})
+    else:
+        keys.update({"ObjectOffsetX": _float(object_offset), "ObjectOffsetY": "0.0", "ObjectTilt": "0.0",
+                     "ObjectRoll": "0.0"})
+    lines = [f"[{_SECTION}]"] + [f"{key}={value}" for key, value in keys.items()]
+    lines += ["[CTPro]", "Product=[ctpipe.io.nikon.write_nikon]", "Shuttling=False", "AngleFile_Use=False",
+              "AngleFile_IgnoreErrors=True"]
+    return "\r\n".join(lines) + "\r\n"
+
+
+def _flat_correct(intensities: np.ndarray, flats, darks, white_level: float) -> np.ndarray:
+    """The scanner's correction: ``(I - mean dark) / (mean flat - mean dark) * WhiteLevel``, rounded, as uint16."""
+    shape = intensities.shape[1:]
+    if flats is None:
+        raise InputError("flats: required; the scanner divides by the flat fields before it saves a projection")
+    flat = np.asarray(flats, dtype=np.float64)
+    flat = flat.mean(axis=0) if flat.ndim == 3 else flat
+    dark = np.zeros(shape) if darks is None else np.asarray(darks, dtype=np.float64)
+    dark = dark.mean(axis=0) if dark.ndim == 3 else dark
+    for label, frame in (("flats", flat), ("darks", dark)):
+        if frame.shape != shape:
+            raise InputError(f"{label}: each frame must have the projections' shape {shape}, got {frame.shape}")
+    beam = flat - dark
+    alive = beam > 0
+    beam = np.where(alive, beam, 1.0)
+    out = np.empty(intensities.shape, np.uint16)
+    for v, view in enumerate(intensities):
+        corrected = (view.astype(np.float64) - dark) / beam * white_level
+        # A dead pixel (flat not above dark) reads as unattenuated, which ctpipe turns into 0.
+        corrected = np.where(alive, corrected, white_level)
+        out[v] = np.clip(np.rint(corrected), 0, np.iinfo(np.uint16).max)
+    return out
+
+
+def write_nikon(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, recorded_angles_deg=None,
+                intensities, flats, darks=None, name: str = "scan", white_level: float = 60000.0,
+                offset_keys: str = "object_offset", angle_log: str | None = "ctdata") -> Path:
+    """Write a scan the way a Nikon scanner and CT Pro leave it (see the module docstring).
+
+    The raw counts are flat-corrected as the scanner does before saving,
+    ``(I - mean dark) / (mean flat - mean dark) * white_level`` rounded to uint16 (pixels whose
+    flat is not above their dark read ``white_level``), and written as ``<name>_0001.tif`` ...;
+    the geometry and the uniform nominal angles go into ``<name>.xtekct``, the recorded angles
+    into the angle log, counted from ``InitialAngle``.
+
+    Parameters
+    ----------
+    folder : path
+        Must not exist or be empty.
+    geometry : Geometry
+    nominal_angles_deg : array of shape (V,)
+        Uniformly spaced (the ``.xtekct`` holds only ``InitialAngle`` and ``AngularStep``).
+    recorded_angles_deg : array of shape (V,) or None
+        What the turntable logged, ctpipe's convention; None writes no angle log.
+    intensities : ndarray of shape (V, rows, cols)
+        Raw detector counts.
+    flats, darks : ndarray of shape (F, rows, cols) or (rows, cols); darks may be None
+    name : str
+        The scan's ``Name``, which names every file.
+    white_level : float
+        ``WhiteLevel``: the counts an unattenuated pixel is scaled to.
+    offset_keys : {"object_offset", "centre_of_rotation", "detector_offset"}
+        Where the principal point's column goes (:data:`OFFSET_KEYS`); its row always goes
+        into ``DetectorOffsetY``.
+    angle_log : {"ctdata", "ang", None}
+        ``_ctdata.txt`` as the scanner writes it, CT Pro's ``<name>.ang``, or none.
+
+    Returns
+    -------
+    Path of the folder.
+    """
+    import tifffile
+
+    from ctpipe.io.outputs import staged_folder
+
+    folder = Path(folder)
+    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        raise InputError(f"{folder}: exists and is not an empty folder; write the Nikon scan to a new folder")
+    if not isinstance(geometry, Geometry):
+        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    if offset_keys not in OFFSET_KEYS:
+        raise InputError(f"offset_keys: must be one of {', '.join(OFFSET_KEYS)}, got {offset_keys!r}")
+    if angle_log not in ANGLE_LOGS:
+        raise InputError(f"angle_log: must be one of ctdata, ang, None, got {angle_log!r}")
+    if not name or any(c in name for c in '/\\:*?"<>|'):
+        raise InputError(f"name: must be a non-empty file name without path separators, got {name!r}")
+    if not (math.isfinite(white_level) and 0 < white_level <= np.iinfo(np.uint16).max):
+        raise InputError(f"white_level: must be > 0 and <= 65535 (16-bit counts), got {white_level!r}")
+    counts = np.asarray(intensities)
+    if counts.ndim != 3 or counts.shape[1:] != geometry.shape:
+        raise InputError(f"intensities: must have shape (views, {geometry.detector_rows}, {geometry.detector_cols}) "
+                         f"to match the geometry, got {counts.shape}")
+    n_views = len(counts)
+    nominal = check_angles(nominal_angles_deg, n_views, "nominal_angles_deg")
+    initial = float(nominal[0])
+    step = float((nominal[-1] - nominal[0]) / (n_views - 1)) if n_views > 1 else 0.0
+    uniform = initial + step * np.arange(n_views, dtype=np.float64)
+    if not np.allclose(uniform, nominal, rtol=0.0, atol=1e-9):
+        raise InputError("nominal_angles_deg: must be uniformly spaced; a .xtekct holds only InitialAngle and "
+                         "AngularStep")
+    recorded = None
+    if recorded_angles_deg is not None and angle_log is not None:
+        recorded = check_angles(recorded_angles_deg, n_views, "recorded_angles_deg")
+    corrected = _flat_correct(counts, flats, darks, float(white_level))
+
+    with staged_folder(folder, "Nikon scan folder") as tmp:
+        text = _xtekct_text(name, geometry, n_views, initial, step, float(white_level), offset_keys)
+        (tmp / f"{name}.xtekct").write_bytes(text.encode("ascii"))
+        for i, view in enumerate(corrected):
+            tifffile.imwrite(tmp / f"{name}_{i + 1:04d}.tif", view)
+        if recorded is not None and angle_log == "ctdata":
+            (tmp / _CTDATA).write_bytes(_ctdata_text(recorded - initial).encode("ascii"))
+        elif recorded is not None:
+            write_nikon_angles(tmp / f"{name}.ang", recorded, initial_angle_deg=initial)
+    return folder
+
+
+register_format("nikon", detect, open_nikon, "a folder with one <Name>.xtekct beside <Name>_0001.tif ... "
+                "(Nikon / X-Tek, CT Pro)")
