@@ -65,7 +65,7 @@ def _cmd_estimate(args) -> int:
     truth = nominal = scan = None
     if not source.exists():
         raise InputError(f"{source}: no such file or scan folder")
-    if source.is_dir() or source.suffix.lower() in (".txrm", ".txm"):
+    if source.is_dir() or source.suffix.lower() not in (".npy", ".tif", ".tiff"):
         from ctpipe.io.scans import open_scan
 
         scan = open_scan(source)
@@ -167,8 +167,9 @@ def _estimate_files(out: Path, report: dict, columns: dict, geometry, result, sc
         blobs["angles.png"] = angle_errors_png({k[:-4] if k.endswith(" deg") else k: v for k, v in curves.items()},
                                                title, ylabel="difference (deg), median offset removed")
     writer = None if scan is None else _angle_log_writer(scan.format)
-    if writer is not None and scan.angle_log is not None:
-        blobs[scan.angle_log.name] = writer(report["estimated_deg"])
+    if writer is not None:
+        name, blob = writer(scan, report["estimated_deg"])
+        blobs[name] = blob
     return {out / name: (lambda blob: lambda handle: handle.write(blob))(blob) for name, blob in blobs.items()}
 
 
@@ -176,7 +177,7 @@ def _angle_log_writer(format_name: str):
     from ctpipe.io.scans import FORMATS
 
     fmt = FORMATS.get(format_name)
-    return None if fmt is None else fmt.angle_log_bytes
+    return None if fmt is None else fmt.corrected_angle_log
 
 
 def _estimate_summary(report: dict, result, scan, source: Path, written: list[str]) -> str:

@@ -14,6 +14,7 @@ then renamed into place) and checks output paths before any work starts.
 from ctpipe.io.arrays import read_array, read_image, read_projections
 from ctpipe.io.corrected import CONE_VECTOR_COLUMNS, TO_ASTRA, cone_vectors, scanner_frame_deg
 from ctpipe.io.flatfield import MAX_DEAD_FRACTION, log_transform
+from ctpipe.io.nikon import open_nikon, read_xtekct, write_nikon, write_nikon_angles
 from ctpipe.io.outputs import (atomic_write, check_output_dir, check_output_file, csv_bytes, json_bytes,
                                keypoints_writer, staged_folder, to_jsonable, write_csv, write_files, write_json,
                                write_keypoints)
@@ -21,9 +22,13 @@ from ctpipe.io.scan_folder import (SCAN_FORMAT, VALUE_KINDS, Scan, check_scan_fo
                                    write_scan)
 from ctpipe.io.scans import FORMATS, ScanFiles, ViewStack, check_angles, open_scan, register_format
 from ctpipe.io.tiff_stack import open_tiff_stack
+from ctpipe.io.waygate import open_waygate, write_waygate, write_waygate_angles
+from ctpipe.io.zeiss import open_zeiss, write_zeiss
 
 __all__ = ["cone_vectors", "scanner_frame_deg", "CONE_VECTOR_COLUMNS", "TO_ASTRA", "open_scan", "ScanFiles", "ViewStack", "FORMATS", "register_format", "check_angles", "open_scan_folder",
            "open_tiff_stack",
+           "open_nikon", "write_nikon", "write_nikon_angles", "read_xtekct", "open_waygate",
+           "write_waygate", "write_waygate_angles", "open_zeiss", "write_zeiss",
            "Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS",
            "read_projections", "read_image", "read_array", "log_transform", "MAX_DEAD_FRACTION", "atomic_write",
            "write_files", "staged_folder", "write_json", "write_csv", "json_bytes", "csv_bytes", "to_jsonable",

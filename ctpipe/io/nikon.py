@@ -150,8 +150,7 @@ from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
 
-__all__ = ["detect", "open_nikon", "write_nikon", "write_nikon_angles", "read_xtekct", "OFFSET_KEYS",
-           "ANGLE_LOGS"]
+__all__ = ["open_nikon", "write_nikon", "write_nikon_angles", "read_xtekct"]
 
 #: How :func:`write_nikon` stores the principal point's column: in ``ObjectOffsetX`` (files of
 #: Inspect-X 6 and later), ``CentreOfRotationTop/Bottom`` (older files) or ``DetectorOffsetX``.
@@ -700,5 +699,15 @@ def write_nikon(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, r
     return folder
 
 
+def _corrected_angle_log(scan: ScanFiles, angles_deg) -> tuple[str, bytes]:
+    """``<Name>.ang`` for CT Pro with ``angles_deg`` (ctpipe's convention, the nominal angles' frame)."""
+    import tempfile
+
+    name = Path(scan.metadata["xtekct"]).with_suffix(".ang").name
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write_nikon_angles(Path(tmp) / name, angles_deg, initial_angle_deg=float(scan.metadata["InitialAngle"]))
+        return name, path.read_bytes()
+
+
 register_format("nikon", detect, open_nikon, "a folder with one <Name>.xtekct beside <Name>_0001.tif ... "
-                "(Nikon / X-Tek, CT Pro)")
+                "(Nikon / X-Tek, CT Pro)", corrected_angle_log=_corrected_angle_log)

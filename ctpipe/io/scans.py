@@ -200,7 +200,7 @@ class _Format:
     detect: Callable[[Path], bool]
     open: Callable[[Path], ScanFiles]
     description: str
-    angle_log_bytes: Callable[[np.ndarray], bytes] | None = None
+    corrected_angle_log: Callable[[ScanFiles, np.ndarray], tuple[str, bytes]] | None = None
 
 
 #: The formats :func:`open_scan` tries, in order: name -> (detect, open, description).
@@ -208,14 +208,20 @@ FORMATS: dict[str, _Format] = {}
 
 
 def register_format(name: str, detect: Callable[[Path], bool], open: Callable[[Path], ScanFiles],
-                    description: str, *, angle_log_bytes: Callable[[np.ndarray], bytes] | None = None) -> None:
+                    description: str, *,
+                    corrected_angle_log: Callable[[ScanFiles, np.ndarray], tuple[str, bytes]] | None = None) -> None:
     """Add a format :func:`open_scan` recognises (the built-in ones register on import).
 
-    ``angle_log_bytes(angles_deg)``, for formats whose scanner keeps a per-view angle file, gives
-    that file's contents for ctpipe-convention angles, so corrected angles go back in the
-    scanner's own file format.
+    ``corrected_angle_log(scan, angles_deg)``, for formats whose scanner or reconstruction
+    software reads a per-view angle file, gives that file's name and contents for angles in
+    ctpipe's convention (in the frame of the scan's nominal angles), so corrected angles go back
+    in the scanner's own file format.
     """
-    FORMATS[name] = _Format(name, detect, open, description, angle_log_bytes)
+    FORMATS[name] = _Format(name, detect, open, description, corrected_angle_log)
+
+
+#: The built-in formats in the order they are tried (most specific first), then any others.
+_BUILTIN_ORDER = ("ctpipe", "nikon", "zeiss", "bruker", "waygate", "tiff-yaml")
 
 
 def _load_builtin_formats() -> None:
@@ -245,7 +251,8 @@ def open_scan(path: str | Path) -> ScanFiles:
     if not path.exists():
         raise InputError(f"{path}: no such file or folder")
     _load_builtin_formats()
-    for fmt in FORMATS.values():
+    for fmt in sorted(FORMATS.values(), key=lambda f: _BUILTIN_ORDER.index(f.name) if f.name in _BUILTIN_ORDER
+                      else len(_BUILTIN_ORDER)):
         if fmt.detect(path):
             return fmt.open(path)
     known = "; ".join(f"{f.name}: {f.description}" for f in FORMATS.values())

@@ -125,7 +125,7 @@ from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
 
-__all__ = ["detect", "open_waygate", "write_waygate", "write_waygate_angles"]
+__all__ = ["open_waygate", "write_waygate", "write_waygate_angles"]
 
 #: Largest ``.pca`` read (real ones are a few kB).
 _PCA_MAX_BYTES = 4 << 20
@@ -683,5 +683,15 @@ def write_waygate_angles(path: str | Path, angles_deg) -> Path:
     return atomic_write(path, lambda handle: handle.write(text.encode("ascii")))
 
 
+def _corrected_angle_log(scan: ScanFiles, angles_deg) -> tuple[str, bytes]:
+    """``<name>.pcp`` with ``angles_deg`` (ctpipe's convention, the nominal angles' frame)."""
+    import tempfile
+
+    name = f"{scan.metadata['name']}.pcp"
+    with tempfile.TemporaryDirectory() as tmp:
+        return name, write_waygate_angles(Path(tmp) / name, angles_deg).read_bytes()
+
+
 register_format("waygate", detect, open_waygate,
-                "a folder with <name>.pca beside <name>00001.tif ... (GE/Waygate phoenix datos|x)")
+                "a folder with <name>.pca beside <name>00001.tif ... (GE/Waygate phoenix datos|x)",
+                corrected_angle_log=_corrected_angle_log)

@@ -115,7 +115,7 @@ from ctpipe.geometry import Geometry
 from ctpipe.io._ole import StreamReader, find_entry, write_compound_file
 from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
 
-__all__ = ["detect", "open_zeiss", "write_zeiss", "SUFFIXES", "DATA_TYPES"]
+__all__ = ["open_zeiss", "write_zeiss"]
 
 #: File name suffixes of Zeiss Xradia files: projections, reconstructions.
 SUFFIXES = (".txrm", ".txm")
