@@ -14,7 +14,7 @@ from pathlib import Path
 
 #: Data boxes: key -> (title, what it is in code, (x, y) centre in figure units).
 DATA = {
-    "files": ("scan on disk", "scan folder, .npy, TIFF", (2.0, 20.4)),
+    "files": ("scan on disk", "Nikon, Zeiss, SkyScan, Waygate, ...", (2.0, 20.4)),
     "phantom": ("phantom + scan spec", "phantoms/*.yaml, jitter, noise", (8.4, 20.4)),
     "projections": ("projections", "ndarray (V, rows, cols) + Geometry", (5.2, 17.9)),
     "features": ("features", "data.Features, one per view", (5.2, 15.4)),
@@ -29,7 +29,8 @@ DATA = {
 
 #: Arrows: (from, to, owning modules, how it runs). Modules are checked by the tests.
 ARROWS = (
-    ("files", "projections", ("ctpipe.io.scan_folder", "ctpipe.io.arrays"), "read, flat/dark corrected"),
+    ("files", "projections", ("ctpipe.io.scans", "ctpipe.io.nikon", "ctpipe.io.flatfield"),
+     "open_scan: read view by view, corrected"),
     ("phantom", "projections", ("ctpipe.sim.simulator", "ctpipe.sim.projectors"), "simulate with known jitter"),
     ("projections", "features", ("ctpipe.builtin.surf", "ctpipe.builtin.opencv_detectors"),
      "detector stage, per view (Pipeline.detect)"),
@@ -40,7 +41,7 @@ ARROWS = (
     ("pairs", "solution", ("ctpipe.solve.graph",), "robust view graph"),
     ("projections", "solution", ("ctpipe.solve.reprojection",), "projection matching"),
     ("solution", "angles", ("ctpipe.pipeline", "ctpipe.builtin.refiners"), "refiner stage (Pipeline.refine)"),
-    ("angles", "volume", ("ctpipe.recon.feldkamp",), "FDK"),
+    ("angles", "volume", ("ctpipe.recon.feldkamp", "ctpipe.io.corrected"), "FDK, or your reconstructor"),
     ("volume", "scores", ("ctpipe.evaluate.scoring", "ctpipe.evaluate.validate"), "ctpipe validate"),
 )
 
