@@ -1,0 +1,723 @@
+"""Bruker SkyScan scans: a ``<prefix>.log`` beside the projections ``<prefix>NNNNNNNN.tif``.
+
+Files
+-----
+A SkyScan acquisition folder holds, for each scan (or each sub-scan ``~00``, ``~01``, ... of an
+oversize "connected" scan)::
+
+    <prefix>.log                     # INI-like text: [System], [User], [Acquisition], [Reconstruction]
+    <prefix>00000000.tif ...         # one 16-bit TIFF per view, index from 0, "Filename Index Length" digits
+    <prefix>.info                    # SkyScan 2214 only: the angle each view reached ("achieved angle")
+    <prefix>_TS.csv, <prefix>.oog,   # optional: NRecon's thermal-shift table, thumbnails, ... (not read)
+    <prefix>_spr.bmp, ...
+
+The log is written by the scanner software (Windows text, read as Latin-1); NRecon appends a
+``[Reconstruction]`` section once the scan has been reconstructed. Keys are matched ignoring
+case and repeated blanks (scanners write both ``Number of Files`` and ``Number Of Files``). A
+folder may hold several logs (``name.log``, ``name~00.log``, ``name~01.log`` for a connected
+scan): open the one ``.log`` you mean, since each sub-scan is a scan of its own. SkyScan saves
+no flat or dark frames beside the projections; only the 2214 logs per-view angles (``.info``).
+
+Keys read and what ctpipe makes of them
+---------------------------------------
+``[Acquisition]``:
+
+============================  =====================================================================
+``Filename Prefix``           projection names ``<prefix>NNNNNNNN.tif`` (default: the log's name)
+``Filename Index Length``     digits of NNNNNNNN (absent in older logs: 8, else 4, from the files)
+``Number of Files``           views; files ``0 .. N-1`` must all exist and file ``N`` must not
+``Number of Rows/Columns``    ``detector_rows`` / ``detector_cols`` (checked against every TIFF)
+``Object to Source (mm)``     ``source_to_object_mm``
+``Camera to Source (mm)``     ``source_to_detector_mm``
+``Image Pixel Size (um)``     the pixel size at the rotation axis: ``pixel_pitch_u_mm =
+                              pixel_pitch_v_mm = Image Pixel Size / 1000 * SDD / SOD``
+``Optical Axis (line)``       ``v0_px``: the row of the central ray, counted from row 0 = the
+                              first row of the TIFF as stored (a pixel centre)
+``Rotation Step (deg)``       the step between views (positive; the direction is the next key)
+``Rotation Direction``        ``CC`` (every SkyScan log we found) or ``CW``; absent: ``CC`` + note
+``Scanning Start Angle``      angle of view 0, default 0 (every log we found has 0)
+``Flat Field Correction``     ``ON``: the TIFFs are flat-corrected by the scanner (see below)
+``Reference Intensity``       the grey level of the open beam in flat-corrected TIFFs
+``Depth (bits)``              only when ``Reference Intensity`` is absent: white level ``2**Depth``
+``Image Format``              must be ``TIFF`` when present
+============================  =====================================================================
+
+``[Reconstruction]``: ``Postalignment`` (or ``Sub-scan post alignment [k]`` of sub-scan
+``~k``), NRecon's shift of the rotation axis in projection pixels: ``u0_px = (cols - 1) / 2 -
+Postalignment``. Read for notes and metadata only: ``[System] Camera Pixel Size (um)`` and
+``[Acquisition] Camera binning`` (checked against the pixel size above), ``Random Movement``,
+``TS modified according to``, ``Image crop origin Y``, ``Number of connected scans``.
+
+Conventions, and how they become ctpipe's
+-----------------------------------------
+*Pixel size.* NRecon's cone geometry is ``Image Pixel Size`` at ``Object to Source``: the cone
+angles it logs (``Cone-beam Angle Horiz.(deg)`` and ``Vert.``) are ``2 atan(cols / 2 * Image
+Pixel Size / SOD)`` (rows for ``Vert.``) to six digits in the SkyScan 1173, 1272, 1275 and 1278
+logs we checked (a 1172 log rounds ``Image Pixel Size`` to 0.01 um: 0.06 % there), while the
+camera pixel times the binning over ``Camera to Source`` is 1 to 8 % off. ctpipe only needs the
+ratio ``pitch / SDD`` (= ``Image Pixel Size / SOD``), so it keeps the scanner's SDD and takes
+the pitch that makes that ratio NRecon's; a camera pixel x binning more than 0.5 % away is said
+in a note. ``Camera X/Y Ratio`` is ignored, as NRecon's vertical cone angle shows NRecon does
+(square pixels).
+
+*Principal point.* ``Optical Axis (line)`` is the line "in which the x-ray hits the detector
+perpendicularly", counted from the top of the image as stored: the VXL/LEMS reader
+(``imgr_skyscan_log.cxx``) puts the principal point at ``((cols - 1) / 2, Optical Axis)`` in
+image coordinates (row 0 at the top). TIGRE (``CERN/TIGRE``,
+``Python/tigre/utilities/io/BrukerDataLoader.py``) shifts the detector by ``Optical Axis - rows
+/ 2`` pixels, i.e. measures from the edge ``rows / 2`` rather than the centre ``(rows - 1) /
+2``: half a pixel from VXL. ctpipe follows VXL: ``v0_px = Optical Axis (line)``. Horizontally
+SkyScan assumes the central ray on the middle column (a ``Partial Width`` crop is centred:
+``Image crop origin X + cols / 2`` is the camera's middle column in every log we found);
+NRecon's ``Postalignment`` moves the rotation axis to column ``(cols - 1) / 2 -
+Postalignment``, where the ASTRA-based MATLAB ``SkyScanParser`` puts it (it shifts the detector
+by ``+Postalignment`` pixels with ``astra_geom_postalignment``, ``astra-toolbox/astra-toolbox``,
+``matlab/tools/astra_geom_postalignment.m``). ctpipe has no separate centre of rotation, so the
+axis column becomes ``u0_px``: the usual approximation, which takes an axis offset ``d`` for a
+sideways shift of source and detector together and neglects the yaw of ``d / SOD`` radians it
+implies (1e-4 rad for 10 pixels of 10 um at 100 mm). Without a ``Postalignment`` (a scan not
+reconstructed yet) ``u0_px`` is the middle column and a note says so.
+
+*Angles.* SkyScan logs only the step: view ``i`` is at ``Scanning Start Angle + i * Rotation
+Step``, for every file up to ``Number of Files - 1`` (some logs count the view at the end of
+the range too: NRecon's ``Reconstruction Angular Range`` is ``(N - 1) * step`` there; ctpipe
+keeps it, as one more view). ``Rotation Direction=CC`` is read as the source and detector
+turning counter-clockwise around the object seen from above, i.e. the object turning clockwise
+in ctpipe's frame (points between the axis and the source move towards smaller columns):
+``nominal_angles_deg = -(start + i * step)``; ``CW`` gives ``+(start + i * step)``. This is how
+TIGRE reads SkyScan scans: its ``BrukerDataLoader`` gives the angles ``+i * step`` with the TIFFs
+as stored, and a positive TIGRE angle turns the source counter-clockwise about the axis
+(``Common/CUDA/Siddon_projection.cu``, ``eulerZYZ`` applied to the source; CIL's TIGRE plugin,
+``TomographicImaging/CIL`` ``Wrappers/Python/cil/plugins/tigre/Geometry.py``, negates CIL's
+object angles to get TIGRE's); SkyScan also writes ``Gantry direction=CC`` beside ``Rotation
+Direction=CC``, even on desktop scanners, whose object turns. It is the format's main open
+question: ``tleissner/cil-import-bruker`` (``bruker2cil/geometry_utils.py``) hands the same
+``+i * step`` to CIL, whose positive angle turns the object counter-clockwise, the other sense.
+A reconstruction is sharp either way (the wrong sense gives the mirror image), so neither
+reader shows which is right. On a real scan the wrong sense shows in ``ctpipe estimate``: the
+angles do not follow the nominal ones (the pair angles are unwrapped against them) and the
+residuals are degrees, not hundredths. ``open_bruker(path, rotation_direction="CW")`` overrides
+the log.
+
+*Recorded angles.* The SkyScan 2214 writes ``<prefix>.info``, whose lines holding ``achieved
+angle`` end with the angle the turntable reached, one per view after the first, up to a line
+``Drift compensation scan`` (reference views taken after the scan). This much is known from
+``tleissner/cil-import-bruker`` (``bruker2cil/import_utils.py``, ``get_angles_from_infofile``),
+which reads them in place of ``i * step`` with view 0 at 0: the scanner's own sense, so ctpipe
+applies the same sign as to the nominal angles. The reader takes the last number after
+``achieved angle`` on each such line, view 0 at ``Scanning Start Angle`` (N - 1 lines; N lines
+are taken as they are), and gives them as ``recorded_angles_deg``, with ``angle_log`` the
+``.info``; any other count, or angles straying more than 10 deg from the nominal ones, leave
+``recorded_angles_deg`` None with a note. No other SkyScan logs per-view angles: None.
+
+*Intensities.* With ``Flat Field Correction=ON`` the scanner divides every projection by its
+reference (flat) images before saving and scales the result to ``Reference Intensity`` (57000
+or 58000 in the logs we found, below 65535 so that noise above the open beam is not clipped):
+the reader passes that as the ViewStack's ``white_level``. Which level the scanner scales to
+is not documented publicly; TIGRE divides by ``2**Depth`` instead. The choice only adds the
+constant ``log(white level / true level)`` to every line integral, which ctpipe's detectors do
+not see (each view is mapped from its own min..max to 8 bits). ``Flat Field Correction=OFF``
+leaves raw counts with no flat frames in the folder: they are divided by the white level all
+the same and a note says so.
+
+Unclear, and said in notes when it applies
+------------------------------------------
+``Random Movement=ON``: the scanner moves the sample vertically between views to smear ring
+artefacts; the saved projections are believed to be shifted back, which ctpipe assumes (a
+residual vertical shift between views biases the estimate). ``TS modified according to
+<prefix>_TS.csv``: a thermal-shift table NRecon applies when reconstructing, not to the
+TIFFs; ctpipe does not apply it. ``Image Rotation`` (an in-plane detector tilt in degrees) is
+not applied. A non-zero ``Image crop origin Y``: ``Optical Axis (line)`` is taken as a row of
+the stored image, which is what NRecon sees.
+
+Anchors
+-------
+``CERN/TIGRE``: ``Python/tigre/utilities/io/BrukerDataLoader.py`` and
+``MATLAB/Utilities/IO/Bruker/readBrukerGeometry.m`` (keys, binning, ``Optical Axis`` offset,
+white level ``2**Depth``, angles ``i * step``); the VXL/LEMS ``imgr_skyscan_log.cxx`` (principal
+point); the MATLAB ``SkyScanParser`` class with ASTRA's ``astra_geom_postalignment``
+(post-alignment sign); ``tleissner/cil-import-bruker`` (a CIL reader of the 2214: the other
+angle sense, and the ``.info`` achieved angles);
+SkyScan logs published in ``xray-imaging/meta-cli`` (``docs/source/demo/skyscan_1272``,
+``docs/source/demo/bruker/skyscan_1173``), ``habi/BrukerSkyScanLogfileRuminator``
+(``logfiles/``, a 1172 log and its ``_TS.csv``) and on discourse.slicer.org (1275, 1278).
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ctpipe.errors import ConfigError, InputError
+from ctpipe.geometry import Geometry
+from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
+
+__all__ = ["detect", "open_bruker", "write_bruker", "read_skyscan_log", "SkyScanLog", "flat_correct",
+           "DEFAULT_REFERENCE_INTENSITY"]
+
+#: The open-beam grey level the writer scales flat-corrected projections to (SkyScan 1272 logs 57000).
+DEFAULT_REFERENCE_INTENSITY = 57000.0
+#: Camera pixel x binning and the pixel size NRecon uses may differ by this much without a note.
+_PIXEL_TOLERANCE = 0.005
+#: Achieved angles further than this from the nominal ones are not taken for the turntable's (degrees).
+_MAX_STRAY_DEG = 10.0
+#: Larger logs are not SkyScan logs (real ones are a few kB).
+_MAX_LOG_BYTES = 4 * 1024 * 1024
+_SNIFF_BYTES = 8192
+_NUMBER = re.compile(r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?")
+_INTEGER = re.compile(r"[-+]?\d+")
+
+
+def _norm(text: str) -> str:
+    return " ".join(text.split()).lower()
+
+
+@dataclass(frozen=True)
+class SkyScanLog:
+    """A SkyScan ``.log`` file, parsed: ``sections[section][key] = value``, names normalised.
+
+    Section and key names are lower case with single blanks (``"number of files"``); values
+    are the text after the first ``=``, stripped.
+    """
+
+    path: Path
+    sections: dict = field(default_factory=dict)
+
+    def get(self, section: str, key: str) -> str | None:
+        """The value of ``[section] key``, or None when absent."""
+        return self.sections.get(_norm(section), {}).get(_norm(key))
+
+    def has(self, section: str, key: str) -> bool:
+        return self.get(section, key) is not None
+
+    def _where(self, section: str, key: str) -> str:
+        return f"{self.path}: [{section}] {key}"
+
+    def number(self, section: str, key: str, what: str, *, default: float | None = None,
+               positive: bool = False) -> float:
+        """A number; required unless ``default`` is given. ``positive``: it must be > 0."""
+        value = self.get(section, key)
+        if value is None or value == "":
+            if default is not None:
+                return float(default)
+            raise ConfigError(f"{self._where(section, key)}: missing; it gives {what}")
+        if not _NUMBER.fullmatch(value):
+            raise ConfigError(f"{self._where(section, key)}: must be a number ({what}), got {value!r}")
+        number = float(value)
+        if not math.isfinite(number) or (positive and number <= 0):
+            raise ConfigError(f"{self._where(section, key)}: must be a finite number{' > 0' if positive else ''} "
+                              f"({what}), got {value!r}")
+        return number
+
+    def integer(self, section: str, key: str, what: str, *, low: int = 1, high: int = 10**9,
+                default: int | None = None) -> int:
+        value = self.get(section, key)
+        if (value is None or value == "") and default is not None:
+            return default
+        if value is None or value == "":
+            raise ConfigError(f"{self._where(section, key)}: missing; it gives {what}")
+        if not _INTEGER.fullmatch(value) or not low <= int(value) <= high:
+            raise ConfigError(f"{self._where(section, key)}: must be a whole number from {low} to {high} ({what}), "
+                              f"got {value!r}")
+        return int(value)
+
+    def choice(self, section: str, key: str, allowed: tuple[str, ...]) -> str | None:
+        """One of ``allowed`` (compared ignoring case), or None when absent."""
+        value = self.get(section, key)
+        if value is None:
+            return None
+        for option in allowed:
+            if value.upper() == option:
+                return option
+        raise ConfigError(f"{self._where(section, key)}: must be {' or '.join(allowed)}, got {value!r}")
+
+
+def read_skyscan_log(path: str | Path) -> SkyScanLog:
+    """Parse a SkyScan ``.log``: ``[Section]`` headers, ``key=value`` lines, ``;``/``#`` comments.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file (and line): not INI-like text, a ``key=value`` before any section, a
+        key given twice in one section with different values, or no ``[Acquisition]`` section.
+        A section that comes again (NRecon appending a second ``[Reconstruction]``) updates
+        the first.
+    InputError
+        The file cannot be read.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > _MAX_LOG_BYTES:
+            raise ConfigError(f"{path}: is {size} bytes, too large for a SkyScan log (a few kB); not a scan log")
+        text = path.read_bytes().decode("latin-1")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+    text = text.removeprefix("\u00ef\u00bb\u00bf")  # a UTF-8 byte-order mark, seen through Latin-1
+    sections: dict[str, dict[str, str]] = {}
+    current: dict[str, str] | None = None
+    block: dict[str, str] = {}
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith((";", "#")):
+            continue
+        if line.startswith("[") and line.endswith("]"):
+            current, block = sections.setdefault(_norm(line[1:-1]), {}), {}
+            continue
+        key, equals, value = line.partition("=")
+        if not equals or not key.strip():
+            raise ConfigError(f"{path}: line {number}: {line[:60]!r} is neither '[Section]' nor 'key=value'; "
+                              "a SkyScan log is INI-like text")
+        if current is None:
+            raise ConfigError(f"{path}: line {number}: {key.strip()!r} comes before the first [Section] header")
+        name, value = _norm(key), value.strip()
+        if block.get(name, value) != value:
+            raise ConfigError(f"{path}: line {number}: {key.strip()!r} is given twice in one section, as "
+                              f"{block[name]!r} and {value!r}")
+        current[name] = block[name] = value
+    if "acquisition" not in sections:
+        raise ConfigError(f"{path}: has no [Acquisition] section; not a SkyScan scan log")
+    return SkyScanLog(path, sections)
+
+
+def _looks_like_skyscan_log(path: Path) -> bool:
+    """The cheap test of :func:`detect`: a ``[System]`` header first, ``[Acquisition]`` soon after."""
+    try:
+        with path.open("rb") as handle:
+            head = handle.read(_SNIFF_BYTES).decode("latin-1").removeprefix("\u00ef\u00bb\u00bf")
+    except OSError:
+        return False
+    lines = [line.strip() for line in head.splitlines() if line.strip() and not line.strip().startswith((";", "#"))]
+    return bool(lines) and lines[0].lower() == "[system]" and "[acquisition]" in head.lower()
+
+
+def _logs_in(folder: Path) -> list[Path]:
+    try:
+        return sorted(p for p in folder.iterdir() if p.suffix.lower() == ".log" and p.is_file()
+                      and _looks_like_skyscan_log(p))
+    except OSError:
+        return []
+
+
+def detect(path: Path) -> bool:
+    """True for a SkyScan ``.log`` file, or a folder holding one (file names and first bytes only)."""
+    path = Path(path)
+    if path.is_file():
+        return path.suffix.lower() == ".log" and _looks_like_skyscan_log(path)
+    return path.is_dir() and bool(_logs_in(path))
+
+
+def _find_log(path: Path) -> Path:
+    if path.is_file():
+        return path
+    logs = _logs_in(path)
+    if not logs:
+        raise InputError(f"{path}: no SkyScan .log (a text file starting with [System]) in this folder")
+    if len(logs) > 1:
+        names = ", ".join(p.name for p in logs)
+        raise InputError(f"{path}: holds {len(logs)} SkyScan logs ({names}); each is a scan (or sub-scan) of its "
+                         f"own, so open one of them, e.g. {logs[-1]}")
+    return logs[0]
+
+
+def _sub_scan(prefix: str) -> int | None:
+    match = re.search(r"~(\d+)$", prefix)
+    return int(match.group(1)) if match else None
+
+
+def _projection_names(log: SkyScanLog, folder: Path, prefix: str, count: int) -> list[str]:
+    digits = log.integer("Acquisition", "Filename Index Length", "the digits of the projection numbers", high=12,
+                         default=0)
+    if not digits:
+        # Older logs (SkyScan 1172, 1173) do not say; newer scanners write 8 digits, older ones 4.
+        digits = next((d for d in (8, 4) if (folder / f"{prefix}{0:0{d}d}.tif").is_file()), 8)
+    names = [f"{prefix}{i:0{digits}d}.tif" for i in range(count)]
+    for i, name in enumerate(names):
+        if not (folder / name).is_file():
+            raise InputError(f"{folder / name}: no such file; {log.path.name} says Number of Files={count} but only "
+                             f"{i} projections {prefix}{'N' * digits}.tif from 0 exist, and the count must match")
+    extra = folder / f"{prefix}{count:0{digits}d}.tif"
+    if extra.is_file():
+        raise InputError(f"{extra}: exists, but {log.path} says Number of Files={count} (files 0 to {count - 1}); "
+                         "the count must match the files")
+    return names
+
+
+def _geometry(log: SkyScanLog, prefix: str, notes: list[str]) -> Geometry:
+    acq = "Acquisition"
+    rows = log.integer(acq, "Number of Rows", "the detector rows (image height)", high=65536)
+    cols = log.integer(acq, "Number of Columns", "the detector columns (image width)", high=65536)
+    sod = log.number(acq, "Object to Source (mm)", "the source-to-axis distance", positive=True)
+    sdd = log.number(acq, "Camera to Source (mm)", "the source-to-detector distance", positive=True)
+    if sdd <= sod:
+        raise ConfigError(f"{log.path}: [Acquisition] Camera to Source (mm)={sdd:g} must exceed Object to Source "
+                          f"(mm)={sod:g}: the axis lies between source and detector")
+    pixel_um = log.number(acq, "Image Pixel Size (um)", "the pixel size at the rotation axis", positive=True)
+    pitch_mm = pixel_um / 1000.0 * sdd / sod
+    camera_um = log.get("System", "Camera Pixel Size (um)")
+    binning = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", log.get(acq, "Camera binning") or "1x1")
+    if camera_um and _NUMBER.fullmatch(camera_um) and binning and float(camera_um) > 0:
+        camera_mm = float(camera_um) / 1000.0 * int(binning.group(1))
+        if abs(camera_mm / pitch_mm - 1.0) > _PIXEL_TOLERANCE:
+            notes.append(f"Camera Pixel Size x binning is {camera_mm * 1000:.4g} um but Image Pixel Size x "
+                         f"(Camera to Source / Object to Source) is {pitch_mm * 1000:.4g} um "
+                         f"({100 * abs(camera_mm / pitch_mm - 1):.1f} % apart); ctpipe uses the latter, NRecon's")
+    v0 = log.number(acq, "Optical Axis (line)", "the row where the central ray meets the detector")
+    if log.number(acq, "Image crop origin Y", "the first camera row of the image", default=0.0) != 0:
+        notes.append("Image crop origin Y is not 0: Optical Axis (line) is taken as a row of the stored image")
+    rec = "Reconstruction"
+    sub = _sub_scan(prefix)
+    shift_key = "Postalignment"
+    if not log.has(rec, shift_key) and sub is not None and log.has(rec, f"Sub-scan post alignment [{sub}]"):
+        shift_key = f"Sub-scan post alignment [{sub}]"
+    if log.has(rec, shift_key):
+        shift = log.number(rec, shift_key, "NRecon's rotation-axis shift, pixels")
+    else:
+        shift = 0.0
+        notes.append("no [Reconstruction] Postalignment in the log (not reconstructed yet?): the rotation axis is "
+                     "taken on the middle column")
+    return Geometry(source_to_object_mm=sod, source_to_detector_mm=sdd, detector_cols=cols, detector_rows=rows,
+                    pixel_pitch_u_mm=pitch_mm, pixel_pitch_v_mm=pitch_mm, u0_px=(cols - 1) / 2.0 - shift, v0_px=v0)
+
+
+def _angles(log: SkyScanLog, count: int, notes: list[str], override: str | None) -> np.ndarray:
+    acq = "Acquisition"
+    step = log.number(acq, "Rotation Step (deg)", "the turntable step between views, degrees", positive=True)
+    start = log.number(acq, "Scanning Start Angle", "the angle of view 0, degrees", default=0.0)
+    direction = log.choice(acq, "Rotation Direction", ("CC", "CW"))
+    if override is not None:
+        if direction is not None and direction != override:
+            notes.append(f"Rotation Direction={override} as asked, although the log says {direction}")
+        direction = override
+    elif direction is None:
+        direction = "CC"
+        notes.append("no Rotation Direction in the log: CC assumed, as every SkyScan log we know says")
+    sign = -1.0 if direction == "CC" else 1.0
+    nominal = check_angles(sign * (start + step * np.arange(count, dtype=np.float64)) + 0.0, count,
+                           f"{log.path}: [Acquisition] Rotation Step (deg)")
+    return nominal, sign, start
+
+
+def _recorded_angles(info: Path, count: int, start: float, sign: float, nominal: np.ndarray,
+                     notes: list[str]) -> np.ndarray | None:
+    """The achieved angles of a SkyScan 2214 ``<prefix>.info``, in ctpipe's convention, or None (with a note)."""
+    try:
+        text = info.read_bytes().decode("latin-1")
+    except OSError as exc:
+        raise InputError(f"{info}: cannot be read: {exc.strerror or exc}") from None
+    achieved = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        lowered = line.lower()
+        if "drift compensation scan" in lowered:
+            break
+        if "achieved angle" in lowered:
+            values = _NUMBER.findall(line.lower().partition("achieved angle")[2])
+            if not values:
+                raise ConfigError(f"{info}: line {number}: an 'achieved angle' line must end with the angle, got "
+                                  f"{line.strip()[:60]!r}")
+            achieved.append(float(values[-1]))
+    if len(achieved) == count - 1:
+        achieved = [start, *achieved]  # view 0 is not logged: it is taken at the start angle
+    if len(achieved) != count:
+        notes.append(f"{info.name}: {len(achieved)} 'achieved angle' lines for {count} views (expected "
+                     f"{count - 1}); the recorded angles are not used")
+        return None
+    recorded = sign * np.asarray(achieved, dtype=np.float64) + 0.0
+    stray = float(np.max(np.abs(recorded - nominal)))
+    if not np.isfinite(stray) or stray > _MAX_STRAY_DEG:
+        notes.append(f"{info.name}: the achieved angles stray up to {stray:.3g} deg from the nominal ones, more "
+                     f"than {_MAX_STRAY_DEG:g}; they are not taken as the turntable's angles")
+        return None
+    return recorded
+
+
+def _white_level(log: SkyScanLog, notes: list[str]) -> float:
+    acq = "Acquisition"
+    corrected = log.choice(acq, "Flat Field Correction", ("ON", "OFF"))
+    depth = log.integer(acq, "Depth (bits)", "the bits per pixel of the projections", high=32, default=16)
+    if corrected == "OFF":
+        notes.append(f"Flat Field Correction=OFF: the TIFFs hold raw counts and SkyScan saves no flat frames; they "
+                     f"are divided by 2**{depth} instead, so the detector's fixed pattern stays in the images")
+        return float(2**depth)
+    if corrected is None:
+        notes.append("no Flat Field Correction in the log: ON assumed (the TIFFs flat-corrected by the scanner)")
+    if log.has(acq, "Reference Intensity"):
+        return log.number(acq, "Reference Intensity", "the open-beam grey level of the flat-corrected TIFFs",
+                          positive=True)
+    notes.append(f"no Reference Intensity in the log: white level 2**{depth} assumed, as TIGRE does (this only "
+                 "offsets every line integral by a constant)")
+    return float(2**depth)
+
+
+def open_bruker(path: str | Path, *, rotation_direction: str | None = None) -> ScanFiles:
+    """Open a SkyScan scan lazily: the log, the geometry and angles; views read on demand.
+
+    Parameters
+    ----------
+    path : str or Path
+        The folder holding one SkyScan ``.log`` and its TIFFs, or the ``.log`` itself (needed
+        when the folder holds several, e.g. the sub-scans of a connected scan).
+    rotation_direction : {"CC", "CW"} or None
+        Overrides the log's ``Rotation Direction`` (see the module docstring for what each
+        means); None reads it from the log.
+
+    Raises
+    ------
+    ConfigError
+        The log is malformed, or a key is missing or has an unusable value (the message names
+        the file, the section and the key).
+    InputError
+        Projection files missing or more than ``Number of Files``, or of the wrong size (when
+        read), or several logs in the folder.
+    """
+    from ctpipe.io.arrays import read_array
+
+    if rotation_direction not in (None, "CC", "CW"):
+        raise InputError(f"rotation_direction: must be 'CC', 'CW' or None, got {rotation_direction!r}")
+    path = Path(path)
+    log_path = _find_log(path)
+    log = read_skyscan_log(log_path)
+    folder = log_path.parent
+    notes: list[str] = []
+    image_format = log.get("Acquisition", "Image Format")
+    if image_format is not None and image_format.upper() not in ("TIFF", "TIF"):
+        raise InputError(f"{log_path}: [Acquisition] Image Format={image_format}; ctpipe reads SkyScan scans saved "
+                         "as TIFF")
+    prefix = log.get("Acquisition", "Filename Prefix") or log_path.stem
+    if re.search(r"[\\/]", prefix) or prefix in (".", ".."):
+        raise ConfigError(f"{log_path}: [Acquisition] Filename Prefix={prefix!r}: must be a file name prefix, "
+                          "without folders")
+    count = log.integer("Acquisition", "Number of Files", "the number of projections", high=10**7)
+    geometry = _geometry(log, prefix, notes)
+    nominal, sign, start = _angles(log, count, notes, rotation_direction)
+    white = _white_level(log, notes)
+    names = _projection_names(log, folder, prefix, count)
+    info = folder / f"{prefix}.info"
+    recorded = _recorded_angles(info, count, start, sign, nominal, notes) if info.is_file() else None
+    if (log.get("Acquisition", "Random Movement") or "").upper().startswith("ON"):
+        notes.append("Random Movement=ON: the projections are assumed shifted back by the scanner; a residual "
+                     "vertical shift between views would bias the angles")
+    if log.has("Acquisition", "TS modified according to") or (folder / f"{prefix}_TS.csv").is_file():
+        notes.append("a thermal-shift table (_TS.csv) goes with this scan; NRecon applies it, ctpipe does not")
+    connected = log.get("Acquisition", "Number of connected scans")
+    if connected and _INTEGER.fullmatch(connected) and int(connected) > 1:
+        notes.append(f"sub-scan {prefix} of a connected scan of {connected}; each sub-scan is estimated on its own")
+    rows, cols = geometry.shape
+
+    def read(index: int) -> np.ndarray:
+        file = folder / names[index]
+        if not file.is_file():
+            raise InputError(f"{file}: no such file (projection {index} of {count}, named by {log_path.name})")
+        image = read_array(file, kind=".tif")
+        if image.shape != (rows, cols):
+            raise InputError(f"{file}: is an image of shape {image.shape} but {log_path.name} says Number of "
+                             f"Rows={rows}, Number of Columns={cols}")
+        return image
+
+    read(0)  # one view, so that a log that disagrees with its images fails here, not mid-estimate
+    try:
+        stack = ViewStack(read, count, (rows, cols), values="intensities", white_level=white, name=str(folder))
+    except InputError as exc:
+        raise InputError(f"{log_path}: {exc}") from None
+    used = {f"[{section}] {key}": value for section, keys in log.sections.items() for key, value in keys.items()
+            if section in ("acquisition", "reconstruction") or key == "camera pixel size (um)"}
+    return ScanFiles("bruker", path, geometry, nominal, stack, recorded_angles_deg=recorded,
+                     angle_log=info if recorded is not None else None, notes=tuple(notes),
+                     metadata={"log": str(log_path), "prefix": prefix, "white_level": white, "keys": used})
+
+
+def flat_correct(intensities, flats, darks=None, *, white_level: float = DEFAULT_REFERENCE_INTENSITY) -> np.ndarray:
+    """What a SkyScan saves with ``Flat Field Correction=ON``: ``(I - D) / (F - D) * white_level`` in uint16.
+
+    ``F`` and ``D`` are the mean flat and dark frames. Pixels whose flat is not above their dark
+    are set to the white level (no information, as :func:`ctpipe.io.flatfield.log_transform`
+    treats them); values are rounded to the nearest integer and clipped to 0..65535.
+
+    Parameters
+    ----------
+    intensities : ndarray of shape (V, rows, cols)
+        Raw counts.
+    flats : ndarray of shape (F, rows, cols) or (rows, cols)
+    darks : ndarray of shape (D, rows, cols) or (rows, cols), or None
+    white_level : float
+
+    Returns
+    -------
+    ndarray of shape (V, rows, cols), uint16
+    """
+    counts = np.asarray(intensities)
+    if counts.ndim != 3:
+        raise InputError(f"intensities: must have shape (views, rows, cols), got {counts.shape}")
+    shape = counts.shape[1:]
+
+    def mean(frames, name):
+        frames = np.asarray(frames, dtype=np.float64)
+        frames = frames.mean(axis=0) if frames.ndim == 3 else frames
+        if frames.shape != shape:
+            raise InputError(f"{name}: each frame must have the projections' shape {shape}, got {frames.shape}")
+        return frames
+
+    flat = mean(flats, "flats")
+    dark = np.zeros(shape) if darks is None else mean(darks, "darks")
+    beam = flat - dark
+    alive = beam > 0
+    out = np.empty(counts.shape, np.uint16)
+    for v in range(len(counts)):
+        corrected = np.where(alive, (counts[v] - dark) / np.where(alive, beam, 1.0) * white_level, white_level)
+        out[v] = np.clip(np.rint(corrected), 0, 65535)
+    return out
+
+
+def _fixed(value: float, decimals: int) -> str:
+    """``value`` with ``decimals`` decimals as SkyScan writes it, or every digit if that would change it."""
+    text = f"{value:.{decimals}f}"
+    return text if float(text) == value else repr(float(value))
+
+
+def write_bruker(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, intensities, flats, darks=None,
+                 recorded_angles_deg=None, prefix: str = "scan_",
+                 reference_intensity: float = DEFAULT_REFERENCE_INTENSITY) -> Path:
+    """Write a scan the way a SkyScan saves it: ``<prefix>.log`` and flat-corrected 16-bit TIFFs.
+
+    The projections are flat-corrected as the scanner does with ``Flat Field Correction=ON``
+    (:func:`flat_correct`, scaled to ``Reference Intensity``); no flat or dark frames are saved.
+    The geometry goes into the keys the reader reads (see the module docstring): ``Image Pixel
+    Size (um) = pitch * 1000 * SOD / SDD``, ``Optical Axis (line) = v0_px``, ``[Reconstruction]
+    Postalignment = (cols - 1) / 2 - u0_px`` (written only when not 0), ``Camera Pixel Size (um)
+    = pitch * 1000`` with ``Camera binning=1x1``. The nominal angles must be evenly spaced:
+    ``Rotation Step (deg)`` is the size of their step, ``Rotation Direction`` is ``CC`` for
+    decreasing (ctpipe) angles and ``CW`` for increasing ones, ``Scanning Start Angle`` that of
+    view 0 in the scanner's sense.
+
+    Parameters
+    ----------
+    folder : path
+        Must not exist, or be empty.
+    geometry : Geometry
+        With square pixels (SkyScan logs one pixel size).
+    nominal_angles_deg : array of shape (V,)
+        ctpipe's convention.
+    intensities : ndarray of shape (V, rows, cols)
+        Raw counts.
+    flats, darks : ndarray of shape (F, rows, cols), or (rows, cols); ``darks`` may be None
+    recorded_angles_deg : array of shape (V,) or None
+        The turntable's angles (ctpipe's convention), written as a SkyScan 2214 ``<prefix>.info``:
+        one line ``Projection NNNNNNNN: achieved angle A.`` per view after the first, ``A`` in
+        the scanner's sense. View 0 is not logged (the reader takes it at the start angle), so
+        ``recorded_angles_deg[0]`` is not stored. The line layout is ours: only that the angle
+        ends a line holding ``achieved angle`` is known of the real file (see the module
+        docstring). None writes no ``.info``, as the other SkyScans.
+    prefix : str
+        The ``Filename Prefix``; the log is ``<prefix>.log``, the views ``<prefix>00000000.tif``.
+    reference_intensity : float
+        The open-beam grey level of the saved TIFFs.
+
+    Returns
+    -------
+    Path of the folder.
+    """
+    import tifffile
+
+    from ctpipe._version import __version__
+    from ctpipe.io.outputs import staged_folder
+
+    folder = Path(folder)
+    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        raise InputError(f"{folder}: exists and is not an empty folder; write_bruker writes into a new or empty one")
+    if not isinstance(geometry, Geometry):
+        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    if geometry.pixel_pitch_u_mm != geometry.pixel_pitch_v_mm:
+        raise InputError(f"geometry: SkyScan logs one pixel size, so pixel_pitch_u_mm and pixel_pitch_v_mm must be "
+                         f"equal, got {geometry.pixel_pitch_u_mm} and {geometry.pixel_pitch_v_mm}")
+    if not re.fullmatch(r"[^\\/:*?\"<>|]+", prefix) or prefix in (".", ".."):
+        raise InputError(f"prefix: must be a file name prefix such as 'scan_', got {prefix!r}")
+    nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
+    if nominal.ndim != 1 or nominal.size < 2 or not np.all(np.isfinite(nominal)):
+        raise InputError(f"nominal_angles_deg: must be at least 2 finite angles, got shape {nominal.shape}")
+    step = float(nominal[1] - nominal[0])
+    expected = nominal[0] + step * np.arange(nominal.size)
+    if step == 0 or not np.allclose(nominal, expected, rtol=0, atol=1e-9 * max(1.0, abs(step) * nominal.size)):
+        raise InputError("nominal_angles_deg: must be evenly spaced, since a SkyScan log gives one Rotation Step")
+    counts = np.asarray(intensities)
+    if counts.shape != (nominal.size, *geometry.shape):
+        raise InputError(f"intensities: must have shape ({nominal.size}, {geometry.detector_rows}, "
+                         f"{geometry.detector_cols}) (one view per nominal angle, the geometry's size), "
+                         f"got {counts.shape}")
+    recorded = None
+    if recorded_angles_deg is not None:
+        recorded = np.asarray(recorded_angles_deg, dtype=np.float64)
+        if recorded.shape != nominal.shape or not np.all(np.isfinite(recorded)):
+            raise InputError(f"recorded_angles_deg: must be None or {nominal.size} finite angles, one per view, got "
+                             f"shape {recorded.shape}")
+    if not (math.isfinite(reference_intensity) and 0 < reference_intensity <= 65535):
+        raise InputError(f"reference_intensity: must be in (0, 65535], got {reference_intensity!r}")
+    saved = flat_correct(counts, flats, darks, white_level=reference_intensity)
+
+    direction, sign = ("CW", 1.0) if step > 0 else ("CC", -1.0)
+    start = sign * float(nominal[0])
+    pixel_um = geometry.pixel_pitch_u_mm * 1000.0 * geometry.source_to_object_mm / geometry.source_to_detector_mm
+    shift = (geometry.detector_cols - 1) / 2.0 - geometry.u0_px
+    axis = geometry.v0_px
+    span = abs(step) * nominal.size
+    now = datetime.datetime.now(datetime.timezone.utc)
+    lines = [
+        "[System]",
+        "Scanner=SkyScan (simulated)",
+        f"Software Version=ctpipe {__version__}",
+        f"Camera Pixel Size (um)={_fixed(geometry.pixel_pitch_u_mm * 1000.0, 2)}",
+        "Camera X/Y Ratio=1.0000",
+        "[Acquisition]",
+        f"Filename Prefix={prefix}",
+        "Filename Index Length=8",
+        f"Number Of Files={nominal.size:5d}",
+        f"Number Of Rows={geometry.detector_rows:5d}",
+        f"Number Of Columns={geometry.detector_cols:5d}",
+        "Partial Width=OFF",
+        "Image crop origin X=0",
+        "Image crop origin Y=0",
+        "Camera binning=1x1",
+        "Image Rotation=0.00000",
+        f"Optical Axis (line)={int(axis):5d}" if axis == int(axis) else f"Optical Axis (line)={axis!r}",
+        f"Camera to Source (mm)={_fixed(geometry.source_to_detector_mm, 5)}",
+        f"Object to Source (mm)={_fixed(geometry.source_to_object_mm, 5)}",
+        f"Image Pixel Size (um)={_fixed(pixel_um, 6)}",
+        f"Scaled Image Pixel Size (um)={_fixed(pixel_um, 6)}",
+        "Image Format=TIFF",
+        "Depth (bits)=16",
+        f"Reference Intensity={_fixed(reference_intensity, 0)}",
+        f"Rotation Step (deg)={_fixed(abs(step), 3)}",
+        f"Use 360 Rotation={'YES' if span >= 360.0 - 1e-9 else 'NO'}",
+        "Frame Averaging=OFF (1)",
+        "Random Movement=OFF (0)",
+        "Flat Field Correction=ON",
+        "Geometrical Correction=OFF",
+        f"Gantry direction={direction}",
+        f"Rotation Direction={direction}",
+        f"Scanning Start Angle={_fixed(start, 3)}",
+        "Type of Detector Motion=STEP AND SHOOT",
+        "Scanning Trajectory=ROUND",
+        "Number of connected scans=1",
+        f"Study Date and Time={now:%d %b %Y  %Hh:%Mm:%Ss}",
+    ]
+    if shift != 0:
+        lines += ["[Reconstruction]", f"Postalignment={_fixed(shift, 2)}"]
+    with staged_folder(folder, "folder") as tmp:
+        (tmp / f"{prefix}.log").write_bytes(("\r\n".join(lines) + "\r\n").encode("latin-1"))
+        if recorded is not None:
+            info = [f"Turntable positions reached, degrees (written by ctpipe {__version__})"]
+            info += [f"Projection {i:08d}: achieved angle {_fixed(sign * recorded[i], 4)}."
+                     for i in range(1, nominal.size)]
+            (tmp / f"{prefix}.info").write_bytes(("\r\n".join(info) + "\r\n").encode("latin-1"))
+        for i, image in enumerate(saved):
+            tifffile.imwrite(tmp / f"{prefix}{i:08d}.tif", image)
+    return folder
+
+
+register_format("bruker", detect, open_bruker,
+                "a Bruker SkyScan folder: a <prefix>.log starting with [System] beside <prefix>NNNNNNNN.tif "
+                "(or that .log)")
