@@ -157,8 +157,7 @@ from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
 
-__all__ = ["detect", "open_bruker", "write_bruker", "read_skyscan_log", "SkyScanLog", "flat_correct",
-           "DEFAULT_REFERENCE_INTENSITY"]
+__all__ = ["open_bruker", "write_bruker", "read_skyscan_log"]
 
 #: The open-beam grey level the writer scales flat-corrected projections to (SkyScan 1272 logs 57000).
 DEFAULT_REFERENCE_INTENSITY = 57000.0
