@@ -107,6 +107,23 @@ def _difference_table(estimated: np.ndarray, reference: np.ndarray) -> dict:
             "max_deg": float(abs(difference[worst])), "worst_view": worst}
 
 
+def _turn_check(result, nominal: np.ndarray) -> dict:
+    """Whether the pair angles, measured from the images alone, turn the way the nominal angles do.
+
+    A reader whose angle sign is wrong for a scanner gives nominal steps of one sign and pair
+    angles of the other; that shows here before it spoils anything downstream.
+    """
+    pairs, angles = result.pairs, result.pair_angles_deg
+    steps = nominal[pairs[:, 1]] - nominal[pairs[:, 0]]
+    steps = (steps + 180.0) % 360.0 - 180.0
+    usable = np.isfinite(angles) & (np.abs(steps) > 1e-6)
+    if not usable.any():
+        return {"pairs": 0}
+    agree = float(np.mean(np.sign(angles[usable]) == np.sign(steps[usable])))
+    return {"pairs": int(usable.sum()), "agree_fraction": agree, "median_pair_deg": float(np.median(angles[usable])),
+            "median_nominal_step_deg": float(np.median(steps[usable]))}
+
+
 def _estimate_report(config, geometry, result, scan, nominal, truth) -> tuple[dict, dict]:
     """The report ``--json`` prints and result.json holds, and the per-view columns of angles.csv."""
     from ctpipe.io.corrected import scanner_frame_deg
@@ -121,6 +138,7 @@ def _estimate_report(config, geometry, result, scan, nominal, truth) -> tuple[di
     if nominal is not None:
         report["nominal_deg"] = nominal
         report["against_nominal"] = _difference_table(estimated, nominal)
+        report["turn_check"] = _turn_check(result, nominal)
         columns["nominal_deg"] = nominal
         columns["estimated_minus_nominal_deg"] = estimated - nominal
     recorded = None if scan is None else scan.recorded_angles_deg
@@ -208,6 +226,12 @@ def _estimate_summary(report: dict, result, scan, source: Path, written: list[st
         table = report["angle_errors"]["views"]
         lines.append(f"against the true angles: RMS {table['rms_deg']:.4f} deg, MAE {table['mae_deg']:.4f} deg, "
                      f"max {table['max_deg']:.4f} deg ({table['estimated']}/{table['total']} views)")
+    turn = report.get("turn_check", {})
+    if turn.get("pairs") and turn["agree_fraction"] < 0.5:
+        lines.append(f"warning: the images turn the other way from the nominal angles ({100 * (1 - turn['agree_fraction']):.0f} % "
+                     f"of pairs; median pair angle {turn['median_pair_deg']:+.3f} deg against a nominal step of "
+                     f"{turn['median_nominal_step_deg']:+.3f} deg): the angle sign read from this scan's files is "
+                     "probably reversed for this scanner (docs/real-scans.md)")
     info = result.refiner_info
     if any(k in info for k in ("u0_px", "tilt_deg")):
         lines.append(f"geometry: u0 {info.get('u0_px', g['u0_px']):.3f} px (was {g['u0_px']:.3f}), v0 "

@@ -45,3 +45,21 @@ def test_estimate_on_a_nikon_scan_writes_every_output_and_a_readable_angle_file(
     (folder / "_ctdata.txt").unlink()
     (folder / "part.ang").write_bytes((out / "part.ang").read_bytes())
     np.testing.assert_allclose(open_scan(folder).recorded_angles_deg, estimated, atol=1e-4)
+
+
+def test_a_scan_whose_angle_sign_is_reversed_is_told_so(raw_scan, tmp_path, capsys):
+    from ctpipe.io import write_scan
+
+    folder = write_scan(tmp_path / "reversed", raw_scan.intensities, raw_scan.geometry, -raw_scan.nominal_deg,
+                        flats=raw_scan.flats, darks=raw_scan.darks, values="intensities")
+    pipeline = tmp_path / "fast.yaml"
+    pipeline.write_text(yaml.safe_dump(FAST_PIPELINE))
+    capsys.readouterr()
+    assert main(["estimate", str(folder), "--pipeline", str(pipeline)]) == 0
+    summary = capsys.readouterr().out
+    assert "warning: the images turn the other way from the nominal angles" in summary
+    # The right sign draws no warning.
+    right = write_scan(tmp_path / "right", raw_scan.intensities, raw_scan.geometry, raw_scan.nominal_deg,
+                       flats=raw_scan.flats, darks=raw_scan.darks, values="intensities")
+    assert main(["estimate", str(right), "--pipeline", str(pipeline)]) == 0
+    assert "turn the other way" not in capsys.readouterr().out
