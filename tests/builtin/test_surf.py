@@ -171,7 +171,7 @@ def test_paper_surf_config_runs_end_to_end():
     """configs/paper-surf.yaml as shipped, on beads rendered in the paper's geometry (SOD 500 mm,
     SDD 1 m, 0.4 mm pixels, where its Sampson threshold 8e-4 is 2 px). A 1 deg turn moves these
     beads at most ~0.3 px vertically, which bounds how well any pair can be estimated."""
-    from conftest import render_beads
+    from bead_rendering import render_beads
 
     geometry = Geometry(500.0, 1000.0, 512, 512, 0.4, 0.4)
     rng = np.random.default_rng(5)

@@ -12,7 +12,7 @@ from ctpipe.io import bruker
 from ctpipe.io.bruker import DEFAULT_REFERENCE_INTENSITY, detect, flat_correct, write_bruker
 from ctpipe.io.scans import open_scan
 
-from conftest import estimate_angles, write_reference
+from scan_helpers import estimate_angles, write_reference
 
 
 def saved_counts(folder, n_views, prefix="scan_"):

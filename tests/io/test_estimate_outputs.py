@@ -9,7 +9,7 @@ import yaml
 from ctpipe.cli import main
 from ctpipe.io import open_scan, write_nikon
 
-from conftest import FAST_PIPELINE
+from scan_helpers import FAST_PIPELINE
 
 
 def test_estimate_on_a_nikon_scan_writes_every_output_and_a_readable_angle_file(raw_scan, tmp_path, capsys):

@@ -14,7 +14,7 @@ import ctpipe.io.nikon as nikon
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.io.scans import open_scan
 
-from conftest import estimate_angles, simulate_raw_scan, write_reference
+from scan_helpers import estimate_angles, simulate_raw_scan, write_reference
 
 WHITE = 60000.0
 

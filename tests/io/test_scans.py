@@ -7,7 +7,7 @@ from ctpipe.errors import InputError
 from ctpipe.io import ViewStack, open_scan, read_scan
 from ctpipe.pipeline import Pipeline
 
-from conftest import FAST_PIPELINE, estimate_angles, write_reference
+from scan_helpers import FAST_PIPELINE, estimate_angles, write_reference
 
 
 def test_a_scan_folder_opened_lazily_reads_the_views_read_scan_reads(raw_scan, tmp_path):

@@ -8,7 +8,7 @@ import yaml
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.io import open_scan
 
-from conftest import estimate_angles, write_reference
+from scan_helpers import estimate_angles, write_reference
 
 
 def _write_stack(folder, raw, *, multipage=False, **settings):

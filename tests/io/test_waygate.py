@@ -12,7 +12,7 @@ from ctpipe.errors import ConfigError, InputError
 from ctpipe.io.scans import open_scan
 from ctpipe.io.waygate import detect, open_waygate, write_waygate, write_waygate_angles
 
-from conftest import estimate_angles, write_reference
+from scan_helpers import estimate_angles, write_reference
 
 #: RotPos has 3 decimals in a .pcp, as datos|x writes it.
 ROTPOS_ATOL = 5e-4 + 1e-9

@@ -13,7 +13,7 @@ from ctpipe.io._ole import StreamReader, write_compound_file
 from ctpipe.io.scans import open_scan
 from ctpipe.io.zeiss import detect, open_zeiss, write_zeiss
 
-from conftest import estimate_angles, simulate_raw_scan, write_reference
+from scan_helpers import estimate_angles, simulate_raw_scan, write_reference
 
 #: float32 keeps an angle below 360 deg to 2e-5 deg, and a pixel pitch to 1e-7 of itself.
 ANGLE_ATOL_DEG = 2e-5
