@@ -178,7 +178,10 @@ class _Level:
         self.projector = VoxelProjector(self.geometry, self.grid)
         self.band_px = band_px
         self.filter = filter
-        self.filtered = band_pass(self.data, *band_px)
+        # Band-pass a chunk of views at a time: the filter's temporaries stay a few views' worth.
+        self.filtered = np.empty_like(self.data)
+        for start in range(0, len(self.data), _CHUNK_VIEWS):
+            self.filtered[start:start + _CHUNK_VIEWS] = band_pass(self.data[start:start + _CHUNK_VIEWS], *band_px)
         self.data_energy = float(np.einsum("vij,vij->", self.filtered, self.filtered, dtype=np.float64))
 
     def steps(self, angles_deg: np.ndarray, *, with_steps: bool = True) -> tuple[np.ndarray, float]:
