@@ -14,7 +14,7 @@ then renamed into place) and checks output paths before any work starts.
 from ctpipe.io.arrays import read_array, read_image, read_projections
 from ctpipe.io.bruker import open_bruker, read_skyscan_log, write_bruker
 from ctpipe.io.corrected import CONE_VECTOR_COLUMNS, TO_ASTRA, cone_vectors, scanner_frame_deg
-from ctpipe.io.flatfield import MAX_DEAD_FRACTION, log_transform
+from ctpipe.io.flatfield import MAX_DEAD_FRACTION, log_transform, mean_frame
 from ctpipe.io.nikon import open_nikon, read_xtekct, write_nikon, write_nikon_angles
 from ctpipe.io.outputs import (atomic_write, check_output_dir, check_output_file, csv_bytes, json_bytes,
                                keypoints_writer, staged_folder, to_jsonable, write_csv, write_files, write_json,
@@ -32,6 +32,6 @@ __all__ = ["cone_vectors", "scanner_frame_deg", "CONE_VECTOR_COLUMNS", "TO_ASTRA
            "write_waygate", "write_waygate_angles", "open_zeiss", "write_zeiss", "open_bruker", "write_bruker",
            "read_skyscan_log",
            "Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS",
-           "read_projections", "read_image", "read_array", "log_transform", "MAX_DEAD_FRACTION", "atomic_write",
+           "read_projections", "read_image", "read_array", "log_transform", "mean_frame", "MAX_DEAD_FRACTION", "atomic_write",
            "write_files", "staged_folder", "write_json", "write_csv", "json_bytes", "csv_bytes", "to_jsonable",
            "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer"]

@@ -21,11 +21,21 @@ import numpy as np
 
 from ctpipe.errors import InputError
 
-__all__ = ["log_transform", "MAX_DEAD_FRACTION"]
+__all__ = ["log_transform", "mean_frame", "MAX_DEAD_FRACTION"]
 
 #: The largest fraction of pixels whose flat is not above their dark that :func:`log_transform`
 #: takes as dead pixels; beyond it the flats and darks cannot correct the scan.
 MAX_DEAD_FRACTION = 0.5
+
+
+def mean_frame(frames, shape: tuple[int, int], name: str) -> np.ndarray:
+    """Calibration frames ``(F, rows, cols)`` averaged (float64), or one frame ``(rows, cols)`` as it is."""
+    frames = np.asarray(frames, dtype=np.float64)
+    if frames.ndim == 3:
+        frames = frames.mean(axis=0)
+    if frames.shape != shape:
+        raise InputError(f"{name}: each frame must have the projections' shape {shape}, got {frames.shape}")
+    return frames
 
 
 def log_transform(intensities, flats=None, darks=None, *, photons_per_pixel: float | None = None,
@@ -57,18 +67,8 @@ def log_transform(intensities, flats=None, darks=None, *, photons_per_pixel: flo
         raise InputError(f"min_transmission: must be > 0, got {min_transmission!r}")
     shape = counts.shape[1:]
 
-    def mean_frame(frames, name: str) -> np.ndarray | None:
-        if frames is None:
-            return None
-        frames = np.asarray(frames, dtype=np.float64)
-        if frames.ndim == 3:
-            frames = frames.mean(axis=0)
-        if frames.shape != shape:
-            raise InputError(f"{name}: each frame must have the projections' shape {shape}, got {frames.shape}")
-        return frames
-
-    flat = mean_frame(flats, "flats")
-    dark = mean_frame(darks, "darks")
+    flat = None if flats is None else mean_frame(flats, shape, "flats")
+    dark = None if darks is None else mean_frame(darks, shape, "darks")
     if flat is None:
         if photons_per_pixel is None:
             raise InputError("log_transform: give flats or photons_per_pixel (the unattenuated counts)")

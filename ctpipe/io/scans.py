@@ -25,7 +25,7 @@ import numpy as np
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
-from ctpipe.io.flatfield import log_transform
+from ctpipe.io.flatfield import log_transform, mean_frame
 
 __all__ = ["ViewStack", "ScanFiles", "open_scan", "register_format", "FORMATS", "check_angles"]
 
@@ -75,8 +75,8 @@ class ViewStack:
                 if white_level is None or not np.isfinite(white_level) or white_level <= 0:
                     raise InputError(f"{name}: intensities need flat fields or a positive white level, got neither")
                 flats = np.full(self._shape, float(white_level))
-            self._flat = _mean_frame(flats, self._shape, f"{name}: flats")
-            self._dark = None if darks is None else _mean_frame(darks, self._shape, f"{name}: darks")
+            self._flat = mean_frame(flats, self._shape, f"{name}: flats")
+            self._dark = None if darks is None else mean_frame(darks, self._shape, f"{name}: darks")
             # Refuse swapped or mislabelled calibration frames now, not at the first view.
             log_transform(np.zeros((1, *self._shape), np.float32), self._flat, self._dark)
         self._lock = threading.Lock()
@@ -129,15 +129,6 @@ class ViewStack:
         if not -self._n_views <= index < self._n_views:
             raise InputError(f"{self.name}: view {index} out of range: the scan has {self._n_views} views")
         return int(index) % self._n_views
-
-
-def _mean_frame(frames, shape: tuple[int, int], name: str) -> np.ndarray:
-    frames = np.asarray(frames, dtype=np.float64)
-    if frames.ndim == 3:
-        frames = frames.mean(axis=0)
-    if frames.shape != shape:
-        raise InputError(f"{name}: each frame must have the projections' shape {shape}, got {frames.shape}")
-    return frames
 
 
 def check_angles(angles, n_views: int, what: str) -> np.ndarray:
