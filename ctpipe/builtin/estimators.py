@@ -66,6 +66,8 @@ class Ransac1ptEstimator(Estimator):
     noise_scale_factor: float | None = param(
         3.0, doc="after the refit keep only inliers within this many robust noise scales "
                   "(1.4826 x median Sampson distance of the consensus) and refit again; null: the paper's plain refit", gt=0, le=1000)
+    one_to_one: bool = param(
+        False, doc="a keypoint supports the angle once: of inliers sharing a point, keep the closest (identical balls)")
 
     def estimate(self, q_a: np.ndarray, q_b: np.ndarray, *, rng: np.random.Generator):
         m = len(q_a)
@@ -114,6 +116,8 @@ class Ransac1ptEstimator(Estimator):
         if best is None:
             return FailedEstimation("no consensus survived the least-squares refit")
         _, alpha, mask = best
+        if self.one_to_one:
+            mask = _one_to_one(mask, sampson_distance(alpha, q_a, q_b), q_a, q_b)
         if self.noise_scale_factor is not None and self.refit != "none":
             alpha, mask = self._tighten(alpha, mask, q_a, q_b)
         if self.refit == "sampson":
@@ -161,6 +165,26 @@ class Ransac1ptEstimator(Estimator):
         if self.scoring == "msac":
             return (float(np.minimum(d * d, self.sampson_threshold ** 2).sum()),)
         return (-int(mask.sum()), float((d[mask] ** 2).sum()))
+
+
+def _one_to_one(mask: np.ndarray, distance: np.ndarray, q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
+    """``mask`` with every point of either view used once: the inlier of smallest distance wins.
+
+    Correspondences of one keypoint share its coordinates, so points are told apart by them.
+    Greedy in order of distance: an inlier is kept while neither of its points is taken.
+    """
+    inliers = np.flatnonzero(mask)
+    _, point_a = np.unique(q_a[inliers], axis=0, return_inverse=True)
+    _, point_b = np.unique(q_b[inliers], axis=0, return_inverse=True)
+    taken_a, taken_b = set(), set()
+    keep = np.zeros_like(mask)
+    for k in np.argsort(distance[inliers], kind="stable"):
+        a, b = int(point_a.ravel()[k]), int(point_b.ravel()[k])
+        if a not in taken_a and b not in taken_b:
+            taken_a.add(a)
+            taken_b.add(b)
+            keep[inliers[k]] = True
+    return keep
 
 
 @dataclass(frozen=True)

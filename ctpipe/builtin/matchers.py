@@ -1,7 +1,9 @@
-"""Descriptor matchers: brute force and FLANN, with Lowe's ratio test and a mutual check.
+"""Matchers: brute force and FLANN on descriptors (Lowe's ratio test, mutual check), and all-pairs.
 
 The norm is the one the detector attached to its descriptors (``Features.norm``), so a
-matcher never guesses whether descriptors are binary.
+matcher never guesses whether descriptors are binary. ``all-pairs`` ignores descriptors: for
+identical objects (the balls of a calibration phantom) it proposes every pair the circular
+motion allows and leaves the choice to the estimator's consensus.
 """
 
 from __future__ import annotations
@@ -73,7 +75,39 @@ class FlannMatcher(_NearestNeighbourMatcher):
                                  lsh_key_size=self.lsh_key_size, lsh_probes=self.lsh_probes)
 
 
+@dataclass(frozen=True)
+class AllPairsMatcher(Matcher):
+    """Every keypoint pair the circular motion allows, without descriptors (for identical balls).
+
+    A point on the turntable keeps its height: between two views only its depth changes, so its
+    row moves by a fraction of its distance from the principal row (at most ``R / SOD`` of it
+    for an object of radius ``R``), while its column can move anywhere across the object. Every
+    pair within ``max_row_shift_px`` rows is proposed, and the estimator's consensus (1-point
+    RANSAC with ``hypotheses: all``) finds the angle the most keypoints agree on. ``distance``
+    is the row shift in pixels, smallest first for each keypoint of the first view.
+    """
+
+    max_row_shift_px: float = param(20.0, doc="largest change of row (pixels) between the two views of a point",
+                                     gt=0, le=100_000)
+    max_pairs: int = param(250_000, doc="refuse more candidate pairs than this (a detector with too many keypoints)",
+                           ge=1, le=100_000_000)
+
+    def match(self, features_a: Features, features_b: Features) -> Matches:
+        n_a, n_b = len(features_a), len(features_b)
+        if n_a * n_b > self.max_pairs:
+            raise InputError(f"all-pairs: {n_a} x {n_b} keypoints make {n_a * n_b:,} candidate pairs, more than "
+                             f"max_pairs {self.max_pairs:,}; use it with a detector of few keypoints (beads) or a "
+                             "descriptor matcher")
+        shift = np.abs(features_a.xy[:, None, 1].astype(np.float64) - features_b.xy[None, :, 1])
+        rows, cols = np.nonzero(shift <= self.max_row_shift_px)
+        order = np.lexsort((shift[rows, cols], rows))
+        rows, cols = rows[order], cols[order]
+        return Matches(index_ab=np.stack([rows, cols], axis=1).astype(np.int64).reshape(-1, 2),
+                       distance=shift[rows, cols].astype(np.float32))
+
+
 @hookimpl
 def ctpipe_register_stages(registry) -> None:
     registry.add_matcher("brute-force", BruteForceMatcher)
     registry.add_matcher("flann", FlannMatcher)
+    registry.add_matcher("all-pairs", AllPairsMatcher)

@@ -89,3 +89,25 @@ def test_opencv_5pt_reads_the_rotation_with_ctpipes_sign():
         assert result.angle_deg == pytest.approx(alpha_deg, abs=0.2)  # a 5-DOF minimal-sample fit is noisier
     too_few = OpenCV5ptEstimator().estimate(q_a[:4], q_b[:4], rng=np.random.default_rng(0))
     assert not too_few and "at least 5" in str(too_few)
+
+
+def test_one_to_one_counts_each_ball_once_among_identical_candidates():
+    """Identical balls: all-pairs gives every ball several candidates; the consensus keeps one each."""
+    from ctpipe.geometry import Geometry
+    from ctpipe.solve.camera import project_points
+
+    geometry = Geometry(150.0, 600.0, 512, 512, 0.2, 0.2)
+    rng = np.random.default_rng(4)
+    balls = np.stack([rng.uniform(-15, 15, 8), rng.uniform(-20, 20, 8), rng.uniform(-15, 15, 8)], axis=1)
+    a = project_points(balls, np.zeros(8), geometry)
+    b = project_points(balls, np.full(8, np.deg2rad(22.5)), geometry)
+    index = np.array([(i, j) for i in range(8) for j in range(8)])
+    q_a, q_b = geometry.pixels_to_normalised(a[index[:, 0]]), geometry.pixels_to_normalised(b[index[:, 1]])
+    kwargs = dict(hypotheses="all", scoring="msac", min_consensus=0.0, sampson_threshold=1e-3)
+    plain = Ransac1ptEstimator(**kwargs).estimate(q_a, q_b, rng=np.random.default_rng(0))
+    one = Ransac1ptEstimator(**kwargs, one_to_one=True).estimate(q_a, q_b, rng=np.random.default_rng(0))
+    assert one.angle_deg == pytest.approx(22.5, abs=1e-6)
+    kept = index[one.inlier_mask]
+    assert sorted(kept[:, 0]) == list(range(8)) and len(set(kept[:, 1])) == 8
+    assert np.all(kept[:, 0] == kept[:, 1])            # every ball with itself
+    assert plain.n_inliers >= one.n_inliers
