@@ -9,6 +9,9 @@ The ellipsoid phantom (:data:`ELLIPSOIDS`) has exact line integrals in closed fo
 (:func:`project_ellipsoids`, numpy only, independent of ctpipe's projectors) and an exact
 voxel density (:func:`phantom_volume`): the reference FDK and the projectors are tested and
 benchmarked against.
+
+Ball phantoms (``ball-bar``, ``bead-cloud-*``): :func:`phantom_spheres` lists their balls and
+:func:`overlapping_spheres` says, view by view, which pairs of balls overlap on the detector.
 """
 
 from __future__ import annotations
@@ -24,7 +27,8 @@ from ctpipe.recon.volume import VolumeGrid
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner, Stage
 
 __all__ = ["check_stage", "check_detector", "check_matcher", "check_estimator", "check_refiner", "textured_image",
-           "ELLIPSOIDS", "MARGIN_MM", "project_ellipsoids", "phantom_volume", "relative_rmse"]
+           "ELLIPSOIDS", "MARGIN_MM", "project_ellipsoids", "phantom_volume", "relative_rmse", "phantom_spheres",
+           "overlapping_spheres"]
 
 
 def textured_image(shape: tuple[int, int] = (256, 256), seed: int = 0) -> np.ndarray:
@@ -211,3 +215,78 @@ def phantom_volume(grid: VolumeGrid, phantom=ELLIPSOIDS) -> tuple[np.ndarray, np
 def relative_rmse(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
     err = volume[mask].astype(np.float64) - truth[mask]
     return float(np.sqrt(np.mean(err**2)) / np.sqrt(np.mean(truth[mask].astype(np.float64) ** 2)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Ball phantoms
+
+
+def phantom_spheres(phantom) -> tuple[np.ndarray, np.ndarray]:
+    """The balls of a primitive phantom: its ellipsoids with three equal semi-axes and density > 0.
+
+    Parameters
+    ----------
+    phantom : ctpipe.sim.phantoms.Phantom
+        A primitive phantom (``sphere`` objects, or ``beads``; pores, of negative density, are left out).
+
+    Returns
+    -------
+    centres_mm : ndarray of shape (N, 3)
+        Object-frame ``(x, y, z)``, mm.
+    radii_mm : ndarray of shape (N,)
+    """
+    from ctpipe.sim.primitives import KINDS
+
+    p = phantom.primitives
+    if p is None:
+        raise InputError(f"phantom: {phantom.name!r} is a voxel phantom; spheres need a primitive one")
+    half = p.half_size_mm
+    round_ = (p.kind == KINDS.index("ellipsoid")) & np.all(np.isclose(half, half[:, :1]), axis=1)
+    balls = round_ & (p.density_per_mm > 0)
+    return p.centre_mm[balls].copy(), half[balls, 0].copy()
+
+
+def overlapping_spheres(centres_mm, radii_mm, geometry: Geometry, angles_deg) -> list[np.ndarray]:
+    """Per view, the pairs of balls whose images overlap on the detector.
+
+    Two balls overlap in a view when their projected centres
+    (:func:`ctpipe.solve.camera.project_points`) are closer on the detector than the sum of their
+    projected radii, ``radius_mm x SDD / depth``; the depth is read off the projection itself (a
+    point ``radius_mm`` below the centre lands ``radius_mm x SDD / depth`` lower on the detector).
+    Distances are compared in mm on the detector, so non-square pixels count right.
+
+    Parameters
+    ----------
+    centres_mm : ndarray of shape (N, 3)
+    radii_mm : ndarray of shape (N,)
+    geometry : Geometry
+    angles_deg : ndarray of shape (V,)
+        Turntable angles of the views, degrees.
+
+    Returns
+    -------
+    list of V ndarrays of shape (K, 2), int64
+        Ball index pairs ``(i, j)``, ``i < j``, overlapping in each view (K = 0 when none do).
+    """
+    from ctpipe.solve.camera import project_points
+
+    centres = np.asarray(centres_mm, dtype=np.float64)
+    radii = np.asarray(radii_mm, dtype=np.float64)
+    angles = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
+    if centres.ndim != 2 or centres.shape[1] != 3 or radii.shape != (len(centres),):
+        raise InputError(f"centres_mm, radii_mm: must have shapes (N, 3) and (N,), got {centres.shape} and "
+                         f"{radii.shape}")
+    n = len(centres)
+    pitch = np.array([geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm])
+    below = centres + radii[:, None] * np.array([0.0, 1.0, 0.0])
+    i, j = np.triu_indices(n, k=1)
+    pairs = []
+    for angle in angles:
+        at = np.full(n, angle)
+        centre_px = project_points(centres, at, geometry)
+        radius_mm = np.abs(project_points(below, at, geometry)[:, 1] - centre_px[:, 1]) * pitch[1]
+        centre_det = centre_px * pitch
+        distance = np.linalg.norm(centre_det[i] - centre_det[j], axis=1)
+        hit = distance < radius_mm[i] + radius_mm[j]
+        pairs.append(np.stack([i[hit], j[hit]], axis=1).astype(np.int64))
+    return pairs

@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -5,6 +7,8 @@ from ctpipe.config import load_yaml
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.sim.phantoms import list_phantoms, load_phantom, parse_phantom, rotation_from_deg
 from ctpipe.sim.primitives import KINDS
+from ctpipe.sim.scan_spec import parse_scan_spec
+from ctpipe.testing import overlapping_spheres, phantom_spheres
 
 
 def parse(text: str, **kwargs):
@@ -135,7 +139,8 @@ objects:
 
 def test_every_shipped_phantom_loads():
     names = list_phantoms()
-    assert {"shepp-logan-3d", "bead-cylinder", "granular", "metal-insert"} <= set(names)
+    assert {"shepp-logan-3d", "bead-cylinder", "granular", "metal-insert", "ball-bar", "bead-cloud-10",
+            "bead-cloud-30"} <= set(names)
     for name in names:
         phantom = load_phantom(name)
         assert phantom.name == name
@@ -144,6 +149,76 @@ def test_every_shipped_phantom_loads():
     granular = load_phantom("granular")
     assert 2000 <= len(granular.primitives) <= 4000
     assert 60 <= granular.radius_mm <= 70 and 120 <= 2 * granular.half_height_mm <= 140
+
+
+CALIBRATION_EXPERIMENT = Path(__file__).parents[2] / "configs" / "experiments" / "calibration-16-views.yaml"
+
+
+def _cylinder(phantom):
+    """Centre (3,), axis direction (3,), half sizes (3,) and density of the phantom's one cylinder."""
+    p = phantom.primitives
+    (rod,) = np.flatnonzero(p.kind == KINDS.index("cylinder"))
+    return p.centre_mm[rod], p.rotation[rod][:, 1], p.half_size_mm[rod], p.density_per_mm[rod]
+
+
+def test_ball_bar_is_seven_identical_steel_balls_threaded_on_a_slanted_off_axis_rod():
+    phantom = load_phantom("ball-bar")
+    centres, radii = phantom_spheres(phantom)
+    assert len(radii) == 7 and len(phantom.primitives) == 8
+    np.testing.assert_array_equal(radii, 1.25)
+    balls = phantom.primitives.density_per_mm[phantom.primitives.kind == KINDS.index("ellipsoid")]
+    np.testing.assert_array_equal(balls, 0.5)
+    centre, axis, half, density = _cylinder(phantom)
+    assert density == pytest.approx(0.005) and half[0] == half[2] == pytest.approx(0.5)
+    # On the rod's axis, 6 mm apart, the rod reaching past both end balls.
+    along = (centres - centre) @ axis
+    np.testing.assert_allclose(np.linalg.norm(centres - centre - along[:, None] * axis, axis=1), 0.0, atol=2e-3)
+    np.testing.assert_allclose(np.diff(np.sort(along)), 6.0, atol=2e-3)
+    assert np.abs(along).max() + 1.25 < half[1]
+    # Slanted (18 deg from the horizontal) and off the rotation axis: the balls differ in height and
+    # in distance from the axis, all within 20 mm of it.
+    assert np.degrees(np.arcsin(abs(axis[1]))) == pytest.approx(18.0)
+    heights, distances = centres[:, 1], np.hypot(centres[:, 0], centres[:, 2])
+    assert np.ptp(heights) > 10.0 and np.diff(np.sort(heights)).min() > 1.0
+    assert np.diff(np.sort(distances)).min() > 0.5 and distances.min() > 4.0 and distances.max() + 1.25 < 20.0
+
+
+@pytest.mark.parametrize("name, count", [("bead-cloud-30", 30), ("bead-cloud-10", 10)])
+def test_bead_clouds_are_identical_balls_inside_their_foam_and_apart(name, count):
+    phantom = load_phantom(name)
+    centres, radii = phantom_spheres(phantom)
+    assert len(radii) == count and len(phantom.primitives) == count + 1
+    np.testing.assert_array_equal(radii, 1.0)
+    centre, axis, half, foam = _cylinder(phantom)
+    assert foam == pytest.approx(0.002) and half[0] == half[2] == pytest.approx(24.0) and half[1] == pytest.approx(20.0)
+    np.testing.assert_array_equal(axis, [0, 1, 0])
+    # Ruby replacing foam: 0.1/mm inside every ball.
+    ellipsoids = phantom.primitives.kind == KINDS.index("ellipsoid")
+    np.testing.assert_allclose(phantom.primitives.density_per_mm[ellipsoids] + foam, 0.1)
+    assert np.all(np.hypot(centres[:, 0], centres[:, 2]) + 1.0 < 24.0) and np.all(np.abs(centres[:, 1]) + 1.0 < 20.0)
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2) - 2.0
+    np.fill_diagonal(gaps, np.inf)
+    assert gaps.min() > 1.0
+    # Three rows of balls at equal height: 4, 3 and 2 balls.
+    _, per_height = np.unique(centres[:9, 1], return_counts=True)
+    assert sorted(per_height) == [2, 3, 4]
+
+
+def test_bead_cloud_10_is_the_first_ten_balls_of_bead_cloud_30():
+    ten, thirty = (phantom_spheres(load_phantom(name))[0] for name in ("bead-cloud-10", "bead-cloud-30"))
+    np.testing.assert_array_equal(ten, thirty[:10])
+
+
+@pytest.mark.parametrize("name, at_least, at_most", [("ball-bar", 2, 8), ("bead-cloud-30", 2, 16),
+                                                     ("bead-cloud-10", 2, 8)])
+def test_ball_phantoms_have_overlapping_balls_in_some_views_of_a_16_view_turn(name, at_least, at_most):
+    geometry = parse_scan_spec(load_yaml(CALIBRATION_EXPERIMENT)["scan"]).geometry
+    centres, radii = phantom_spheres(load_phantom(name))
+    # Whatever angle the turn starts at: the bar and the rows overlap over more than one 22.5 deg step.
+    for start_deg in (0.0, 5.0, 11.25, 17.5):
+        pairs = overlapping_spheres(centres, radii, geometry, start_deg + np.arange(16) * 22.5)
+        views = sum(len(p) > 0 for p in pairs)
+        assert at_least <= views <= at_most, f"{name} from {start_deg} deg: {views} of 16 views overlap"
 
 
 def test_unknown_phantom_name_lists_the_built_in_ones():
