@@ -41,10 +41,17 @@ class BundleAdjustmentRefiner(Refiner):
     estimate_v0: bool = param(False, doc="also adjust the principal point row")
     estimate_tilt: bool = param(False, doc="also adjust the in-plane detector tilt")
     max_iterations: int = param(50, doc="Levenberg-Marquardt iterations per adjustment", ge=1, le=10_000)
+    start: Literal["pair-graph", "nominal"] = param(
+        "pair-graph", doc="start angles: the pair estimates chained on the view graph, or the nominal angles (when "
+                          "known; for stages whose errors are tenths of a degree and scans of few points)")
 
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
-        settings = BundleSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
-        solution = solve_bundle(observations, settings)
+        settings = BundleSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "start"})
+        nominal = observations.nominal_angles_deg
+        start = None
+        if self.start == "nominal" and nominal is not None:
+            start = np.deg2rad(np.asarray(nominal, dtype=np.float64) - nominal[0])
+        solution = solve_bundle(observations, settings, start_angles_rad=start)
         return ScanSolution(angles_rad=solution.angles_rad, pair_estimates=tuple(observations.estimates),
                             info=solution.info)
 

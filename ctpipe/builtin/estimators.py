@@ -68,6 +68,8 @@ class Ransac1ptEstimator(Estimator):
                   "(1.4826 x median Sampson distance of the consensus) and refit again; null: the paper's plain refit", gt=0, le=1000)
     one_to_one: bool = param(
         False, doc="a keypoint supports the angle once: of inliers sharing a point, keep the closest (identical balls)")
+    min_inliers: int = param(1, doc="a consensus needs at least this many inliers (with min_consensus)", ge=1,
+                             le=1_000_000)
 
     def estimate(self, q_a: np.ndarray, q_b: np.ndarray, *, rng: np.random.Generator):
         m = len(q_a)
@@ -90,14 +92,15 @@ class Ransac1ptEstimator(Estimator):
             distances = sampson_distance(alphas[:, None], q_a, q_b)
             inliers = distances < self.sampson_threshold
             counts = inliers.sum(axis=1)
-            valid = counts > self.min_consensus * m
+            valid = (counts > self.min_consensus * m) & (counts >= self.min_inliers)
             if valid.any() or stop >= len(drawn):
                 break
             start, stop = stop, min(len(drawn), stop + max(n, 16))
         if not valid.any():
             return FailedEstimation(
                 f"no consensus: the best of {stop} hypotheses had {int(counts.max())}/{m} inliers, need more "
-                f"than {self.min_consensus:.0%} (sampson_threshold {self.sampson_threshold:g})")
+                f"than {self.min_consensus:.0%} and at least {self.min_inliers} (sampson_threshold "
+                f"{self.sampson_threshold:g})")
         # Many hypotheses share one consensus set: rank the distinct sets by their score at the
         # hypothesis angle and locally optimise (refit, re-select) only the most promising.
         candidates = np.flatnonzero(valid)
@@ -108,7 +111,7 @@ class Ransac1ptEstimator(Estimator):
         for k in np.argsort([score[0] for score in pre_scores], kind="stable")[: self.local_optimisations]:
             h = candidates[k]
             alpha, mask = self._refit_consensus(alphas[h], inliers[h], q_a, q_b)
-            if mask.sum() <= self.min_consensus * m:
+            if mask.sum() <= self.min_consensus * m or mask.sum() < self.min_inliers:
                 continue
             score = self._score(alpha, mask, sampson_distance(alpha, q_a, q_b))
             if best is None or score < best[0]:

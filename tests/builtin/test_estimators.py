@@ -111,3 +111,12 @@ def test_one_to_one_counts_each_ball_once_among_identical_candidates():
     assert sorted(kept[:, 0]) == list(range(8)) and len(set(kept[:, 1])) == 8
     assert np.all(kept[:, 0] == kept[:, 1])            # every ball with itself
     assert plain.n_inliers >= one.n_inliers
+
+
+def test_min_inliers_refuses_a_consensus_of_one_ball():
+    q_a = np.array([[0.01, 0.05], [0.02, -0.04]])
+    q_b = np.array([[0.03, 0.051], [-0.02, -0.041]])
+    kwargs = dict(hypotheses="all", min_consensus=0.0, sampson_threshold=1e-5)
+    assert Ransac1ptEstimator(**kwargs).estimate(q_a, q_b, rng=np.random.default_rng(0))
+    failed = Ransac1ptEstimator(**kwargs, min_inliers=3).estimate(q_a, q_b, rng=np.random.default_rng(0))
+    assert not failed and "at least 3" in str(failed)

@@ -205,3 +205,15 @@ def test_detector_offsets_of_a_simulated_scan_are_pulled_most_of_the_way_back():
     info = pipeline.run(scan.projections, assumed, nominal_angles_deg=scan.nominal_angles_deg).refiner_info
     assert abs(info["u0_px"] - 98.5) < 0.4 * 3.0
     assert abs(info["v0_px"] - 93.0) < 0.4 * 2.5
+
+
+def test_the_refiner_can_start_from_the_nominal_angles():
+    from ctpipe.builtin.bundle import BundleAdjustmentRefiner
+
+    scan = synthetic_scan(24, 60, rng=3)
+    nominal = scan.observations.nominal_angles_deg
+    solution = BundleAdjustmentRefiner(start="nominal").refine(scan.observations, rng=np.random.default_rng(0))
+    assert solution.info["start"] == "given"
+    truth = np.rad2deg(scan.true_angles_rad - scan.true_angles_rad[0])
+    assert np.abs(np.rad2deg(solution.angles_rad) - truth).max() < 0.05
+    assert nominal is not None
