@@ -10,6 +10,7 @@ import numpy as np
 
 from ctpipe.data import ScanObservations, ScanSolution
 from ctpipe.hookspecs import hookimpl
+from ctpipe.model import FailedEstimation
 from ctpipe.solve.bundle import BundleSettings, solve_bundle
 from ctpipe.stages import Refiner, param
 
@@ -44,16 +45,34 @@ class BundleAdjustmentRefiner(Refiner):
     start: Literal["pair-graph", "nominal"] = param(
         "pair-graph", doc="start angles: the pair estimates chained on the view graph, or the nominal angles (when "
                           "known; for stages whose errors are tenths of a degree and scans of few points)")
+    max_pair_deviation_deg: float | None = param(
+        None, doc="ignore pairs whose angle differs from the nominal step by more than this (degrees; null: keep all), "
+                  "e.g. a wrong consensus of identical balls", gt=0, le=180)
 
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
-        settings = BundleSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "start"})
+        settings = BundleSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                                     if f.name not in ("start", "max_pair_deviation_deg")})
         nominal = observations.nominal_angles_deg
         start = None
         if self.start == "nominal" and nominal is not None:
             start = np.deg2rad(np.asarray(nominal, dtype=np.float64) - nominal[0])
+        if self.max_pair_deviation_deg is not None and nominal is not None:
+            observations = _without_deviating_pairs(observations, self.max_pair_deviation_deg)
         solution = solve_bundle(observations, settings, start_angles_rad=start)
         return ScanSolution(angles_rad=solution.angles_rad, pair_estimates=tuple(observations.estimates),
                             info=solution.info)
+
+
+def _without_deviating_pairs(observations: ScanObservations, limit_deg: float) -> ScanObservations:
+    """The observations with every pair whose angle is further than ``limit_deg`` from the nominal step failed."""
+    nominal = np.asarray(observations.nominal_angles_deg, dtype=np.float64)
+    pairs = observations.pairs
+    steps = (nominal[pairs[:, 1]] - nominal[pairs[:, 0]] + 180.0) % 360.0 - 180.0
+    estimates = tuple(
+        e if not e or abs((e.angle_deg - step + 180.0) % 360.0 - 180.0) <= limit_deg
+        else FailedEstimation(f"{e.angle_deg:.2f} deg is more than {limit_deg:g} deg from the nominal step {step:.2f}")
+        for e, step in zip(observations.estimates, steps))
+    return dataclasses.replace(observations, estimates=estimates)
 
 
 @hookimpl

@@ -217,3 +217,20 @@ def test_the_refiner_can_start_from_the_nominal_angles():
     truth = np.rad2deg(scan.true_angles_rad - scan.true_angles_rad[0])
     assert np.abs(np.rad2deg(solution.angles_rad) - truth).max() < 0.05
     assert nominal is not None
+
+
+def test_pairs_far_from_their_nominal_step_are_left_out_of_the_tracks():
+    import dataclasses
+
+    from ctpipe.builtin.bundle import BundleAdjustmentRefiner
+    from ctpipe.data import PairEstimate
+
+    scan = synthetic_scan(24, 60, rng=3)
+    observations = scan.observations
+    bad = PairEstimate(np.deg2rad(40.0), observations.estimates[5].inlier_mask, 0.0)
+    observations = dataclasses.replace(observations, estimates=observations.estimates[:5] + (bad,)
+                                       + observations.estimates[6:])
+    solution = BundleAdjustmentRefiner(start="nominal", max_pair_deviation_deg=2.0).refine(
+        observations, rng=np.random.default_rng(0))
+    assert not solution.pair_estimates[5] and "from the nominal step" in str(solution.pair_estimates[5])
+    assert sum(not e for e in solution.pair_estimates) == sum(not e for e in observations.estimates) + 1
