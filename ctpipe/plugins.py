@@ -20,6 +20,7 @@ __all__ = ["BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "get_plugin_manager", "collec
 BUILTIN_PLUGINS: tuple[str, ...] = (
     "ctpipe.builtin.opencv_detectors",
     "ctpipe.builtin.surf",
+    "ctpipe.builtin.beads",
     "ctpipe.builtin.matchers",
     "ctpipe.builtin.estimators",
     "ctpipe.builtin.refiners",

@@ -5,6 +5,9 @@ Conformance checks every stage must pass; third-party plugins can run them in th
 >>> from ctpipe.testing import check_stage
 >>> check_stage(MyDetector())          # raises AssertionError with what broke
 
+:func:`render_balls` renders projections of calibration balls (sub-pixel centres and radii
+known exactly) with detector blur and photon noise, for the ``beads`` detector.
+
 The ellipsoid phantom (:data:`ELLIPSOIDS`) has exact line integrals in closed form
 (:func:`project_ellipsoids`, numpy only, independent of ctpipe's projectors) and an exact
 voxel density (:func:`phantom_volume`): the reference FDK and the projectors are tested and
@@ -17,6 +20,7 @@ Ball phantoms (``ball-bar``, ``bead-cloud-*``): :func:`phantom_spheres` lists th
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from ctpipe.data import Features, Matches, PairEstimate, ScanObservations, ScanSolution
 from ctpipe.errors import InputError
@@ -27,8 +31,8 @@ from ctpipe.recon.volume import VolumeGrid
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner, Stage
 
 __all__ = ["check_stage", "check_detector", "check_matcher", "check_estimator", "check_refiner", "textured_image",
-           "ELLIPSOIDS", "MARGIN_MM", "project_ellipsoids", "phantom_volume", "relative_rmse", "phantom_spheres",
-           "overlapping_spheres"]
+           "render_balls", "ELLIPSOIDS", "MARGIN_MM", "project_ellipsoids", "phantom_volume", "relative_rmse",
+           "phantom_spheres", "overlapping_spheres"]
 
 
 def textured_image(shape: tuple[int, int] = (256, 256), seed: int = 0) -> np.ndarray:
@@ -41,6 +45,81 @@ def textured_image(shape: tuple[int, int] = (256, 256), seed: int = 0) -> np.nda
         radius = rng.uniform(3, 14)
         image += rng.uniform(0.3, 1.0) * (((rows - r0) ** 2 + (cols - c0) ** 2) < radius ** 2)
     return image
+
+
+def render_balls(shape: tuple[int, int], centres_xy, radii_px, *, peak=1.0, blur_sigma_px: float = 0.7,
+                 photons: float | None = None, intensities: bool = False, background=0.0,
+                 rng: np.random.Generator | int | None = None, supersample: int = 5) -> np.ndarray:
+    """Projections of balls: chord profiles ``peak sqrt(1 - d^2 / r^2)``, blurred and pixel-integrated.
+
+    The sharp line integrals (balls plus ``background``) are sampled on a grid ``supersample``
+    times finer than the pixels; photons are attenuated as ``exp(-p)`` there (where balls
+    overlap their line integrals add, so their transmissions multiply), blurred by a Gaussian
+    detector PSF and averaged over each pixel, then counted.
+
+    Parameters
+    ----------
+    shape : (rows, cols)
+    centres_xy : array_like of shape (N, 2)
+        Ball centres (x=col, y=row) in pixels, pixel centres at integers.
+    radii_px : array_like of shape (N,) or float
+        Projected ball radii, pixels.
+    peak : array_like of shape (N,) or float
+        Line integral through each ball's centre (``2 r mu``), dimensionless.
+    blur_sigma_px : float
+        Standard deviation of the Gaussian detector PSF, pixels (0: pixel integration only).
+    photons : float or None
+        Unattenuated photons per pixel; None for no noise.
+    intensities : bool
+        Return transmitted photons (``photons`` or 1 per unattenuated pixel) rather than line
+        integrals ``-log(counts / photons)``.
+    background : float or ndarray of shape ``shape``
+        Line integral of everything else, added to the balls' before attenuation.
+    rng : numpy.random.Generator, int or None
+        Source of the Poisson noise.
+    supersample : int
+        Sub-samples per pixel along each axis.
+
+    Returns
+    -------
+    ndarray of shape ``shape``, float64
+        Line integrals, or transmitted counts when ``intensities``. Without noise and without
+        ``intensities`` and ``photons`` the line integrals are blurred linearly (no ``exp``).
+    """
+    rows, cols = shape
+    centres = np.asarray(centres_xy, dtype=np.float64).reshape(-1, 2)
+    radii = np.broadcast_to(np.asarray(radii_px, dtype=np.float64), (len(centres),))
+    peaks = np.broadcast_to(np.asarray(peak, dtype=np.float64), (len(centres),))
+    ss = int(supersample)
+    fine = np.zeros((rows * ss, cols * ss))
+    for (cx, cy), radius, height in zip(centres, radii, peaks):
+        # Fine sample k sits at (k + 1/2) / ss - 1/2 px; only the ball's bounding box is touched.
+        x_lo = max(int(np.floor((cx - radius + 0.5) * ss)), 0)
+        x_hi = min(int(np.ceil((cx + radius + 0.5) * ss)) + 1, cols * ss)
+        y_lo = max(int(np.floor((cy - radius + 0.5) * ss)), 0)
+        y_hi = min(int(np.ceil((cy + radius + 0.5) * ss)) + 1, rows * ss)
+        if x_lo >= x_hi or y_lo >= y_hi:
+            continue
+        xs = (np.arange(x_lo, x_hi) + 0.5) / ss - 0.5
+        ys = (np.arange(y_lo, y_hi) + 0.5) / ss - 0.5
+        d2 = ((xs[None, :] - cx) ** 2 + (ys[:, None] - cy) ** 2) / radius**2
+        fine[y_lo:y_hi, x_lo:x_hi] += height * np.sqrt(np.clip(1.0 - d2, 0.0, None))
+    background = np.asarray(background, dtype=np.float64)
+    if background.ndim == 2:
+        background = np.repeat(np.repeat(background, ss, axis=0), ss, axis=1)
+    fine += background
+    attenuate = intensities or photons is not None
+    if attenuate:
+        fine = np.exp(-fine)
+    if blur_sigma_px > 0:
+        fine = ndimage.gaussian_filter(fine, blur_sigma_px * ss, mode="nearest", truncate=5.0)
+    image = fine.reshape(rows, ss, cols, ss).mean(axis=(1, 3))
+    if photons is None:
+        return image
+    counts = np.random.default_rng(rng).poisson(photons * image).astype(np.float64)
+    if intensities:
+        return counts
+    return -np.log(np.maximum(counts, 0.5) / photons)
 
 
 def _raises_input_error(call, what: str) -> None:

@@ -85,8 +85,8 @@ def test_every_hook_has_a_test_and_a_docs_entry():
 
 
 def test_builtins_are_listed_in_one_tuple():
-    assert BUILTIN_PLUGINS == ("ctpipe.builtin.opencv_detectors", "ctpipe.builtin.surf", "ctpipe.builtin.matchers",
-                               "ctpipe.builtin.estimators", "ctpipe.builtin.refiners",
+    assert BUILTIN_PLUGINS == ("ctpipe.builtin.opencv_detectors", "ctpipe.builtin.surf", "ctpipe.builtin.beads",
+                               "ctpipe.builtin.matchers", "ctpipe.builtin.estimators", "ctpipe.builtin.refiners",
                                "ctpipe.builtin.projection_matching", "ctpipe.builtin.bundle")
 
 
