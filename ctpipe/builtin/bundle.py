@@ -8,7 +8,7 @@ from typing import Literal
 
 import numpy as np
 
-from ctpipe.data import ScanObservations, ScanSolution
+from ctpipe.data import PairEstimate, ScanObservations, ScanSolution
 from ctpipe.hookspecs import hookimpl
 from ctpipe.model import FailedEstimation
 from ctpipe.solve.bundle import BundleSettings, solve_bundle
@@ -48,31 +48,55 @@ class BundleAdjustmentRefiner(Refiner):
     max_pair_deviation_deg: float | None = param(
         None, doc="ignore pairs whose angle differs from the nominal step by more than this (degrees; null: keep all), "
                   "e.g. a wrong consensus of identical balls", gt=0, le=180)
+    nominal_sampson_threshold: float | None = param(
+        None, doc="pairs beyond max_pair_deviation_deg: take as correspondences the matches within this Sampson "
+                  "distance of the nominal step, each point once (null: leave the pair out)", gt=0, le=1)
 
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
         settings = BundleSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                                     if f.name not in ("start", "max_pair_deviation_deg")})
+                                     if f.name not in ("start", "max_pair_deviation_deg", "nominal_sampson_threshold")})
         nominal = observations.nominal_angles_deg
         start = None
         if self.start == "nominal" and nominal is not None:
             start = np.deg2rad(np.asarray(nominal, dtype=np.float64) - nominal[0])
         if self.max_pair_deviation_deg is not None and nominal is not None:
-            observations = _without_deviating_pairs(observations, self.max_pair_deviation_deg)
+            observations = _without_deviating_pairs(observations, self.max_pair_deviation_deg,
+                                                    self.nominal_sampson_threshold)
         solution = solve_bundle(observations, settings, start_angles_rad=start)
         return ScanSolution(angles_rad=solution.angles_rad, pair_estimates=tuple(observations.estimates),
                             info=solution.info)
 
 
-def _without_deviating_pairs(observations: ScanObservations, limit_deg: float) -> ScanObservations:
-    """The observations with every pair whose angle is further than ``limit_deg`` from the nominal step failed."""
+def _without_deviating_pairs(observations: ScanObservations, limit_deg: float,
+                             nominal_threshold: float | None = None) -> ScanObservations:
+    """The observations with every pair further than ``limit_deg`` from its nominal step replaced.
+
+    With ``nominal_threshold`` such a pair's correspondences are chosen again at the nominal step
+    (the matches within that Sampson distance of it, each point once): a consensus of identical
+    balls near the mid-plane can be mirrored or wrapped while its balls are still the right
+    ones. Without it, or with fewer than two such matches, the pair is left out (failed).
+    """
+    from ctpipe.builtin.estimators import _one_to_one
+    from ctpipe.model import sampson_distance
+
     nominal = np.asarray(observations.nominal_angles_deg, dtype=np.float64)
     pairs = observations.pairs
     steps = (nominal[pairs[:, 1]] - nominal[pairs[:, 0]] + 180.0) % 360.0 - 180.0
-    estimates = tuple(
-        e if not e or abs((e.angle_deg - step + 180.0) % 360.0 - 180.0) <= limit_deg
-        else FailedEstimation(f"{e.angle_deg:.2f} deg is more than {limit_deg:g} deg from the nominal step {step:.2f}")
-        for e, step in zip(observations.estimates, steps))
-    return dataclasses.replace(observations, estimates=estimates)
+    estimates = []
+    for k, (estimate, step) in enumerate(zip(observations.estimates, steps)):
+        if not estimate or abs((estimate.angle_deg - step + 180.0) % 360.0 - 180.0) <= limit_deg:
+            estimates.append(estimate)
+            continue
+        reason = f"{estimate.angle_deg:.2f} deg is more than {limit_deg:g} deg from the nominal step {step:.2f}"
+        if nominal_threshold is not None:
+            q_a, q_b = observations.points_a[k], observations.points_b[k]
+            distance = sampson_distance(np.deg2rad(step), q_a, q_b)
+            mask = _one_to_one(distance < nominal_threshold, distance, q_a, q_b)
+            if mask.sum() >= 2:
+                estimates.append(PairEstimate(np.deg2rad(step), mask, float(np.sqrt(np.mean(distance[mask] ** 2)))))
+                continue
+        estimates.append(FailedEstimation(reason))
+    return dataclasses.replace(observations, estimates=tuple(estimates))
 
 
 @hookimpl

@@ -1,0 +1,72 @@
+"""The ball-phantom pipeline end to end: a simulated ball bar, 16 views of 22.5 deg, every view within 0.02 deg."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from ctpipe.cli import main
+from ctpipe.evaluate.scoring import view_errors_deg
+from ctpipe.pipeline import Pipeline
+from ctpipe.sim import load_phantom, parse_scan_spec, simulate, write_simulated_scan
+
+CONFIG = "configs/calibration-beads.yaml"
+
+
+def _spec(n_views: int, seed: int):
+    # The calibration experiment's geometry at half the pixels (same field of view): balls ~12 px.
+    return parse_scan_spec({
+        "geometry": {"source_to_object_mm": 250.0, "source_to_detector_mm": 500.0, "detector_cols": 256,
+                     "detector_rows": 256, "pixel_pitch_u_mm": 0.4, "pixel_pitch_v_mm": 0.4},
+        "angles": {"n_views": n_views, "range_deg": 360.0},
+        "jitter": [{"gaussian": {"sigma_deg": 0.3}}, {"jumps": {"count": 1, "size_deg": 0.5}}],
+        "noise": {"photons_per_pixel": 50000, "flat_frames": 4, "dark_frames": 2, "dark_counts": 100},
+        "projector": {"kind": "analytic", "supersample": 2, "blur_px": 0.5}, "seed": seed})
+
+
+@pytest.fixture(scope="module")
+def ball_bar_scan():
+    spec = _spec(16, 3)
+    return simulate(load_phantom("ball-bar"), spec, rng=np.random.default_rng(3)), spec
+
+
+def test_every_view_of_a_16_view_ball_bar_scan_within_two_hundredths_of_a_degree(ball_bar_scan, monkeypatch):
+    from pathlib import Path
+
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    scan, _ = ball_bar_scan
+    result = Pipeline.from_config(CONFIG).run(scan.projections, scan.geometry,
+                                              nominal_angles_deg=scan.nominal_angles_deg)
+    errors = view_errors_deg(result.angles_deg, scan.true_angles_deg)
+    nominal = view_errors_deg(scan.nominal_angles_deg, scan.true_angles_deg)
+    assert np.abs(nominal).max() > 0.3           # the stage errors are there to correct
+    assert np.abs(errors).max() < 0.02
+    assert np.median(result.n_keypoints) == 7    # every ball of the bar, in most views
+
+
+def test_estimate_on_a_ball_scan_folder_needs_only_the_pipeline(ball_bar_scan, tmp_path, capsys, monkeypatch):
+    from pathlib import Path
+
+    scan, spec = ball_bar_scan
+    phantom = load_phantom("ball-bar")
+    folder = write_simulated_scan(tmp_path / "balls", scan, phantom=phantom, spec=spec, seed=3)
+    config = Path(__file__).resolve().parents[1] / CONFIG
+    capsys.readouterr()
+    assert main(["estimate", str(folder), "--pipeline", str(config), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["angle_errors"]["views"]["max_deg"] < 0.02
+    assert report["pipeline"]["detector"]["name"] == "beads"
+
+
+def test_the_calibration_experiments_parse():
+    from pathlib import Path
+
+    from ctpipe.evaluate.validate import load_validate_settings
+    from ctpipe.plugins import get_registry
+
+    root = Path(__file__).resolve().parents[1] / "configs" / "experiments"
+    for name in ("calibration-16-views.yaml", "calibration-32-views.yaml"):
+        settings = load_validate_settings(root / name, get_registry())
+        assert settings.pipeline.detector.name == "beads"
+    assert yaml.safe_load((root.parent / "calibration-beads.yaml").read_text())["matcher"]["name"] == "all-pairs"
