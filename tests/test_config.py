@@ -26,7 +26,7 @@ def test_defaults_and_bare_names():
      "pipeline.estimator.hypotheses: must be one of 'random', 'all', got 'some'"),
     ("detector: {name: sift, n_features: 2.5}", "pipeline.detector.n_features: must be an integer >= 0 and <= 1000000, got 2.5"),
     ("detector: {name: sift, nfeatures: 10}", "pipeline.detector.nfeatures: unknown parameter of detector 'sift'; allowed: n_features"),
-    ("detector: {name: surff}", "pipeline.detector.name: unknown detector 'surff'; registered detectors: akaze, brisk"),
+    ("detector: {name: surff}", "pipeline.detector.name: unknown detector 'surff'; registered detectors: akaze, beads, brisk"),
     ("detector: {n_features: 3}", "pipeline.detector.name: missing; registered detectors: akaze"),
     ("matcher: [1, 2]", "pipeline.matcher: must be a matcher name or a mapping"),
     ("colour: red", "pipeline.colour: unknown key; allowed: detector, matcher, estimator, refiner, pairs, preprocess, seed"),

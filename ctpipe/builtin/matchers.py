@@ -89,7 +89,7 @@ class AllPairsMatcher(Matcher):
 
     max_row_shift_px: float = param(20.0, doc="largest change of row (pixels) between the two views of a point",
                                      gt=0, le=100_000)
-    max_pairs: int = param(250_000, doc="refuse more candidate pairs than this (a detector with too many keypoints)",
+    max_pairs: int = param(4_000_000, doc="refuse more candidate pairs than this (a detector with too many keypoints)",
                            ge=1, le=100_000_000)
 
     def match(self, features_a: Features, features_b: Features) -> Matches:
