@@ -12,7 +12,7 @@ import numpy as np
 from ctpipe.data import ScanObservations, ScanSolution
 from ctpipe.hookspecs import hookimpl
 from ctpipe.geometry import Geometry
-from ctpipe.recon.feldkamp import FILTERS, bin_detector
+from ctpipe.recon.feldkamp import FILTERS, bin_detector, binned_geometry
 from ctpipe.solve.reprojection import consistency_costs, matching_levels, projection_matching
 from ctpipe.stages import Refiner, param
 
@@ -51,12 +51,13 @@ def _binned_views(projections, geometry: Geometry, factor: int) -> tuple[np.ndar
     A :class:`~ctpipe.io.scans.ViewStack` is never held whole: only the binned copy is, which at
     the default levels is at most 256^2 pixels a view whatever the detector size.
     """
-    rows, cols = geometry.shape
-    binned_geometry = bin_detector(np.zeros((1, rows, cols), np.float32), geometry, factor)[1]
-    out = np.empty((len(projections), binned_geometry.detector_rows, binned_geometry.detector_cols), np.float32)
+    if factor == 1 and isinstance(projections, np.ndarray):
+        return projections.astype(np.float32, copy=False), geometry   # nothing to bin, nothing to stream
+    coarse = binned_geometry(geometry, factor)
+    out = np.empty((len(projections), coarse.detector_rows, coarse.detector_cols), np.float32)
     for index in range(len(projections)):
         out[index] = bin_detector(np.asarray(projections[index], dtype=np.float32)[None], geometry, factor)[0][0]
-    return out, binned_geometry
+    return out, coarse
 
 
 @dataclass(frozen=True)
