@@ -106,12 +106,13 @@ class ViewStack:
             indices = range(self._n_views)[index] if isinstance(index, slice) else np.asarray(index)
             return np.stack([self[int(i)] for i in indices]) if len(indices) else np.empty((0, *self._shape),
                                                                                             np.float32)
+        index = self._index(index)
         raw = self.raw(index)
         if self.values == "intensities":
             view = log_transform(raw[None], self._flat, self._dark)[0]
         else:
             view = raw.astype(np.float32, copy=False)
-        check_image(view, name=f"{self.name}: view {self._index(index)}")
+        check_image(view, name=f"{self.name}: view {index}")
         return view
 
     def __iter__(self):
