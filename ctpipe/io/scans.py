@@ -243,9 +243,10 @@ def open_scan(path: str | Path) -> ScanFiles:
     if not path.exists():
         raise InputError(f"{path}: no such file or folder")
     _load_builtin_formats()
-    for fmt in sorted(FORMATS.values(), key=lambda f: _BUILTIN_ORDER.index(f.name) if f.name in _BUILTIN_ORDER
-                      else len(_BUILTIN_ORDER)):
+    formats = sorted(FORMATS.values(), key=lambda f: _BUILTIN_ORDER.index(f.name) if f.name in _BUILTIN_ORDER
+                     else len(_BUILTIN_ORDER))
+    for fmt in formats:
         if fmt.detect(path):
             return fmt.open(path)
-    known = "; ".join(f"{f.name}: {f.description}" for f in FORMATS.values())
+    known = "; ".join(f"{f.name}: {f.description}" for f in formats)
     raise InputError(f"{path}: not a scan in any format ctpipe reads ({known})")
