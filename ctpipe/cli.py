@@ -13,6 +13,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import signal
 import sys
 import time
@@ -52,16 +53,48 @@ def _cmd_plugins(args) -> int:
 
 
 def _cmd_estimate(args) -> int:
-    from ctpipe.config import load_geometry, load_yaml, parse_pipeline
-    from ctpipe.io.arrays import read_projections
-    from ctpipe.io.outputs import check_output_dir, to_jsonable, write_files
+    from ctpipe.config import load_yaml, parse_pipeline
+    from ctpipe.io.outputs import check_output_dir
     from ctpipe.pipeline import Pipeline
 
-    if args.out is not None:
-        check_output_dir(args.out)
+    sources = _scan_paths(args.projections, args.dask)
+    batch = len(sources) > 1
+    if batch and args.geometry:
+        raise InputError("--geometry goes with one projection stack; a batch takes scans that carry their own geometry")
+    outs = _batch_outputs(sources, args.out) if batch else {sources[0]: args.out}
+    for out in outs.values():
+        if out is not None:
+            check_output_dir(out)
     registry = _registry(args)
     config = parse_pipeline(load_yaml(args.pipeline) if args.pipeline else None, registry)
-    source = Path(args.projections)
+    pipeline = Pipeline.from_config(config, registry=registry)
+    executor = None
+    if args.dask is not None:
+        from ctpipe.execution import DaskExecutor
+
+        address = args.dask if _is_address(args.dask) else None
+        executor = DaskExecutor.connect(address)
+        print(f"ctpipe: {executor.describe()}", file=sys.stderr, flush=True)
+    try:
+        if not batch:
+            report, summary, warning = _estimate_scan(args, config, pipeline, sources[0], outs[sources[0]], executor,
+                                                      progress=True)
+            print(json.dumps(_jsonable(report), indent=2) if args.json else summary)
+            if warning:
+                print(warning, file=sys.stderr)
+            return 0
+        return _estimate_batch(args, config, pipeline, sources, outs, executor)
+    finally:
+        if executor is not None:
+            executor.close()
+
+
+def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, executor, *, progress: bool):
+    """Estimate one scan (or projection stack) and write its outputs: (report, summary, warning or None)."""
+    from ctpipe.config import load_geometry
+    from ctpipe.io.arrays import read_projections
+    from ctpipe.io.outputs import write_files
+
     truth = nominal = scan = None
     if not source.exists():
         raise InputError(f"{source}: no such file or scan folder")
@@ -78,21 +111,121 @@ def _cmd_estimate(args) -> int:
             raise InputError(f"{source}: a projection file needs --geometry GEOMETRY.yaml (or give a scan folder)")
         geometry = load_geometry(args.geometry)
         projections = read_projections(source)
-    pipeline = Pipeline.from_config(config, registry=registry)
-    with _progress(len(projections), "views", quiet=args.json) as advance:
-        result = pipeline.run(projections, geometry, nominal_angles_deg=nominal, progress=advance)
+    with _progress(len(projections), "views", quiet=args.json or not progress) as advance:
+        result = pipeline.run(projections, geometry, nominal_angles_deg=nominal, progress=advance, executor=executor)
     report, columns = _estimate_report(config, geometry, result, scan, nominal, truth)
-    files = _estimate_files(Path(args.out), report, columns, geometry, result, scan) if args.out is not None else {}
+    files = _estimate_files(Path(out), report, columns, geometry, result, scan) if out is not None else {}
     if files:
         write_files(files)
+    summary = _estimate_summary(report, result, scan, source, sorted(path.name for path in files))
+    failed = [s for s in result.pair_status if s != "ok"]
+    warning = f"warning: {len(failed)} pairs failed, e.g. {failed[0]}" if failed else None
+    return report, summary, warning
+
+
+def _estimate_batch(args, config, pipeline, sources: list[Path], outs: dict, executor) -> int:
+    """Several scans in one call: each to its own folder; a failed scan is reported, the others finish.
+
+    On a cluster a few scans are in flight at once, so that one scan's central solve overlaps
+    the next one's detection; in this process they run one after the other, each on every core.
+    """
+    from concurrent.futures import ThreadPoolExecutor, as_completed
+
+    def one(source: Path):
+        try:
+            return "ok", _estimate_scan(args, config, pipeline, source, outs[source], executor, progress=False)
+        except CtpipeError as exc:
+            return "failed", str(exc)
+        except Exception as exc:  # a bug, not the scan: say so, and go on with the others
+            return "failed", (f"unexpected {type(exc).__name__}: {exc} (run 'ctpipe estimate {source}' alone to see "
+                              f"the traceback, and please report it)")
+
+    in_flight = 1 if executor is None else min(len(sources), 2 + executor.workers // 16)
+    outcomes = {}
+    with ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="ctpipe-scan") as pool, \
+            _progress(len(sources), "scans", quiet=args.json) as advance:
+        futures = {pool.submit(one, source): source for source in sources}
+        for future in as_completed(futures):
+            source = futures[future]
+            outcomes[source] = status, detail = future.result()
+            if not args.json:
+                print(f"ctpipe: {source}: " + ("done" if status == "ok" else f"FAILED: {detail}"), file=sys.stderr,
+                      flush=True)
+            if advance is not None:
+                advance(1)
+    failed = [source for source in sources if outcomes[source][0] != "ok"]
     if args.json:
-        print(json.dumps(to_jsonable(report), indent=2))
+        entries = []
+        for source in sources:
+            status, detail = outcomes[source]
+            entry = {"scan": str(source), "status": status, "out": None if outs[source] is None else str(outs[source])}
+            entry.update({"report": detail[0]} if status == "ok" else {"error": detail})
+            entries.append(entry)
+        print(json.dumps(_jsonable({"scans": entries, "failed": len(failed)}), indent=2))
     else:
-        print(_estimate_summary(report, result, scan, source, sorted(path.name for path in files)))
-        failed = [s for s in result.pair_status if s != "ok"]
-        if failed:
-            print(f"warning: {len(failed)} pairs failed, e.g. {failed[0]}", file=sys.stderr)
-    return 0
+        for source in sources:
+            status, detail = outcomes[source]
+            if status == "ok":
+                print(f"== {source}" + (f" -> {outs[source]}" if outs[source] is not None else ""))
+                print(detail[1])
+                if detail[2]:
+                    print(detail[2], file=sys.stderr)
+                print()
+        print(f"batch: {len(sources) - len(failed)} of {len(sources)} scans estimated"
+              + (f", {len(failed)} failed:" if failed else ""))
+        for source in failed:
+            print(f"  {source}: {outcomes[source][1]}")
+    return 2 if failed else 0
+
+
+def _jsonable(report):
+    from ctpipe.io.outputs import to_jsonable
+
+    return to_jsonable(report)
+
+
+def _is_address(text: str) -> bool:
+    """Whether ``--dask``'s value is a scheduler (tcp://host:port, host:port, a scheduler file), not a scan."""
+    return "://" in text or text.endswith(".json") or re.fullmatch(r"[\w.\-]+:\d+", text) is not None
+
+
+def _scan_paths(arguments: list[str], dask: str | None) -> list[Path]:
+    """The scans named on the command line, globs expanded (quoted ones too), in order and once each.
+
+    ``--dask`` takes an optional address, so ``--dask SCAN`` gives it the first scan: that is
+    put back among the scans when it is not an address.
+    """
+    import glob
+
+    if dask and not _is_address(dask):
+        arguments = [dask, *arguments]
+    paths = []
+    for argument in arguments:
+        if not Path(argument).exists() and glob.has_magic(argument):
+            matches = sorted(glob.glob(argument))
+            if not matches:
+                raise InputError(f"{argument}: the pattern matches no scan")
+            paths.extend(Path(m) for m in matches)
+        else:
+            paths.append(Path(argument))
+    return list(dict.fromkeys(paths))
+
+
+def _batch_outputs(sources: list[Path], out: str | None) -> dict[Path, Path | None]:
+    """Each scan's own output folder under ``out``: its name, with its parent's where two names clash."""
+    if out is None:
+        return dict.fromkeys(sources)
+    names = {source: (source.name if source.is_dir() else source.stem) or "scan" for source in sources}
+    clashing = {name for name in names.values() if list(names.values()).count(name) > 1}
+    names = {source: f"{source.resolve().parent.name}-{name}" if name in clashing else name
+             for source, name in names.items()}
+    seen = {}
+    for source, name in names.items():
+        if name in seen:
+            raise InputError(f"{seen[name]} and {source} would both write to {Path(out) / name}; give scans whose "
+                             f"folder names (or parents' names) differ")
+        seen[name] = source
+    return {source: Path(out) / name for source, name in names.items()}
 
 
 def _difference_table(estimated: np.ndarray, reference: np.ndarray) -> dict:
@@ -429,13 +562,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(run=_cmd_plugins)
 
-    p = sub.add_parser("estimate", help="estimate per-view angles of a scan folder or a projection stack")
-    p.add_argument("projections", help="a scan folder (scan.yaml + TIFFs, as 'ctpipe simulate' writes) or a "
-                                       "projection stack (views, rows, cols): .npy or multi-page .tif")
+    p = sub.add_parser("estimate", help="estimate per-view angles of scans (any format ctpipe reads) or a "
+                                        "projection stack")
+    p.add_argument("projections", nargs="+", metavar="SCAN",
+                   help="a scan (folder or file in a format ctpipe reads: ctpipe, Nikon, Zeiss, Bruker, Waygate, "
+                        "TIFFs + YAML) or a projection stack (views, rows, cols): .npy or multi-page .tif. Several "
+                        "scans, or a glob, make a batch: each is estimated on its own and a failed one is reported")
     p.add_argument("--geometry", help="geometry YAML (keys: source_to_object_mm, ...); only for a projection stack")
-    p.add_argument("--pipeline", help="pipeline YAML (default: sift, brute-force, ransac-1pt, least-squares)")
+    p.add_argument("--pipeline", help="pipeline YAML (default: the built-in default pipeline)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
-    p.add_argument("--out", help="directory for result.json and angles.csv")
+    p.add_argument("--out", help="folder for result.json, angles.csv, ...; in a batch, one subfolder per scan")
+    p.add_argument("--dask", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="run on Dask: a LocalCluster on this machine, or the scheduler at ADDRESS "
+                        "(tcp://host:8786 or a scheduler file). Needs: pip install 'ctpipe[dask]'")
     p.set_defaults(run=_cmd_estimate)
 
     p = sub.add_parser("detect", help="run one detector on one image: keypoints to .npz, optionally a picture",

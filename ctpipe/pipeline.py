@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import os
+import dataclasses
 import time
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -14,11 +13,12 @@ import numpy as np
 
 from ctpipe._checks import short_repr
 from ctpipe.config import PipelineConfig, build_stage, load_yaml, parse_geometry, parse_pipeline
-from ctpipe.data import Features, ScanObservations
+from ctpipe.data import Features, ScanObservations, ScanSolution
 from ctpipe.errors import EstimationError, InputError
+from ctpipe.execution import Executor, ThreadExecutor
 from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
-from ctpipe.io.scans import ViewStack
+from ctpipe.io.scans import StackReference, ViewStack
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
 from ctpipe.solve.graph import view_pairs
@@ -129,20 +129,17 @@ class Pipeline:
                    static_background=config.static_background)
 
     def detect(self, projections: np.ndarray, *, background: np.ndarray | None = None,
-               progress: Callable[[int], None] | None = None) -> tuple[Features, ...]:
-        """Features of every view (threads: OpenCV releases the GIL), on ``view - background`` if given."""
-        def one(index: int) -> Features:
-            image = projections[index] if background is None else projections[index] - background
-            features = self.detector.detect(image)
-            if progress is not None:
-                progress(1)
-            return features
-
-        with ThreadPoolExecutor(max_workers=min(len(projections), os.cpu_count() or 1)) as pool:
-            return tuple(pool.map(one, range(len(projections))))
+               progress: Callable[[int], None] | None = None, executor: Executor | None = None) -> tuple[Features, ...]:
+        """Features of every view, on ``view - background`` if given (one task per view, see :meth:`run`)."""
+        with _executor(executor) as run_on:
+            source = run_on.scatter(_shippable(projections))
+            tasks = [run_on.submit(_detect_view, self.detector, source, background, index, name="detect")
+                     for index in range(len(projections))]
+            return tuple(run_on.gather(tasks, progress=progress))
 
     def run(self, projections: np.ndarray, geometry: Geometry, *, nominal_angles_deg=None,
-            pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None) -> ScanResult:
+            pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None,
+            executor: Executor | None = None) -> ScanResult:
         """Estimate the angle of every view of a scan: :meth:`observe`, then :meth:`refine`.
 
         Parameters
@@ -159,6 +156,15 @@ class Pipeline:
             :func:`ctpipe.solve.view_pairs`) and give whole-scan refiners their start.
         pairs : ndarray of shape (P, 2), optional
             View pairs to estimate; default ``(i, i + k)`` for the configured baselines.
+        progress : callable, optional
+            ``progress(n)`` as ``n`` more views have their features.
+        executor : ctpipe.execution.Executor, optional
+            Where the tasks run: detection one task per view, matching and estimation one task
+            per chunk of pairs, and the refiner as one task. Default a
+            :class:`~ctpipe.execution.ThreadExecutor` over this process's cores; a
+            :class:`~ctpipe.execution.DaskExecutor` runs them on a cluster, whose workers
+            read a scan opened from disk themselves. Every pair has its own seed, so the
+            angles are the same bit for bit wherever they run.
 
         Raises
         ------
@@ -167,11 +173,14 @@ class Pipeline:
         EstimationError
             When not a single pair could be estimated.
         """
-        return self.refine(self.observe(projections, geometry, nominal_angles_deg=nominal_angles_deg, pairs=pairs,
-                                        progress=progress))
+        with _executor(executor) as run_on:
+            observations = self.observe(projections, geometry, nominal_angles_deg=nominal_angles_deg, pairs=pairs,
+                                        progress=progress, executor=run_on)
+            return self.refine(observations, executor=run_on)
 
     def observe(self, projections: np.ndarray, geometry: Geometry, *, nominal_angles_deg=None,
-                pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None) -> ScanObservations:
+                pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None,
+                executor: Executor | None = None) -> ScanObservations:
         """Detect, match and estimate every pair: what a refiner works from (arguments as :meth:`run`).
 
         Several refiners can then be compared on the same observations with :meth:`refine`.
@@ -186,35 +195,63 @@ class Pipeline:
             pairs = _check_pairs(pairs, n_views)
         if len(pairs) == 0:
             raise InputError(f"no view pairs: {n_views} views with baselines {list(self.baselines)}")
-        timings = {}
-        start = time.perf_counter()
-        background = self._background(projections, nominal)
-        features = self.detect(projections, background=background, progress=progress)
-        timings["detect"] = time.perf_counter() - start
+        with _executor(executor) as run_on:
+            timings = {}
+            start = time.perf_counter()
+            # A scan from disk travels as its path: each worker reads the views it detects on.
+            source = run_on.scatter(_shippable(projections))
+            views = self._background_views(projections, nominal)
+            background = None if views is None else run_on.submit(_median_background, source, views,
+                                                                   name="background")
+            detected = [run_on.submit(_detect_view, self.detector, source, background, index, name="detect")
+                        for index in range(n_views)]
+            features = tuple(run_on.gather(detected, progress=progress))
+            timings["detect"] = time.perf_counter() - start
 
-        start = time.perf_counter()
-        matches = tuple(self.matcher.match(features[i], features[j]) for i, j in pairs)
-        points_a = tuple(geometry.pixels_to_normalised(features[i].xy[m.index_ab[:, 0]]) for (i, _), m in zip(pairs, matches))
-        points_b = tuple(geometry.pixels_to_normalised(features[j].xy[m.index_ab[:, 1]]) for (_, j), m in zip(pairs, matches))
-        timings["match"] = time.perf_counter() - start
+            # Chunks of pairs, a few per worker; each task gets the features of its own views only.
+            chunks = np.array_split(np.arange(len(pairs)), min(len(pairs), 4 * run_on.workers))
+            start = time.perf_counter()
+            tasks = []
+            for chunk in chunks:
+                used, local = np.unique(pairs[chunk], return_inverse=True)
+                tasks.append(run_on.submit(_match_pairs, self.matcher, geometry, [detected[v] for v in used],
+                                           local.reshape(-1, 2), name="match"))
+            matched = [m for chunk in run_on.gather(tasks) for m in chunk]
+            matches = tuple(m for m, _, _ in matched)
+            points_a = tuple(q_a for _, q_a, _ in matched)
+            points_b = tuple(q_b for _, _, q_b in matched)
+            timings["match"] = time.perf_counter() - start
 
-        start = time.perf_counter()
-        seeds = np.random.SeedSequence(self.seed).spawn(len(pairs))
-        estimates = tuple(self.estimator.estimate(q_a, q_b, rng=np.random.default_rng(s))
-                          for q_a, q_b, s in zip(points_a, points_b, seeds))
-        timings["estimate"] = time.perf_counter() - start
+            start = time.perf_counter()
+            seeds = np.random.SeedSequence(self.seed).spawn(len(pairs))
+            tasks = [run_on.submit(_estimate_pairs, self.estimator, [points_a[k] for k in chunk],
+                                   [points_b[k] for k in chunk], [seeds[k] for k in chunk], name="estimate")
+                     for chunk in chunks]
+            estimates = tuple(e for chunk in run_on.gather(tasks) for e in chunk)
+            timings["estimate"] = time.perf_counter() - start
         return ScanObservations(geometry=geometry, n_views=n_views, features=features, pairs=pairs,
                                 matches=matches, points_a=points_a, points_b=points_b, estimates=estimates,
                                 nominal_angles_deg=nominal, projections=projections, timings_s=timings,
-                                static_background_removed=background is not None)
+                                static_background_removed=views is not None)
 
-    def refine(self, observations: ScanObservations) -> ScanResult:
-        """Per-view angles from :meth:`observe`'s observations with this pipeline's refiner."""
+    def refine(self, observations: ScanObservations, *, executor: Executor | None = None) -> ScanResult:
+        """Per-view angles from :meth:`observe`'s observations with this pipeline's refiner.
+
+        With an ``executor`` the refiner runs as one of its tasks (on a cluster: on a worker,
+        which reads the projections it needs itself); without, here.
+        """
         timings = dict(observations.timings_s)
         start = time.perf_counter()
         # The refiner's generator is the last of len(pairs) + 1 children, as it always was.
         seed = np.random.SeedSequence(self.seed).spawn(len(observations.pairs) + 1)[-1]
-        solution = self.refiner.refine(observations, rng=np.random.default_rng(seed))
+        if executor is None:
+            solution = self.refiner.refine(observations, rng=np.random.default_rng(seed))
+        else:
+            projections = observations.projections
+            source = None if projections is None else executor.scatter(_shippable(projections))
+            task = executor.submit(_refine, self.refiner, dataclasses.replace(observations, projections=None), source,
+                                   seed, name="refine")
+            solution, = executor.gather([task])
         timings["refine"] = time.perf_counter() - start
 
         refined, matches, features = solution.pair_estimates, observations.matches, observations.features
@@ -238,16 +275,16 @@ class Pipeline:
             static_background_removed=observations.static_background_removed,
         )
 
-    def _background(self, projections: np.ndarray, nominal: np.ndarray | None) -> np.ndarray | None:
-        """The static part of the scan to remove before detection, or None (see ``static_background``).
+    def _background_views(self, projections, nominal: np.ndarray | None) -> np.ndarray | None:
+        """Which views make the static background to remove before detection, or None (see ``static_background``).
 
-        The per-pixel median over (up to 90, and at most ``_BACKGROUND_BYTES`` of) evenly spread
-        views, read one at a time when the projections are a ViewStack: what every view shares, i.e.
-        the rotationally symmetric part of the object (container, matrix, detector pattern).
-        Features sitting on that static profile are localised a few percent short of their
-        motion, which biases every pair angle low (docs/wholescan.md). ``auto`` removes it when
-        the nominal angles show the views spread over at least 180 deg, so that features move
-        across the image and the median is theirs in no view.
+        The background is the per-pixel median over (up to 90, and at most ``_BACKGROUND_BYTES``
+        of) evenly spread views, read one at a time when the projections are a ViewStack: what
+        every view shares, i.e. the rotationally symmetric part of the object (container, matrix,
+        detector pattern). Features sitting on that static profile are localised a few percent
+        short of their motion, which biases every pair angle low (docs/wholescan.md). ``auto``
+        removes it when the nominal angles show the views spread over at least 180 deg, so that
+        features move across the image and the median is theirs in no view.
         """
         if self.static_background == "off":
             return None
@@ -260,8 +297,68 @@ class Pipeline:
         # Up to 90 views, fewer on a detector so large that 90 would take more than _BACKGROUND_BYTES.
         rows, cols = projections.shape[1:]
         count = int(min(len(projections), 90, max(16, _BACKGROUND_BYTES // (rows * cols * 4))))
-        views = np.unique(np.linspace(0, len(projections) - 1, count).round().astype(int))
-        return np.median(np.asarray(projections[views], dtype=np.float32), axis=0)
+        return np.unique(np.linspace(0, len(projections) - 1, count).round().astype(int))
+
+
+# Tasks: module-level functions, so that a worker process finds them by name.
+
+def _shippable(projections):
+    """What a task gets for the projections: a scan from disk by reference, anything else as it is."""
+    reference = projections.reference() if isinstance(projections, ViewStack) else None
+    return projections if reference is None else reference
+
+
+def _views(source):
+    return source.open() if isinstance(source, StackReference) else source
+
+
+def _median_background(source, views: np.ndarray) -> np.ndarray:
+    return np.median(np.asarray(_views(source)[views], dtype=np.float32), axis=0)
+
+
+def _detect_view(detector: Detector, source, background: np.ndarray | None, index: int) -> Features:
+    image = _views(source)[index]
+    return detector.detect(image if background is None else image - background)
+
+
+def _match_pairs(matcher: Matcher, geometry: Geometry, features: list[Features], pairs: np.ndarray) -> list:
+    """(matches, first view's points, second view's points) of each pair; ``pairs`` index ``features``."""
+    out = []
+    for i, j in pairs:
+        m = matcher.match(features[i], features[j])
+        out.append((m, geometry.pixels_to_normalised(features[i].xy[m.index_ab[:, 0]]),
+                    geometry.pixels_to_normalised(features[j].xy[m.index_ab[:, 1]])))
+    return out
+
+
+def _estimate_pairs(estimator: Estimator, points_a: list, points_b: list, seeds: list) -> list:
+    return [estimator.estimate(q_a, q_b, rng=np.random.default_rng(s)) for q_a, q_b, s in zip(points_a, points_b, seeds)]
+
+
+def _refine(refiner: Refiner, observations: ScanObservations, source, seed) -> ScanSolution:
+    if source is not None:
+        observations = dataclasses.replace(observations, projections=_views(source))
+    return refiner.refine(observations, rng=np.random.default_rng(seed))
+
+
+class _executor:
+    """The caller's executor as it is, or a thread pool for the block."""
+
+    def __init__(self, executor: Executor | None) -> None:
+        if executor is not None and not isinstance(executor, Executor):
+            raise InputError(f"executor: must be a ctpipe.execution.Executor (ThreadExecutor or DaskExecutor), "
+                             f"got {type(executor).__name__}")
+        self.given, self.own = executor, None
+
+    def __enter__(self) -> Executor:
+        if self.given is not None:
+            return self.given
+        self.own = ThreadExecutor()
+        return self.own
+
+    def __exit__(self, *exc) -> None:
+        if self.own is not None:
+            self.own.close()
 
 
 def _check_geometry(geometry) -> Geometry:

@@ -133,8 +133,8 @@ def _file_names(value: Any, path: str, folder: Path, allowed: tuple[str, ...] = 
             except (KeyError, IndexError, ValueError) as exc:
                 raise ConfigError(f"{path}.files: not a usable pattern ({exc}), got {files!r}") from None
             if not (folder / name).is_file():
-                raise InputError(f"{folder / name}: no such file; {path}.count says {count} files but only {i} "
-                                 f"exist, and count must match the files present")
+                raise InputError(f"{folder / name}: no such file; {path}.count says {count} files, of which "
+                                 f"only the first {i} exist, and count must match the files present")
             names.append(name)
         return names
     if not isinstance(files, list) or not files or not all(isinstance(f, str) for f in files):

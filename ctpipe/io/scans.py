@@ -14,6 +14,7 @@ read, how their units and signs become ctpipe's, and what is left unclear.
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
 from ctpipe.io.flatfield import log_transform, mean_frame
 
-__all__ = ["ViewStack", "ScanFiles", "open_scan", "register_format", "FORMATS", "check_angles"]
+__all__ = ["ViewStack", "StackReference", "ScanFiles", "open_scan", "register_format", "FORMATS", "check_angles"]
 
 
 class ViewStack:
@@ -80,6 +81,22 @@ class ViewStack:
             # Refuse swapped or mislabelled calibration frames now, not at the first view.
             log_transform(np.zeros((1, *self._shape), np.float32), self._flat, self._dark)
         self._lock = threading.Lock()
+        self._source: tuple[str, str] | None = None
+
+    def reference(self) -> "StackReference | None":
+        """What reopens this stack in another process: its format and path; None if not opened from disk."""
+        if self._source is None:
+            return None
+        return StackReference(*self._source, self.shape)
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -130,6 +147,43 @@ class ViewStack:
         if not -self._n_views <= index < self._n_views:
             raise InputError(f"{self.name}: view {index} out of range: the scan has {self._n_views} views")
         return int(index) % self._n_views
+
+
+@dataclass(frozen=True)
+class StackReference:
+    """A scan's projections by name: format, absolute path and (views, rows, cols).
+
+    What a cluster's task carries instead of the images. :meth:`open` reopens the scan with the
+    same reader, once per process, so the views it reads are the ones the client would read.
+    The path must mean the same files where it is opened: a filesystem shared by the workers.
+    """
+
+    format: str
+    path: str
+    shape: tuple[int, int, int]
+
+    def open(self) -> ViewStack:
+        """The stack, reopened (and kept for the next task of this process)."""
+        try:
+            changed = Path(self.path).stat().st_mtime_ns
+        except OSError as exc:
+            raise InputError(f"{self.path}: cannot be read here ({exc.strerror}); the workers read each scan from its "
+                             f"files, which must be on a filesystem they share with the client, at the same path") \
+                from None
+        stack = _reopened(self.format, self.path, changed)
+        if stack.shape != self.shape:
+            raise InputError(f"{self.path}: changed on disk since it was opened: {stack.shape} (views, rows, cols) "
+                             f"now, {self.shape} then")
+        return stack
+
+
+@functools.lru_cache(maxsize=4)
+def _reopened(format_name: str, path: str, changed_ns: int) -> ViewStack:
+    _load_builtin_formats()
+    if format_name not in FORMATS:
+        raise InputError(f"{path}: format {format_name!r} is not registered in this process (known: "
+                         f"{', '.join(FORMATS)}); register it in a module the workers import")
+    return FORMATS[format_name].open(Path(path)).projections
 
 
 def check_angles(angles, n_views: int, what: str) -> np.ndarray:
@@ -247,6 +301,8 @@ def open_scan(path: str | Path) -> ScanFiles:
                      else len(_BUILTIN_ORDER))
     for fmt in formats:
         if fmt.detect(path):
-            return fmt.open(path)
+            scan = fmt.open(path)
+            scan.projections._source = (fmt.name, str(path.resolve()))
+            return scan
     known = "; ".join(f"{f.name}: {f.description}" for f in formats)
     raise InputError(f"{path}: not a scan in any format ctpipe reads ({known})")

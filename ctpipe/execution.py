@@ -1,0 +1,302 @@
+"""Where the parallel parts of a pipeline run: threads in this process, or a Dask cluster.
+
+A pipeline run is mostly independent tasks (detect one view, match or estimate a chunk of
+pairs) around one central solve. :class:`Pipeline <ctpipe.pipeline.Pipeline>` hands those
+tasks to an executor and never cares where they run:
+
+- :class:`ThreadExecutor`, the default: a thread pool in this process. OpenCV and numba
+  release the GIL, so threads use every core without copying an image.
+- :class:`DaskExecutor`: the workers of a ``dask.distributed`` cluster, a
+  ``LocalCluster`` on this machine or a scheduler at an address (SLURM/PBS through
+  dask-jobqueue, Kubernetes). Stages are pickled and shipped with each task; a scan opened
+  from disk travels as its path (:meth:`ctpipe.io.scans.ViewStack.reference`), so each
+  worker reads its own views and only features and pair results come back.
+
+Both backends take the same calls: :meth:`~Executor.scatter` places a value where tasks run,
+:meth:`~Executor.submit` starts a task whose arguments may hold handles of earlier tasks
+(lists and tuples of them too), :meth:`~Executor.gather` waits and returns results in order.
+Every random choice is seeded per task by the caller, so the answer does not depend on the
+backend, the number of workers or the order in which tasks finish.
+
+Dask is optional (``pip install 'ctpipe[dask]'``); nothing here imports it until a
+:class:`DaskExecutor` is made.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
+from typing import Any
+
+from ctpipe.errors import InputError
+
+__all__ = ["Executor", "ThreadExecutor", "DaskExecutor", "available_cores", "INSTALL_DASK"]
+
+#: The one line that tells how to get the Dask backend.
+INSTALL_DASK = "pip install 'ctpipe[dask]'"
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, not the machine's total)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        return os.cpu_count() or 1
+
+
+class Executor:
+    """Runs independent tasks; subclasses say where.
+
+    Attributes
+    ----------
+    name : str
+        ``"threads"`` or ``"dask"``, as reports name the backend.
+    """
+
+    name = "executor"
+
+    @property
+    def workers(self) -> int:
+        """How many tasks run at once (the cluster's threads, summed over its workers)."""
+        raise NotImplementedError
+
+    def scatter(self, value: Any) -> Any:
+        """A handle of ``value`` placed where tasks run, to pass to many tasks but send once."""
+        raise NotImplementedError
+
+    def submit(self, fn: Callable, *args: Any, name: str = "task") -> Any:
+        """Start ``fn(*args)``; handles in ``args`` (or in lists/tuples there) stand for their values."""
+        raise NotImplementedError
+
+    def gather(self, handles: Sequence[Any], *, progress: Callable[[int], None] | None = None,
+               weights: Sequence[int] | None = None) -> list:
+        """The results of ``handles``, in their order.
+
+        ``progress(weights[k])`` is called as task ``k`` finishes (weight 1 by default). The
+        first task that fails cancels those not started and its exception is raised here, as
+        it was raised in the task.
+        """
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Free the workers this executor started (not those it was only connected to)."""
+
+    def __enter__(self) -> "Executor":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def describe(self) -> str:
+        """One line for the terminal: where the tasks run."""
+        return f"{self.name}: {self.workers} at once"
+
+
+class ThreadExecutor(Executor):
+    """A thread pool in this process: the default backend.
+
+    Parameters
+    ----------
+    max_workers : int, optional
+        Threads; default the cores this process may use.
+    """
+
+    name = "threads"
+
+    def __init__(self, max_workers: int | None = None) -> None:
+        if max_workers is not None and (isinstance(max_workers, bool) or not isinstance(max_workers, int)
+                                        or max_workers < 1):
+            raise InputError(f"max_workers: must be a positive integer, got {max_workers!r}")
+        self._workers = max_workers or available_cores()
+        self._pool: ThreadPoolExecutor | None = None
+
+    @property
+    def workers(self) -> int:
+        return self._workers
+
+    def scatter(self, value: Any) -> Any:
+        return value   # one process: every task sees the object itself
+
+    def submit(self, fn: Callable, *args: Any, name: str = "task") -> Future:
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=self._workers, thread_name_prefix="ctpipe")
+        # A task that waits for an earlier task's handle cannot deadlock the pool: the pool
+        # starts tasks in the order they were submitted, so the earlier one is running or done.
+        return self._pool.submit(_call_resolved, fn, args)
+
+    def gather(self, handles: Sequence[Future], *, progress=None, weights=None) -> list:
+        handles = list(handles)
+        weight = dict(zip(map(id, handles), weights)) if weights is not None else {}
+        pending = set(handles)
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+            for future in done:
+                if future.exception() is not None:
+                    for other in pending:
+                        other.cancel()
+                    raise future.exception()
+                if progress is not None:
+                    progress(weight.get(id(future), 1))
+        return [future.result() for future in handles]
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+
+def _resolved(value: Any) -> Any:
+    if isinstance(value, Future):
+        return value.result()
+    if type(value) in (list, tuple):
+        return type(value)(_resolved(v) for v in value)
+    return value
+
+
+def _call_resolved(fn: Callable, args: tuple) -> Any:
+    return fn(*(_resolved(a) for a in args))
+
+
+class DaskExecutor(Executor):
+    """The workers of a ``dask.distributed`` cluster.
+
+    Make one with :meth:`connect`, or wrap a ``distributed.Client`` you already have.
+
+    Parameters
+    ----------
+    client : distributed.Client
+    owns_cluster : bool
+        Close the client's cluster on :meth:`close` (True when :meth:`connect` started it).
+    """
+
+    name = "dask"
+
+    def __init__(self, client, *, owns_cluster: bool = False) -> None:
+        self.client = client
+        self._owns_cluster = owns_cluster
+        self._run = uuid.uuid4().hex[:8]
+        self._count = 0
+
+    @classmethod
+    def connect(cls, address: str | None = None, *, n_workers: int | None = None, threads_per_worker: int = 1,
+                processes: bool = True, dashboard: bool = True, timeout_s: float = 30.0) -> "DaskExecutor":
+        """Connect to the scheduler at ``address``, or start a LocalCluster sized to this machine.
+
+        Parameters
+        ----------
+        address : str, optional
+            A scheduler's address (``tcp://host:8786``) or a scheduler file (JSON, as
+            ``dask-scheduler --scheduler-file`` and dask-jobqueue write). None: a LocalCluster.
+        n_workers : int, optional
+            LocalCluster only: worker processes, default one per core this process may use.
+        threads_per_worker : int
+            LocalCluster only. One thread per process by default: detectors are numba and
+            OpenCV code that already use a core's worth each, and processes share no GIL.
+        processes : bool
+            LocalCluster only: worker processes (True) or threads of this process.
+        dashboard : bool
+            LocalCluster only: serve the dashboard (at ``:8787``, or a free port if taken).
+        timeout_s : float
+            How long to wait for the scheduler.
+
+        Raises
+        ------
+        InputError
+            Dask is not installed (the message says how to install it), or no scheduler
+            answers at ``address``.
+        """
+        distributed = import_distributed()
+        if address is None:
+            n_workers = n_workers or available_cores()
+            with distributed_quiet():
+                cluster = distributed.LocalCluster(
+                    n_workers=n_workers, threads_per_worker=threads_per_worker, processes=processes,
+                    dashboard_address=":8787" if dashboard else None)
+            return cls(distributed.Client(cluster), owns_cluster=True)
+        try:
+            if address.endswith(".json") or os.path.isfile(address):
+                client = distributed.Client(scheduler_file=address, timeout=timeout_s)
+            else:
+                client = distributed.Client(address, timeout=timeout_s)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"--dask {address}: no Dask scheduler answers there ({str(exc).splitlines()[0]}); "
+                             f"give a scheduler address such as tcp://host:8786 or a scheduler file") from None
+        return cls(client)
+
+    @property
+    def workers(self) -> int:
+        return max(1, sum(self.client.nthreads().values()))
+
+    @property
+    def dashboard_link(self) -> str | None:
+        """Where the cluster's dashboard is served, or None without one."""
+        try:
+            served = "dashboard" in self.client.scheduler_info().get("services", {})
+            return self.client.dashboard_link if served else None
+        except Exception:  # an old scheduler, or one that went away: no link rather than no run
+            return None
+
+    def describe(self) -> str:
+        n_processes = len(self.client.nthreads())
+        where = "a LocalCluster" if self._owns_cluster else f"the scheduler at {self.client.scheduler.address}"
+        link = self.dashboard_link
+        return (f"dask: {n_processes} workers, {self.workers} threads on {where}"
+                + (f"; dashboard {link}" if link else ""))
+
+    def scatter(self, value: Any) -> Any:
+        return self.client.scatter(value, hash=False)
+
+    def submit(self, fn: Callable, *args: Any, name: str = "task") -> Any:
+        # Readable keys: the dashboard groups tasks by the part before the last hyphen.
+        self._count += 1
+        return self.client.submit(fn, *args, key=f"ctpipe-{name}-{self._run}{self._count:x}", pure=False)
+
+    def gather(self, handles: Sequence[Any], *, progress=None, weights=None) -> list:
+        from distributed import as_completed
+
+        handles = list(handles)
+        weight = dict(zip((h.key for h in handles), weights)) if weights is not None else {}
+        try:
+            for future in as_completed(handles):
+                if future.status == "error":
+                    future.result()   # raises the task's own exception
+                if progress is not None:
+                    progress(weight.get(future.key, 1))
+            return self.client.gather(handles)
+        except BaseException:
+            self.client.cancel(handles)
+            raise
+
+    def close(self) -> None:
+        cluster = self.client.cluster if self._owns_cluster else None
+        self.client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def import_distributed():
+    """``distributed``, or an InputError saying in one line how to install it."""
+    try:
+        import distributed
+    except ImportError:
+        raise InputError(f"the Dask backend needs dask.distributed, which is not installed: {INSTALL_DASK}") from None
+    return distributed
+
+
+class distributed_quiet:
+    """Silence distributed's start-up chatter (port taken, ...) below warnings for a block."""
+
+    def __enter__(self):
+        import logging
+
+        self._loggers = [logging.getLogger(name) for name in ("distributed", "bokeh")]
+        self._levels = [logger.level for logger in self._loggers]
+        for logger in self._loggers:
+            logger.setLevel(logging.ERROR)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for logger, level in zip(self._loggers, self._levels):
+            logger.setLevel(level)
