@@ -32,7 +32,7 @@ LAYERS = (
     # the areas, each a folder
     "ctpipe.io", "ctpipe.recon", "ctpipe.sim", "ctpipe.solve", "ctpipe.builtin",
     # assembly: loading plugins, running a pipeline
-    "ctpipe.plugins", "ctpipe.pipeline",
+    "ctpipe.plugins", "ctpipe.execution", "ctpipe.pipeline",
     # what uses a whole pipeline: evaluation, helpers for tests and benchmarks, entry points
     "ctpipe.evaluate", "ctpipe.testing", "ctpipe.cli", "ctpipe",
 )
@@ -167,7 +167,8 @@ def test_the_package_exposes_what_a_user_needs_first():
 
 def test_importing_ctpipe_loads_neither_numba_nor_opencv():
     # The 'ctpipe' command imports the package first; its --help must not pay for numba and cv2.
-    code = "import sys, ctpipe; print(sorted(m for m in ('numba', 'cv2', 'scipy') if m in sys.modules))"
+    code = ("import sys, ctpipe, ctpipe.execution; "
+            "print(sorted(m for m in ('numba', 'cv2', 'scipy', 'dask', 'distributed') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
