@@ -197,7 +197,8 @@ class DaskExecutor(Executor):
         processes : bool
             LocalCluster only: worker processes (True) or threads of this process.
         dashboard : bool
-            LocalCluster only: serve the dashboard (at ``:8787``, or a free port if taken).
+            LocalCluster only: serve the dashboard at ``:8787`` (a free port if that is taken); False:
+            at any free port, quietly (the scheduler always has an HTTP server).
         timeout_s : float
             How long to wait for the scheduler.
 
@@ -213,7 +214,7 @@ class DaskExecutor(Executor):
             with distributed_quiet():
                 cluster = distributed.LocalCluster(
                     n_workers=n_workers, threads_per_worker=threads_per_worker, processes=processes,
-                    dashboard_address=":8787" if dashboard else None)
+                    dashboard_address=":8787" if dashboard else ":0")
             return cls(distributed.Client(cluster), owns_cluster=True)
         try:
             if address.endswith(".json") or os.path.isfile(address):

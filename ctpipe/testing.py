@@ -30,7 +30,7 @@ from ctpipe.model import FailedEstimation, rotation_matrix
 from ctpipe.recon.volume import VolumeGrid
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner, Stage
 
-__all__ = ["check_stage", "check_detector", "check_matcher", "check_estimator", "check_refiner", "textured_image",
+__all__ = ["check_stage", "check_detector", "check_matcher", "check_estimator", "check_refiner", "check_pickles", "textured_image",
            "render_balls", "ELLIPSOIDS", "MARGIN_MM", "project_ellipsoids", "phantom_volume", "relative_rmse",
            "phantom_spheres", "overlapping_spheres"]
 
@@ -216,10 +216,47 @@ def check_refiner(refiner: Refiner) -> ScanSolution:
 
 
 def check_stage(stage: Stage) -> None:
-    """Run the conformance check that fits the stage's kind."""
+    """Run the conformance check that fits the stage's kind, then :func:`check_pickles`."""
     checks = {"detector": check_detector, "matcher": check_matcher, "estimator": check_estimator,
               "refiner": check_refiner}
     checks[stage.kind](stage)
+    check_pickles(stage)
+
+
+def check_pickles(stage: Stage) -> None:
+    """The stage survives ``pickle`` (as a Dask cluster ships it to its workers) and works the same after.
+
+    Checked on a stage that has already run once, so a cache built on first use (an OpenCV
+    object, a compiled kernel) must not break pickling either.
+    """
+    import pickle
+
+    try:
+        copy = pickle.loads(pickle.dumps(stage))
+    except Exception as exc:
+        raise AssertionError(f"{type(stage).__name__} does not pickle ({type(exc).__name__}: {exc}); a cluster "
+                             f"ships stages to its workers by pickle") from exc
+    assert type(copy) is type(stage), f"unpickled as {type(copy).__name__}, not {type(stage).__name__}"
+    if stage.kind == "detector":
+        image = textured_image()
+        a, b = stage.detect(image), copy.detect(image)
+        assert np.array_equal(a.xy, b.xy) and np.array_equal(a.descriptors, b.descriptors), \
+            "the unpickled detector finds other keypoints"
+    elif stage.kind == "matcher":
+        from ctpipe.builtin.opencv_detectors import SiftDetector
+
+        features = SiftDetector().detect(textured_image())
+        assert np.array_equal(stage.match(features, features).index_ab, copy.match(features, features).index_ab), \
+            "the unpickled matcher matches otherwise"
+    elif stage.kind == "estimator":
+        q_a, q_b, _ = make_correspondences(np.deg2rad(3.0), np.random.default_rng(3), n_inliers=40, n_outliers=10,
+                                           sigma=1e-4)
+        a = stage.estimate(q_a, q_b, rng=np.random.default_rng(1))
+        b = copy.estimate(q_a, q_b, rng=np.random.default_rng(1))
+        assert bool(a) == bool(b) and (not a or a.angle_rad == b.angle_rad), "the unpickled estimator answers otherwise"
+    elif stage.kind == "refiner":
+        np.testing.assert_array_equal(check_refiner(copy).angles_rad, check_refiner(stage).angles_rad,
+                                      err_msg="the unpickled refiner answers otherwise")
 
 
 # ---------------------------------------------------------------------------------------------

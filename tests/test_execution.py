@@ -1,0 +1,203 @@
+"""The execution layer: threads and Dask give the same answers; tasks, errors and scans travel right."""
+
+from __future__ import annotations
+
+import pickle
+import re
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from ctpipe.errors import InputError
+from ctpipe.execution import INSTALL_DASK, DaskExecutor, ThreadExecutor
+from ctpipe.io import StackReference, ViewStack, open_scan
+from ctpipe.pipeline import Pipeline
+
+#: A features-only pipeline on ctpipe's own SURF (numba kernels), so both detector families are compared.
+SURF_PIPELINE = {
+    "detector": {"name": "surf"},
+    "matcher": {"name": "brute-force", "ratio": 0.8, "mutual": True},
+    "estimator": {"name": "ransac-1pt", "sampson_threshold": 3.0e-3},
+    "refiner": {"name": "bundle-adjustment"},
+    "pairs": {"baselines": [1, 2]},
+}
+
+
+def _run(pipeline, scan, executor=None):
+    return pipeline.run(scan.projections, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg,
+                        executor=executor)
+
+
+def assert_same_result(a, b):
+    np.testing.assert_array_equal(a.angles_deg, b.angles_deg)
+    np.testing.assert_array_equal(a.pair_angles_deg, b.pair_angles_deg)
+    np.testing.assert_array_equal(a.n_keypoints, b.n_keypoints)
+    np.testing.assert_array_equal(a.n_matches, b.n_matches)
+    np.testing.assert_array_equal(a.n_inliers, b.n_inliers)
+    assert a.pair_status == b.pair_status
+    for mask_a, mask_b in zip(a.pair_inlier_masks, b.pair_inlier_masks):
+        np.testing.assert_array_equal(mask_a, mask_b)
+
+
+# ------------------------------------------------------------------------------------- threads
+
+def test_thread_executor_returns_results_in_order_and_reports_progress_by_weight():
+    seen = []
+    with ThreadExecutor(2) as executor:
+        handles = [executor.submit(lambda k: (time.sleep(0.01 * (5 - k)), k * k)[1], k) for k in range(5)]
+        assert executor.gather(handles, progress=seen.append, weights=[1, 2, 3, 4, 5]) == [0, 1, 4, 9, 16]
+    assert sorted(seen) == [1, 2, 3, 4, 5]
+
+
+def test_thread_executor_passes_results_of_earlier_tasks_in_lists():
+    with ThreadExecutor(2) as executor:
+        first = [executor.submit(int, k) for k in range(4)]
+        total = executor.submit(lambda values, extra: sum(values) + extra, first, executor.scatter(10))
+        assert executor.gather([total]) == [16]
+
+
+def test_a_failing_task_raises_its_own_error_and_cancels_the_rest():
+    started = []
+    lock = threading.Lock()
+
+    def task(k):
+        with lock:
+            started.append(k)
+        if k == 0:
+            raise InputError("view 0: broken")
+        time.sleep(0.05)
+        return k
+
+    with ThreadExecutor(1) as executor:
+        handles = [executor.submit(task, k) for k in range(20)]
+        with pytest.raises(InputError, match="view 0: broken"):
+            executor.gather(handles)
+    assert len(started) < 20
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_thread_executor_refuses_a_bad_worker_count(bad):
+    with pytest.raises(InputError, match="max_workers: must be a positive integer"):
+        ThreadExecutor(bad)
+
+
+def test_pipeline_refuses_something_that_is_not_an_executor(small_scan_folder):
+    scan = open_scan(small_scan_folder)
+    with pytest.raises(InputError, match="executor: must be a ctpipe.execution.Executor"):
+        _run(Pipeline.from_config(SURF_PIPELINE), scan, executor="dask")
+
+
+def test_the_thread_count_does_not_change_the_angles(small_scan_folder):
+    scan = open_scan(small_scan_folder)
+    pipeline = Pipeline.from_config(SURF_PIPELINE)
+    with ThreadExecutor(1) as one, ThreadExecutor(3) as three:
+        assert_same_result(_run(pipeline, scan, one), _run(pipeline, scan, three))
+
+
+# ------------------------------------------------------------------------------ scans by name
+
+def test_an_opened_scan_travels_as_its_path_and_reopens_to_the_same_views(small_scan_folder):
+    stack = open_scan(small_scan_folder).projections
+    reference = stack.reference()
+    assert isinstance(reference, StackReference) and reference.format == "ctpipe"
+    assert reference.shape == stack.shape
+    blob = pickle.dumps(reference)
+    assert len(blob) < 1000   # a name, not images
+    reopened = pickle.loads(blob).open()
+    for index in (0, 17, len(stack) - 1):
+        np.testing.assert_array_equal(reopened[index], stack[index])
+
+
+def test_a_reference_to_a_scan_that_is_not_there_says_the_filesystem_must_be_shared(tmp_path):
+    reference = StackReference("ctpipe", str(tmp_path / "elsewhere"), (10, 4, 4))
+    with pytest.raises(InputError, match="cannot be read here.*filesystem they share"):
+        reference.open()
+
+
+def test_a_reference_to_a_scan_changed_on_disk_is_refused(small_scan_folder):
+    reference = open_scan(small_scan_folder).projections.reference()
+    changed = StackReference(reference.format, reference.path, (47, *reference.shape[1:]))
+    with pytest.raises(InputError, match="changed on disk since it was opened"):
+        changed.open()
+
+
+def _read_zeros(index):
+    return np.zeros((4, 5), np.float32)
+
+
+def test_a_stack_built_from_a_function_pickles_whole():
+    stack = ViewStack(_read_zeros, 3, (4, 5))
+    assert stack.reference() is None
+    copy = pickle.loads(pickle.dumps(stack))
+    assert copy.shape == (3, 4, 5) and np.array_equal(copy[2], stack[2])
+
+
+# ---------------------------------------------------------------------------------------- Dask
+
+def test_without_dask_the_dask_backend_says_how_to_install_it(monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    with pytest.raises(InputError, match=re.escape(f"not installed: {INSTALL_DASK}") + "$"):
+        DaskExecutor.connect()
+
+
+def test_no_scheduler_at_the_address_is_one_clear_error():
+    pytest.importorskip("distributed")
+    with pytest.raises(InputError, match="no Dask scheduler answers there"):
+        DaskExecutor.connect("tcp://127.0.0.1:9", timeout_s=1)
+
+
+@pytest.mark.parametrize("config", [None, SURF_PIPELINE], ids=["default", "surf-bundle"])
+def test_a_two_worker_local_cluster_gives_the_angles_of_the_in_process_run(small_scan_folder, dask_client, config):
+    scan = open_scan(small_scan_folder)
+    pipeline = Pipeline.from_config(config)
+    here = _run(pipeline, scan)
+    there = _run(pipeline, scan, DaskExecutor(dask_client))
+    assert_same_result(here, there)
+    assert np.isfinite(there.angles_deg).all()
+    assert _without_timings(there.refiner_info) == _without_timings(here.refiner_info)
+
+
+def _without_timings(info):
+    if isinstance(info, dict):
+        return {k: _without_timings(v) for k, v in info.items() if k != "seconds"}
+    if isinstance(info, list):
+        return [_without_timings(v) for v in info]
+    return info
+
+
+def test_on_a_cluster_the_client_reads_no_view(small_scan_folder, dask_client, monkeypatch):
+    scan = open_scan(small_scan_folder)
+    expected = _run(Pipeline.from_config(None), scan)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the client read a view")
+
+    # Workers are other processes: only the client's ViewStack is patched.
+    for name in ("__getitem__", "raw", "__array__"):
+        monkeypatch.setattr(ViewStack, name, refuse)
+    result = _run(Pipeline.from_config(None), scan, DaskExecutor(dask_client))
+    np.testing.assert_array_equal(result.angles_deg, expected.angles_deg)
+
+
+def test_an_in_memory_stack_runs_on_the_cluster_too(small_scan_folder, dask_client):
+    scan = open_scan(small_scan_folder)
+    projections = np.asarray(scan.projections)
+    pipeline = Pipeline.from_config(SURF_PIPELINE)
+    here = pipeline.run(projections, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg)
+    there = pipeline.run(projections, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg,
+                         executor=DaskExecutor(dask_client))
+    assert_same_result(here, there)
+
+
+def test_a_bad_view_read_on_a_worker_is_the_users_error_on_the_client(small_scan_folder, dask_client, tmp_path):
+    import shutil
+
+    folder = shutil.copytree(small_scan_folder, tmp_path / "scan")
+    scan = open_scan(folder)
+    (folder / "projections" / sorted(p.name for p in (folder / "projections").iterdir())[30]).write_bytes(b"not a tiff")
+    with pytest.raises(InputError, match="proj_00030"):
+        _run(Pipeline.from_config(SURF_PIPELINE), scan, DaskExecutor(dask_client))
+    assert dask_client.run(lambda: 1)   # the cluster is still up for the next scan
