@@ -2,7 +2,9 @@
 
 Errors caused by the user's input print one line ``ctpipe: error: ...`` on stderr and exit
 with status 2; nothing half-written is left behind: every output path is checked before the
-work starts, and a result of several files is written all-or-nothing. SIGTERM (what
+work starts, and a result of several files is written all-or-nothing; in a batch of scans
+(``ctpipe estimate SCAN SCAN ...``) each failed scan gets its line and the others are finished,
+with status 2 at the end if any failed. SIGTERM (what
 ``timeout`` and batch schedulers send) is handled like Ctrl-C, so temporary files are removed.
 See docs/errors.md.
 """
@@ -145,14 +147,19 @@ def _estimate_batch(args, config, pipeline, sources: list[Path], outs: dict, exe
     with ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="ctpipe-scan") as pool, \
             _progress(len(sources), "scans", quiet=args.json) as advance:
         futures = {pool.submit(one, source): source for source in sources}
-        for future in as_completed(futures):
-            source = futures[future]
-            outcomes[source] = status, detail = future.result()
-            if not args.json:
-                print(f"ctpipe: {source}: " + ("done" if status == "ok" else f"FAILED: {detail}"), file=sys.stderr,
-                      flush=True)
-            if advance is not None:
-                advance(1)
+        try:
+            for future in as_completed(futures):
+                source = futures[future]
+                outcomes[source] = status, detail = future.result()
+                if not args.json:
+                    print(f"ctpipe: {source}: " + ("done" if status == "ok" else f"FAILED: {detail}"),
+                          file=sys.stderr, flush=True)
+                if advance is not None:
+                    advance(1)
+        except BaseException:  # Ctrl-C or SIGTERM: start no further scan (those running end with the pool)
+            for future in futures:
+                future.cancel()
+            raise
     failed = [source for source in sources if outcomes[source][0] != "ok"]
     if args.json:
         entries = []

@@ -178,6 +178,7 @@ class DaskExecutor(Executor):
         self._owns_cluster = owns_cluster
         self._run = uuid.uuid4().hex[:8]
         self._count = 0
+        self._checked: set[str] = set()
 
     @classmethod
     def connect(cls, address: str | None = None, *, n_workers: int | None = None, threads_per_worker: int = 1,
@@ -250,6 +251,7 @@ class DaskExecutor(Executor):
         return self.client.scatter(value, hash=False)
 
     def submit(self, fn: Callable, *args: Any, name: str = "task") -> Any:
+        self._check_imports({getattr(fn, "__module__", None), *(type(a).__module__ for a in args)})
         # Readable keys: the dashboard groups tasks by the part before the last hyphen.
         self._count += 1
         return self.client.submit(fn, *args, key=f"ctpipe-{name}-{self._run}{self._count:x}", pure=False)
@@ -270,11 +272,43 @@ class DaskExecutor(Executor):
             self.client.cancel(handles)
             raise
 
+    def _check_imports(self, modules: set) -> None:
+        """Refuse to send a task whose code a worker cannot import.
+
+        Stages and task functions are pickled by module name; a worker that lacks the module
+        (a plugin installed on the client only) would fail to unpack the task, which Dask
+        does not report as the task's error, and the run would wait forever. Each module is
+        checked once, on the workers connected at that moment.
+        """
+        modules = {m for m in modules if m and m not in ("__main__", "builtins")} - self._checked
+        if not modules:
+            return
+        for worker, missing in self.client.run(_missing_modules, sorted(modules)).items():
+            if missing:
+                raise InputError(f"the Dask worker at {worker} cannot import {', '.join(missing)}: every worker "
+                                 f"needs the ctpipe and the plugins the client has, at the same versions")
+        self._checked |= modules
+
     def close(self) -> None:
         cluster = self.client.cluster if self._owns_cluster else None
         self.client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _missing_modules(names: list[str]) -> list[str]:
+    """Those of ``names`` this process cannot import (run on each worker)."""
+    import importlib.util
+
+    missing = []
+    for name in names:
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            missing.append(name)
+    return missing
 
 
 def import_distributed():

@@ -12,6 +12,7 @@ from collections.abc import Iterable
 import pluggy
 
 from ctpipe import hookspecs
+from ctpipe.errors import PluginError
 from ctpipe.registry import StageRegistry
 
 __all__ = ["BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "get_plugin_manager", "collect_stages", "get_registry"]
@@ -51,9 +52,30 @@ def get_plugin_manager(*, blocked: Iterable[str] = (), entry_points: bool = True
         if not pm.is_blocked(module_name):
             pm.register(importlib.import_module(module_name), name=module_name)
     if entry_points:
-        pm.load_setuptools_entrypoints(ENTRY_POINT_GROUP)
+        _load_entry_points(pm)
     pm.check_pending()
     return pm
+
+
+def _load_entry_points(pm: pluggy.PluginManager) -> None:
+    """pluggy's ``load_setuptools_entrypoints``, with a plugin that fails to import named in one line.
+
+    A plugin missing from one environment (a cluster worker, an old virtualenv) otherwise ends
+    the run with a traceback from deep in importlib.
+    """
+    from importlib.metadata import entry_points
+
+    for entry in entry_points(group=ENTRY_POINT_GROUP):
+        if pm.is_blocked(entry.name) or pm.has_plugin(entry.name):
+            continue
+        try:
+            plugin = entry.load()
+        except Exception as exc:
+            dist = getattr(entry, "dist", None)
+            source = f" of {dist.name} {dist.version}" if dist is not None else ""
+            raise PluginError(f"plugin {entry.name!r} ({entry.value}{source}) failed to load: {type(exc).__name__}: "
+                              f"{exc}; reinstall it, or run without it with --block-plugin {entry.name}") from None
+        pm.register(plugin, name=entry.name)
 
 
 def collect_stages(pm: pluggy.PluginManager) -> StageRegistry:

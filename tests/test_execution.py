@@ -201,3 +201,14 @@ def test_a_bad_view_read_on_a_worker_is_the_users_error_on_the_client(small_scan
     with pytest.raises(InputError, match="proj_00030"):
         _run(Pipeline.from_config(SURF_PIPELINE), scan, DaskExecutor(dask_client))
     assert dask_client.run(lambda: 1)   # the cluster is still up for the next scan
+
+
+def test_a_stage_module_missing_on_the_workers_is_named(dask_client, tmp_path, monkeypatch):
+    (tmp_path / "client_only_stage.py").write_text("def detect():\n    return 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import client_only_stage
+
+    executor = DaskExecutor(dask_client)
+    with pytest.raises(InputError, match="the Dask worker at .* cannot import client_only_stage: every worker needs"):
+        executor.gather([executor.submit(client_only_stage.detect)])
+    sys.modules.pop("client_only_stage")

@@ -108,3 +108,21 @@ def test_opencv_detectors_missing_from_the_cv2_build_are_not_registered(monkeypa
     assert {"sift", "orb"} <= detectors
     with pytest.raises(RuntimeError, match="KAZE_create"):
         _opencv._create("kaze", {})
+
+
+def test_a_plugin_that_fails_to_import_is_named_in_one_line(monkeypatch, capsys):
+    import importlib.metadata
+
+    from ctpipe.cli import main
+
+    broken = importlib.metadata.EntryPoint(name="broken", value="ctpipe_no_such_module", group="ctpipe")
+    real = importlib.metadata.entry_points
+    monkeypatch.setattr(importlib.metadata, "entry_points",
+                        lambda **kw: (*real(**kw), broken) if kw.get("group") == "ctpipe" else real(**kw))
+    with pytest.raises(PluginError, match="plugin 'broken' \\(ctpipe_no_such_module\\) failed to load: "
+                                          "ModuleNotFoundError.*--block-plugin broken"):
+        get_registry()
+    assert "sift" in get_registry(blocked=("broken",)).names("detector")
+    assert main(["plugins"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("ctpipe: error: plugin 'broken'")
