@@ -13,3 +13,13 @@ def test_every_ctpipe_subpackage_is_listed_in_pyproject():
              if "__pycache__" not in init.parts}
     missing = found - listed
     assert not missing, f"subpackages missing from pyproject.toml [tool.setuptools] packages: {sorted(missing)}"
+
+
+def test_the_dask_backend_is_an_extra_that_the_test_extra_brings():
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert any(r.startswith("dask[distributed]") for r in extras["dask"])
+    # The suite runs a 2-worker LocalCluster; without this it would skip, not fail.
+    assert any(r.startswith("dask[distributed]") for r in extras["test"])
+    from ctpipe.execution import INSTALL_DASK
+
+    assert INSTALL_DASK == "pip install 'ctpipe[dask]'"
