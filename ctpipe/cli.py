@@ -576,7 +576,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "TIFFs + YAML) or a projection stack (views, rows, cols): .npy or multi-page .tif. Several "
                         "scans, or a glob, make a batch: each is estimated on its own and a failed one is reported")
     p.add_argument("--geometry", help="geometry YAML (keys: source_to_object_mm, ...); only for a projection stack")
-    p.add_argument("--pipeline", help="pipeline YAML (default: the built-in default pipeline)")
+    p.add_argument("--pipeline", help="pipeline YAML (default: sift, brute-force, ransac-1pt, projection-matching)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--out", help="folder for result.json, angles.csv, ...; in a batch, one subfolder per scan")
     p.add_argument("--dask", nargs="?", const="", default=None, metavar="ADDRESS",
