@@ -169,13 +169,16 @@ class DaskExecutor(Executor):
     client : distributed.Client
     owns_cluster : bool
         Close the client's cluster on :meth:`close` (True when :meth:`connect` started it).
+    dashboard : bool, optional
+        Whether the scheduler serves the dashboard; None: ask the scheduler.
     """
 
     name = "dask"
 
-    def __init__(self, client, *, owns_cluster: bool = False) -> None:
+    def __init__(self, client, *, owns_cluster: bool = False, dashboard: bool | None = None) -> None:
         self.client = client
         self._owns_cluster = owns_cluster
+        self._dashboard = dashboard
         self._run = uuid.uuid4().hex[:8]
         self._count = 0
         self._checked: set[str] = set()
@@ -198,8 +201,8 @@ class DaskExecutor(Executor):
         processes : bool
             LocalCluster only: worker processes (True) or threads of this process.
         dashboard : bool
-            LocalCluster only: serve the dashboard at ``:8787`` (a free port if that is taken); False:
-            at any free port, quietly (the scheduler always has an HTTP server).
+            LocalCluster only: serve the dashboard at ``:8787`` (a free port if that is taken). It
+            needs bokeh (in the ``dask`` extra); without it no link is given.
         timeout_s : float
             How long to wait for the scheduler.
 
@@ -211,12 +214,18 @@ class DaskExecutor(Executor):
         """
         distributed = import_distributed()
         if address is None:
+            import importlib.util
+
             n_workers = n_workers or available_cores()
+            # OpenCV ignores OMP_NUM_THREADS (which Dask sets to 1) and would start a thread per
+            # core in every worker process; give it the worker's own threads.
+            env = {"env": {"OPENCV_FOR_THREADS_NUM": str(threads_per_worker)}} if processes else {}
             with distributed_quiet():
                 cluster = distributed.LocalCluster(
                     n_workers=n_workers, threads_per_worker=threads_per_worker, processes=processes,
-                    dashboard_address=":8787" if dashboard else ":0")
-            return cls(distributed.Client(cluster), owns_cluster=True)
+                    dashboard_address=":8787" if dashboard else ":0", **env)
+            served = dashboard and importlib.util.find_spec("bokeh") is not None
+            return cls(distributed.Client(cluster), owns_cluster=True, dashboard=served)
         try:
             if address.endswith(".json") or os.path.isfile(address):
                 client = distributed.Client(scheduler_file=address, timeout=timeout_s)
@@ -234,8 +243,11 @@ class DaskExecutor(Executor):
     @property
     def dashboard_link(self) -> str | None:
         """Where the cluster's dashboard is served, or None without one."""
+        if self._dashboard is False:
+            return None
         try:
-            served = "dashboard" in self.client.scheduler_info().get("services", {})
+            # The scheduler lists its HTTP server as "dashboard" even without bokeh to draw it.
+            served = self._dashboard or "dashboard" in self.client.scheduler_info().get("services", {})
             return self.client.dashboard_link if served else None
         except Exception:  # an old scheduler, or one that went away: no link rather than no run
             return None

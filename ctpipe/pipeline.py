@@ -7,7 +7,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -174,9 +174,8 @@ class Pipeline:
             When not a single pair could be estimated.
         """
         with _executor(executor) as run_on:
-            observations = self.observe(projections, geometry, nominal_angles_deg=nominal_angles_deg, pairs=pairs,
-                                        progress=progress, executor=run_on)
-            return self.refine(observations, executor=run_on)
+            observations, placed = self._observe(projections, geometry, nominal_angles_deg, pairs, progress, run_on)
+            return self._refine(observations, run_on, placed)
 
     def observe(self, projections: np.ndarray, geometry: Geometry, *, nominal_angles_deg=None,
                 pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None,
@@ -185,6 +184,11 @@ class Pipeline:
 
         Several refiners can then be compared on the same observations with :meth:`refine`.
         """
+        return self._observe(projections, geometry, nominal_angles_deg, pairs, progress, executor)[0]
+
+    def _observe(self, projections, geometry, nominal_angles_deg, pairs, progress,
+                 executor) -> tuple[ScanObservations, "_Placed"]:
+        """:meth:`observe`, and where its projections and features are on the executor (for the refiner's task)."""
         geometry = _check_geometry(geometry)
         projections = _check_projections(projections, geometry)
         n_views = len(projections)
@@ -223,16 +227,17 @@ class Pipeline:
             timings["match"] = time.perf_counter() - start
 
             start = time.perf_counter()
+            # Each chunk's points are where its matching task left them: nothing goes back out.
             seeds = np.random.SeedSequence(self.seed).spawn(len(pairs))
-            tasks = [run_on.submit(_estimate_pairs, self.estimator, [points_a[k] for k in chunk],
-                                   [points_b[k] for k in chunk], [seeds[k] for k in chunk], name="estimate")
-                     for chunk in chunks]
+            tasks = [run_on.submit(_estimate_pairs, self.estimator, matched_chunk, [seeds[k] for k in chunk],
+                                   name="estimate") for matched_chunk, chunk in zip(tasks, chunks)]
             estimates = tuple(e for chunk in run_on.gather(tasks) for e in chunk)
             timings["estimate"] = time.perf_counter() - start
-        return ScanObservations(geometry=geometry, n_views=n_views, features=features, pairs=pairs,
-                                matches=matches, points_a=points_a, points_b=points_b, estimates=estimates,
-                                nominal_angles_deg=nominal, projections=projections, timings_s=timings,
-                                static_background_removed=views is not None)
+        observations = ScanObservations(geometry=geometry, n_views=n_views, features=features, pairs=pairs,
+                                        matches=matches, points_a=points_a, points_b=points_b, estimates=estimates,
+                                        nominal_angles_deg=nominal, projections=projections, timings_s=timings,
+                                        static_background_removed=views is not None)
+        return observations, _Placed(source, detected)
 
     def refine(self, observations: ScanObservations, *, executor: Executor | None = None) -> ScanResult:
         """Per-view angles from :meth:`observe`'s observations with this pipeline's refiner.
@@ -240,6 +245,9 @@ class Pipeline:
         With an ``executor`` the refiner runs as one of its tasks (on a cluster: on a worker,
         which reads the projections it needs itself); without, here.
         """
+        return self._refine(observations, executor, None)
+
+    def _refine(self, observations: ScanObservations, executor: Executor | None, placed: "_Placed | None") -> ScanResult:
         timings = dict(observations.timings_s)
         start = time.perf_counter()
         # The refiner's generator is the last of len(pairs) + 1 children, as it always was.
@@ -247,10 +255,15 @@ class Pipeline:
         if executor is None:
             solution = self.refiner.refine(observations, rng=np.random.default_rng(seed))
         else:
-            projections = observations.projections
-            source = None if projections is None else executor.scatter(_shippable(projections))
-            task = executor.submit(_refine, self.refiner, dataclasses.replace(observations, projections=None), source,
-                                   seed, name="refine")
+            # The features and projections already where the tasks run are passed as handles, not sent again.
+            if placed is not None:
+                source, features = placed
+                observations_out = dataclasses.replace(observations, projections=None, features=())
+            else:
+                projections = observations.projections
+                source = None if projections is None else executor.scatter(_shippable(projections))
+                features, observations_out = None, dataclasses.replace(observations, projections=None)
+            task = executor.submit(_refine_task, self.refiner, observations_out, source, features, seed, name="refine")
             solution, = executor.gather([task])
         timings["refine"] = time.perf_counter() - start
 
@@ -331,14 +344,24 @@ def _match_pairs(matcher: Matcher, geometry: Geometry, features: list[Features],
     return out
 
 
-def _estimate_pairs(estimator: Estimator, points_a: list, points_b: list, seeds: list) -> list:
-    return [estimator.estimate(q_a, q_b, rng=np.random.default_rng(s)) for q_a, q_b, s in zip(points_a, points_b, seeds)]
+def _estimate_pairs(estimator: Estimator, matched: list, seeds: list) -> list:
+    """Estimates of ``_match_pairs``'s output, pair ``k`` with its own generator ``seeds[k]``."""
+    return [estimator.estimate(q_a, q_b, rng=np.random.default_rng(s)) for (_, q_a, q_b), s in zip(matched, seeds)]
 
 
-def _refine(refiner: Refiner, observations: ScanObservations, source, seed) -> ScanSolution:
+def _refine_task(refiner: Refiner, observations: ScanObservations, source, features: list | None,
+                 seed) -> ScanSolution:
+    changes = {} if features is None else {"features": tuple(features)}
     if source is not None:
-        observations = dataclasses.replace(observations, projections=_views(source))
-    return refiner.refine(observations, rng=np.random.default_rng(seed))
+        changes["projections"] = _views(source)
+    return refiner.refine(dataclasses.replace(observations, **changes), rng=np.random.default_rng(seed))
+
+
+class _Placed(NamedTuple):
+    """Where a run's inputs already are on its executor: the projections' handle, one handle per view's features."""
+
+    source: Any
+    features: list
 
 
 class _executor:
