@@ -21,12 +21,12 @@ from ctpipe.io.outputs import (atomic_write, check_output_dir, check_output_file
                                write_keypoints)
 from ctpipe.io.scan_folder import (SCAN_FORMAT, VALUE_KINDS, Scan, check_scan_folder_free, open_scan_folder, read_scan,
                                    write_scan)
-from ctpipe.io.scans import FORMATS, ScanFiles, StackReference, ViewStack, check_angles, open_scan, register_format
+from ctpipe.io.scans import FORMATS, ScanFiles, StackReference, ViewFiles, ViewStack, check_angles, open_scan, register_format
 from ctpipe.io.tiff_stack import open_tiff_stack
 from ctpipe.io.waygate import open_waygate, write_waygate, write_waygate_angles
 from ctpipe.io.zeiss import open_zeiss, write_zeiss
 
-__all__ = ["cone_vectors", "scanner_frame_deg", "CONE_VECTOR_COLUMNS", "TO_ASTRA", "open_scan", "ScanFiles", "ViewStack", "StackReference", "FORMATS", "register_format", "check_angles", "open_scan_folder",
+__all__ = ["cone_vectors", "scanner_frame_deg", "CONE_VECTOR_COLUMNS", "TO_ASTRA", "open_scan", "ScanFiles", "ViewStack", "ViewFiles", "StackReference", "FORMATS", "register_format", "check_angles", "open_scan_folder",
            "open_tiff_stack",
            "open_nikon", "write_nikon", "write_nikon_angles", "read_xtekct", "open_waygate",
            "write_waygate", "write_waygate_angles", "open_zeiss", "write_zeiss", "open_bruker", "write_bruker",

@@ -155,7 +155,7 @@ import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
-from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
+from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles, register_format
 
 __all__ = ["open_bruker", "write_bruker", "read_skyscan_log"]
 
@@ -474,7 +474,6 @@ def open_bruker(path: str | Path, *, rotation_direction: str | None = None) -> S
         Projection files missing or more than ``Number of Files``, or of the wrong size (when
         read), or several logs in the folder.
     """
-    from ctpipe.io.arrays import read_array
 
     if rotation_direction not in (None, "CC", "CW"):
         raise InputError(f"rotation_direction: must be 'CC', 'CW' or None, got {rotation_direction!r}")
@@ -507,17 +506,10 @@ def open_bruker(path: str | Path, *, rotation_direction: str | None = None) -> S
     if connected and _INTEGER.fullmatch(connected) and int(connected) > 1:
         notes.append(f"sub-scan {prefix} of a connected scan of {connected}; each sub-scan is estimated on its own")
     rows, cols = geometry.shape
-
-    def read(index: int) -> np.ndarray:
-        file = folder / names[index]
-        if not file.is_file():
-            raise InputError(f"{file}: no such file (projection {index} of {count}, named by {log_path.name})")
-        image = read_array(file, kind=".tif")
-        if image.shape != (rows, cols):
-            raise InputError(f"{file}: is an image of shape {image.shape} but {log_path.name} says Number of "
-                             f"Rows={rows}, Number of Columns={cols}")
-        return image
-
+    read = ViewFiles(tuple(folder / name for name in names), (rows, cols),
+                     missing="{file}: no such file (projection {index} of {count}, named by {log})",
+                     wrong_shape="{file}: is an image of shape {got} but {log} says Number of Rows={rows}, "
+                                 "Number of Columns={cols}", context={"log": log_path.name})
     read(0)  # one view, so that a log that disagrees with its images fails here, not mid-estimate
     try:
         stack = ViewStack(read, count, (rows, cols), values="intensities", white_level=white, name=str(folder))

@@ -148,7 +148,7 @@ import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
-from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
+from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles, register_format
 
 __all__ = ["open_nikon", "write_nikon", "write_nikon_angles", "read_xtekct"]
 
@@ -452,7 +452,6 @@ def open_nikon(path: str | Path) -> ScanFiles:
         Missing or extra projection files, a wrong image size, or an angle log that disagrees
         with ``Projections``.
     """
-    from ctpipe.io.arrays import read_array
 
     path = Path(path)
     file = _xtekct_file(path)
@@ -478,15 +477,9 @@ def open_nikon(path: str | Path) -> ScanFiles:
                      + (f" ({other.name} is not read)" if other else ""))
         recorded = check_angles(recorded, n_views, str(angle_log))
     shape = geometry.shape
-
-    def read(index: int) -> np.ndarray:
-        view = folder / names[index]
-        image = read_array(view, kind=".tif")
-        if image.shape != shape:
-            raise InputError(f"{view}: must be a {shape[0]} x {shape[1]} image (DetectorPixelsY x DetectorPixelsX in "
-                             f"{file.name}), got shape {image.shape}")
-        return image
-
+    read = ViewFiles(tuple(folder / name for name in names), shape, missing="{file}: no such file",
+                     wrong_shape="{file}: must be a {rows} x {cols} image (DetectorPixelsY x DetectorPixelsX in "
+                                 "{xtekct}), got shape {got}", context={"xtekct": file.name})
     stack = ViewStack(read, n_views, shape, values="intensities", white_level=parsed["white"], name=str(folder))
     metadata = {"xtekct": str(file), "projection_folder": str(folder),
                 "projection_files": f"{parsed['input_name']}{parsed['separator']}%0{parsed['digits']}d.tif",

@@ -57,7 +57,7 @@ from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.io.flatfield import log_transform
 from ctpipe.io.outputs import to_jsonable
-from ctpipe.io.scans import ScanFiles, ViewStack, register_format
+from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, register_format
 from ctpipe.stages import ParamSpec, check_value
 
 __all__ = ["Scan", "read_scan", "open_scan_folder", "write_scan", "check_scan_folder_free", "SCAN_FORMAT",
@@ -245,18 +245,10 @@ def read_scan(folder: str | Path) -> Scan:
 
 def open_scan_folder(folder: str | Path) -> ScanFiles:
     """Open a scan folder lazily: geometry, angles and calibration frames read, views on demand."""
-    from ctpipe.io.arrays import read_array
-
     folder = Path(folder)
     parsed = _parse(folder)
     geometry, names = parsed["geometry"], parsed["names"]
-
-    def read(index: int) -> np.ndarray:
-        file = folder / names[index]
-        if not file.is_file():
-            raise InputError(f"{file}: no such file (projection {index} of {len(names)})")
-        return read_array(file, kind=".tif")
-
+    read = ViewFiles(tuple(folder / name for name in names))
     try:
         stack = ViewStack(read, len(names), geometry.shape, values=parsed["values"], flats=parsed["flats"],
                           darks=parsed["darks"], name=str(folder))

@@ -28,7 +28,7 @@ from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
 from ctpipe.io.flatfield import log_transform, mean_frame
 
-__all__ = ["ViewStack", "StackReference", "ScanFiles", "open_scan", "register_format", "FORMATS", "check_angles"]
+__all__ = ["ViewStack", "ViewFiles", "StackReference", "ScanFiles", "open_scan", "register_format", "FORMATS", "check_angles"]
 
 
 class ViewStack:
@@ -147,6 +147,52 @@ class ViewStack:
         if not -self._n_views <= index < self._n_views:
             raise InputError(f"{self.name}: view {index} out of range: the scan has {self._n_views} views")
         return int(index) % self._n_views
+
+
+@dataclass(frozen=True)
+class ViewFiles:
+    """``read(index)`` of a :class:`ViewStack` whose views are one image file each.
+
+    Every format that stores a file per view reads it the same way: the file must exist, and
+    have the scan's shape when ``shape`` is given. Only the wording of the two errors is the
+    format's own, so that they name its keys. A module-level class rather than a closure, so
+    that the stack pickles.
+
+    Attributes
+    ----------
+    files : tuple of Path
+        One per view, in view order.
+    shape : (rows, cols) or None
+        None: leave the shape to :meth:`ViewStack.raw`'s check.
+    missing : str
+        Message for a missing file, formatted with ``file``, ``index``, ``number`` (index + 1),
+        ``count`` and the entries of ``context``.
+    wrong_shape : str
+        Message for an image of another shape, formatted with ``file``, ``rows``, ``cols``,
+        ``got`` (the image's shape) and the entries of ``context``.
+    context : dict
+        More fields for the messages (the settings file's name, ...): passed as values, so a
+        brace in a file name is printed, not parsed.
+    """
+
+    files: tuple[Path, ...]
+    shape: tuple[int, int] | None = None
+    missing: str = "{file}: no such file (projection {index} of {count})"
+    wrong_shape: str = "{file}: is an image of shape {got} but the scan's views are {rows} x {cols}"
+    context: Mapping[str, Any] = field(default_factory=dict)
+
+    def __call__(self, index: int) -> np.ndarray:
+        from ctpipe.io.arrays import read_array
+
+        file = self.files[index]
+        if not file.is_file():
+            raise InputError(self.missing.format(**self.context, file=file, index=index, number=index + 1,
+                                                 count=len(self.files)))
+        image = read_array(file, kind=".tif")
+        if self.shape is not None and image.shape != self.shape:
+            raise InputError(self.wrong_shape.format(**self.context, file=file, rows=self.shape[0],
+                                                     cols=self.shape[1], got=image.shape))
+        return image
 
 
 @dataclass(frozen=True)

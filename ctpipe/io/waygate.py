@@ -123,7 +123,7 @@ import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
-from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
+from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles, register_format
 
 __all__ = ["open_waygate", "write_waygate", "write_waygate_angles"]
 
@@ -242,18 +242,10 @@ def open_waygate(path: str | Path) -> ScanFiles:
         notes.append(f"no {pcp.name}: no per-view angle log, only the nominal angles")
     nominal = np.arange(n_views) * (sector / n_views)
 
-    def read(index: int) -> np.ndarray:
-        from ctpipe.io.arrays import read_array
-
-        file = files[index]
-        if not file.is_file():
-            raise InputError(f"{file}: no such file (projection {index + 1} of [CT] NumberImages={n_views} in {pca})")
-        image = read_array(file, kind=".tif")
-        if image.shape != (rows, cols):
-            raise InputError(f"{file}: must be a {rows} x {cols} image ([Image] DimY x DimX in {pca}), "
-                             f"got shape {image.shape}")
-        return image
-
+    read = ViewFiles(tuple(files), (rows, cols),
+                     missing="{file}: no such file (projection {number} of [CT] NumberImages={count} in {pca})",
+                     wrong_shape="{file}: must be a {rows} x {cols} image ([Image] DimY x DimX in {pca}), got "
+                                 "shape {got}", context={"pca": pca})
     try:
         stack = ViewStack(read, n_views, (rows, cols), values="intensities", white_level=free_ray, name=str(folder))
     except InputError as exc:

@@ -86,3 +86,23 @@ def test_projection_matching_on_a_view_stack_never_reads_the_stack_whole(raw_sca
     np.testing.assert_array_equal(on_stack.angles_deg, on_array.angles_deg)
     # The levels are reported at the detector's own scale (binned 4 then 2), not the shared pre-binning.
     assert [level["binning"] for level in on_stack.refiner_info["matching"]["levels"]] == [4, 2]
+
+
+def test_view_files_read_check_and_pickle(tmp_path):
+    import pickle
+
+    import tifffile
+
+    from ctpipe.io.scans import ViewFiles
+
+    tifffile.imwrite(tmp_path / "v0.tif", np.zeros((4, 6), np.uint16))
+    tifffile.imwrite(tmp_path / "v1.tif", np.zeros((4, 5), np.uint16))
+    read = ViewFiles((tmp_path / "v0.tif", tmp_path / "v1.tif", tmp_path / "v{2}.tif"), (4, 6),
+                     missing="{file}: no such file ({number} of {count} in {log})",
+                     wrong_shape="{file}: {got} but {log} says {rows} x {cols}", context={"log": "a{b}.log"})
+    assert read(0).shape == (4, 6)
+    with pytest.raises(InputError, match=r"v1\.tif: \(4, 5\) but a\{b\}\.log says 4 x 6$"):
+        read(1)
+    with pytest.raises(InputError, match=r"v\{2\}\.tif: no such file \(3 of 3 in a\{b\}\.log\)$"):
+        pickle.loads(pickle.dumps(read))(2)
+    assert ViewFiles((tmp_path / "v1.tif",))(0).shape == (4, 5)   # no shape: ViewStack checks it
