@@ -26,7 +26,7 @@ import numpy as np
 from ctpipe._checks import as_integer, as_real, short_repr
 from ctpipe.errors import InputError
 
-__all__ = ["Geometry", "MAX_DETECTOR_PX"]
+__all__ = ["Geometry", "MAX_DETECTOR_PX", "check_geometry"]
 
 #: Largest detector side accepted, pixels (flat panels have at most a few thousand).
 MAX_DETECTOR_PX = 65_536
@@ -125,3 +125,10 @@ class Geometry:
     def to_dict(self) -> dict:
         """Plain mapping with the field names as keys (YAML/JSON friendly)."""
         return {name: getattr(self, name) for name in self.__dataclass_fields__}
+
+
+def check_geometry(geometry) -> Geometry:
+    """``geometry`` itself if it is a :class:`Geometry`, else an InputError naming what it is."""
+    if not isinstance(geometry, Geometry):
+        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    return geometry

@@ -154,7 +154,7 @@ from pathlib import Path
 import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.geometry import Geometry
+from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles, register_format
 
 __all__ = ["open_bruker", "write_bruker", "read_skyscan_log"]
@@ -620,8 +620,7 @@ def write_bruker(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, 
     folder = Path(folder)
     if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
         raise InputError(f"{folder}: exists and is not an empty folder; write_bruker writes into a new or empty one")
-    if not isinstance(geometry, Geometry):
-        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    check_geometry(geometry)
     if geometry.pixel_pitch_u_mm != geometry.pixel_pitch_v_mm:
         raise InputError(f"geometry: SkyScan logs one pixel size, so pixel_pitch_u_mm and pixel_pitch_v_mm must be "
                          f"equal, got {geometry.pixel_pitch_u_mm} and {geometry.pixel_pitch_v_mm}")

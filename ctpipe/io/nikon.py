@@ -147,7 +147,7 @@ from typing import Any
 import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.geometry import Geometry
+from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles, register_format
 
 __all__ = ["open_nikon", "write_nikon", "write_nikon_angles", "read_xtekct"]
@@ -653,8 +653,7 @@ def write_nikon(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, r
     folder = Path(folder)
     if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
         raise InputError(f"{folder}: exists and is not an empty folder; write the Nikon scan to a new folder")
-    if not isinstance(geometry, Geometry):
-        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    check_geometry(geometry)
     if offset_keys not in OFFSET_KEYS:
         raise InputError(f"offset_keys: must be one of {', '.join(OFFSET_KEYS)}, got {offset_keys!r}")
     if angle_log not in ANGLE_LOGS:

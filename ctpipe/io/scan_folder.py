@@ -54,7 +54,7 @@ import yaml
 
 from ctpipe.config import check_keys, load_yaml, parse_geometry
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.geometry import Geometry
+from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.io.flatfield import log_transform
 from ctpipe.io.outputs import to_jsonable
 from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, register_format
@@ -309,8 +309,7 @@ def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angl
     folder = Path(folder)
     if values not in VALUE_KINDS:
         raise InputError(f"values: must be one of {', '.join(VALUE_KINDS)}, got {values!r}")
-    if not isinstance(geometry, Geometry):
-        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    check_geometry(geometry)
     nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
     if nominal.ndim != 1 or not np.all(np.isfinite(nominal)):
         raise InputError(f"nominal_angles_deg: must be a 1-D array of finite angles, got shape {nominal.shape}")

@@ -122,7 +122,7 @@ from pathlib import Path
 import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.geometry import Geometry
+from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles, register_format
 
 __all__ = ["open_waygate", "write_waygate", "write_waygate_angles"]
@@ -491,8 +491,7 @@ def write_waygate(folder: str | Path, *, geometry: Geometry, nominal_angles_deg,
     from ctpipe.io.outputs import check_output_dir, staged_folder
 
     folder = Path(folder)
-    if not isinstance(geometry, Geometry):
-        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    check_geometry(geometry)
     counts = np.asarray(intensities)
     if counts.ndim != 3 or counts.shape[1:] != geometry.shape or not np.issubdtype(counts.dtype, np.number):
         raise InputError(f"intensities: must be a real array of shape (views, {geometry.detector_rows}, "

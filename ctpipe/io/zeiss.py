@@ -111,7 +111,7 @@ from pathlib import Path
 import numpy as np
 
 from ctpipe.errors import InputError
-from ctpipe.geometry import Geometry
+from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.io._ole import StreamReader, find_entry, write_compound_file
 from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
 
@@ -494,8 +494,7 @@ def write_zeiss(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, r
     from ctpipe.io.outputs import atomic_write
 
     folder = Path(folder)
-    if not isinstance(geometry, Geometry):
-        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    check_geometry(geometry)
     if geometry.pixel_pitch_u_mm != geometry.pixel_pitch_v_mm:
         raise InputError(f"geometry: a .txrm has one pixel size (ImageInfo/PixelSize), so pixel_pitch_u_mm and "
                          f"pixel_pitch_v_mm must be equal, got {geometry.pixel_pitch_u_mm} and "

@@ -39,7 +39,7 @@ from scipy import fft as sp_fft
 
 from ctpipe._checks import as_angles_deg
 from ctpipe.errors import InputError
-from ctpipe.geometry import Geometry
+from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
 from ctpipe.resources import check_fits, memory_guard
 
@@ -216,8 +216,7 @@ def parker_weights(beta_rad: np.ndarray, gamma_rad: np.ndarray, half_range_exces
 
 
 def _validate(projections, geometry, angles_deg, grid, filter, short_scan, progress):
-    if not isinstance(geometry, Geometry):
-        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    check_geometry(geometry)
     if not isinstance(grid, VolumeGrid):
         raise InputError(f"grid: must be a ctpipe.recon.volume.VolumeGrid, got {type(grid).__name__}")
     if not isinstance(filter, str) or filter not in FILTERS:

@@ -39,7 +39,7 @@ from numba import njit, prange
 
 from ctpipe._checks import as_angles_deg
 from ctpipe.errors import InputError
-from ctpipe.geometry import Geometry
+from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
 from ctpipe.resources import check_fits
 from ctpipe.sim.primitives import Primitives, local_maps, unit_interval
@@ -51,12 +51,6 @@ _CHUNK_VIEWS = 16
 
 
 # --------------------------------------------------------------------------- validation
-
-def _check_geometry(geometry) -> Geometry:
-    if not isinstance(geometry, Geometry):
-        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
-    return geometry
-
 
 def _check_array(name: str, value, expected: tuple[int, ...], axes: str) -> np.ndarray:
     array = np.asarray(value)
@@ -200,7 +194,7 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     """
     if not isinstance(primitives, Primitives):
         raise InputError(f"primitives: must be a ctpipe.sim.primitives.Primitives, got {type(primitives).__name__}")
-    geometry = _check_geometry(geometry)
+    geometry = check_geometry(geometry)
     angles = as_angles_deg(angles_deg)
     supersample = _check_int("supersample", supersample, 1)
     if not (isinstance(blur_px, (int, float, np.floating, np.integer)) and not isinstance(blur_px, bool)
@@ -450,7 +444,7 @@ class VoxelProjector:
     """
 
     def __init__(self, geometry: Geometry, grid: VolumeGrid) -> None:
-        self._geometry = _check_geometry(geometry)
+        self._geometry = check_geometry(geometry)
         if not isinstance(grid, VolumeGrid):
             raise InputError(f"grid: must be a ctpipe.recon.volume.VolumeGrid, got {type(grid).__name__}")
         self._grid = grid

@@ -43,7 +43,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from ctpipe.errors import InputError
-from ctpipe.geometry import Geometry
+from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.feldkamp import FILTERS, bin_detector, fdk
 from ctpipe.recon.volume import VolumeGrid
 
@@ -236,8 +236,7 @@ def _extrapolate_slow_modes(step: np.ndarray, previous: np.ndarray, theta_rad: n
 
 
 def _check(projections, geometry, angles_deg, binning, iterations, band_px, max_voxels, filter, max_step_deg):
-    if not isinstance(geometry, Geometry):
-        raise InputError(f"geometry: must be a ctpipe.geometry.Geometry, got {type(geometry).__name__}")
+    check_geometry(geometry)
     p = np.asarray(projections)
     if p.ndim != 3 or p.shape[1:] != geometry.shape or not np.issubdtype(p.dtype, np.number):
         raise InputError(f"projections: must be a real array of shape (views, {geometry.detector_rows}, "
