@@ -268,6 +268,13 @@ class ScanFiles:
         What the reader assumed or could not read, said once in the summary.
     metadata : dict
         The raw keys the reader used, for the report.
+    closing_view : bool
+        The last view closes the turn: the scanner took it one full turn after view 0
+        (``nominal_angles_deg[-1] - nominal_angles_deg[0]`` is one turn, 360 deg in the sense of the
+        steps, as Nikon and Waygate scanners
+        save ``Projections + 1`` images of a full turn). It is read as a view like the others;
+        the pair graph pairs it with view 0 (:func:`ctpipe.solve.view_pairs`), so the whole
+        turn is measured from the images rather than assumed.
     """
 
     format: str
@@ -280,6 +287,7 @@ class ScanFiles:
     angle_log: Path | None = None
     notes: tuple[str, ...] = ()
     metadata: Mapping[str, Any] = field(default_factory=dict)
+    closing_view: bool = False
 
     @property
     def n_views(self) -> int:
