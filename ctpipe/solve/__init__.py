@@ -15,13 +15,13 @@ figures; the refiner stages that call these are in :mod:`ctpipe.builtin`.
 from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bundle_adjust, solve_bundle
 from ctpipe.solve.camera import pixels_to_rays, project_points
 from ctpipe.solve.graph import (LOSSES, PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
-                                unwrap_pair_angles_deg, view_pairs)
+                                turn_pairs, unwrap_pair_angles_deg, view_pairs)
 from ctpipe.solve.reprojection import (ProjectionMatchingResult, consistency_costs, matching_levels,
                                        projection_matching)
 from ctpipe.solve.simulated import SyntheticScan, synthetic_scan
 from ctpipe.solve.tracks import Tracks, build_tracks, extend_tracks, static_tracks, triangulate_tracks
 
-__all__ = ["covers_full_turn", "unwrap_pair_angles_deg", "view_pairs", "chain_pair_angles", "solve_pair_graph",
+__all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pairs", "chain_pair_angles", "solve_pair_graph",
            "PairGraphSolution", "LOSSES", "Tracks", "build_tracks", "extend_tracks", "static_tracks",
            "triangulate_tracks", "bundle_adjust", "solve_bundle", "BundleResult", "BundleSettings", "BundleSolution",
            "projection_matching", "consistency_costs", "matching_levels", "ProjectionMatchingResult",

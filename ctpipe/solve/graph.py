@@ -3,7 +3,9 @@
 Views are taken in acquisition order. A full turn closes on itself: the last views are
 neighbours of the first ones, so pairing them ("loop closure") turns the chain of pair angles
 into a ring whose angles must add up to 360 deg, which removes the linear drift a chain
-accumulates.
+accumulates. A scan that goes on past one turn (a scanner's closing view at 360 deg, the
+overlap of a 361 deg scan, a second turn) holds views taken at the same pose one turn apart:
+those are paired too (:func:`turn_pairs`), so the whole turn is measured from the images.
 
 The per-view angles solve the pair equations ``theta[j] - theta[i] = alpha_ij`` in the least
 squares sense (:func:`chain_pair_angles`), or robustly (:func:`solve_pair_graph`): a pair whose
@@ -23,7 +25,7 @@ from scipy.sparse.linalg import splu
 
 from ctpipe.errors import InputError
 
-__all__ = ["covers_full_turn", "view_pairs", "unwrap_pair_angles_deg", "chain_pair_angles", "solve_pair_graph",
+__all__ = ["covers_full_turn", "turn_pairs", "view_pairs", "unwrap_pair_angles_deg", "chain_pair_angles", "solve_pair_graph",
            "PairGraphSolution", "LOSSES"]
 
 #: Robust losses of :func:`solve_pair_graph`, as in ``scipy.optimize.least_squares``.
@@ -48,18 +50,51 @@ def covers_full_turn(nominal_angles_deg) -> bool:
     return turns >= 1 and abs(span - 360.0 * turns) <= 0.5 * step
 
 
+def turn_pairs(nominal_angles_deg) -> np.ndarray:
+    """Pairs of views taken one turn apart, shape (K, 2), int64: ``(i, j)``, ``j > i``.
+
+    View ``j`` is the view whose nominal angle lies nearest to one turn (360 deg, in the sense of
+    the steps) after view ``i``'s, paired when it lies within half a typical step of it: the
+    same pose, seen again. A Nikon or Waygate scan of a full turn saves ``Projections + 1``
+    images, the last at 360 deg, which gives the one pair ``(0, V)``; a scan of 361 deg gives a
+    pair for every view in its overlap; a scan of one turn or less gives none. The pair's angle,
+    measured like any other, ties the end of the turn to its start: loop closure measured from
+    the images, not assumed from the nominal angles.
+    """
+    nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
+    empty = np.zeros((0, 2), np.int64)
+    if nominal.ndim != 1 or nominal.size < 2 or not np.all(np.isfinite(nominal)):
+        return empty
+    steps = np.diff(nominal)
+    if not (np.all(steps > 0) or np.all(steps < 0)):
+        return empty
+    sense = 1.0 if steps[0] > 0 else -1.0
+    ordered = sense * nominal  # increasing
+    step = float(np.median(np.abs(steps)))
+    target = ordered + 360.0
+    j = np.clip(np.searchsorted(ordered, target), 1, nominal.size - 1)
+    j = np.where(np.abs(ordered[j - 1] - target) < np.abs(ordered[j] - target), j - 1, j)
+    keep = (np.abs(ordered[j] - target) <= 0.5 * step) & (j > np.arange(nominal.size))
+    return np.stack([np.flatnonzero(keep), j[keep]], axis=1).astype(np.int64).reshape(-1, 2)
+
+
 def view_pairs(n_views: int, baselines=(1,), nominal_angles_deg=None, *, loop_closure: bool = True) -> np.ndarray:
     """View pairs ``(i, i + k)`` for every baseline ``k``, shape (P, 2), int64.
 
     With ``loop_closure`` and nominal angles that cover a full turn (:func:`covers_full_turn`),
     the pairs wrap around: ``(i, (i + k) mod n_views)`` for the last ``k`` views too, so that
-    every view has the same neighbours and the ring of pair angles closes.
+    every view has the same neighbours and the ring of pair angles closes. With
+    ``loop_closure`` and nominal angles that go on past one turn, the views one turn apart are
+    paired too (:func:`turn_pairs`), after the baselines' pairs.
     """
     closed = loop_closure and nominal_angles_deg is not None and covers_full_turn(nominal_angles_deg)
     pairs = []
     for k in baselines:
         stop = n_views if closed and k < n_views else n_views - k
         pairs.extend((i, (i + k) % n_views) for i in range(max(stop, 0)))
+    if loop_closure and nominal_angles_deg is not None and len(nominal_angles_deg) == n_views:
+        known = set(pairs)
+        pairs.extend(pair for pair in map(tuple, turn_pairs(nominal_angles_deg).tolist()) if pair not in known)
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
 

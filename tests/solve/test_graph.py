@@ -147,3 +147,29 @@ def test_the_least_squares_refiner_takes_a_loss_and_its_scale():
     with pytest.raises(ConfigError) as info:
         parse_pipeline({"refiner": {"name": "least-squares", "scale_deg": 0}}, registry)
     assert "refiner.scale_deg" in str(info.value)
+
+
+def test_turn_pairs_pair_views_one_turn_apart():
+    from ctpipe.solve.graph import turn_pairs
+
+    # A Nikon full turn: Projections = 16 of 22.5 deg and a 17th image at 360 deg.
+    assert turn_pairs(np.arange(17) * 22.5).tolist() == [[0, 16]]
+    assert turn_pairs(-np.arange(17) * 22.5).tolist() == [[0, 16]]
+    assert turn_pairs(np.arange(16) * 22.5).tolist() == []          # one turn, no repeat
+    assert turn_pairs(np.arange(200) * 1.0).tolist() == []          # a short scan
+    # CT Pro 5.4's Lego scan: 1571 images of 0.2299575 deg span 361.03 deg; the last five
+    # repeat the first five poses within half a step.
+    nominal = 40.20631 + np.arange(1571) * 0.2299575
+    pairs = turn_pairs(nominal)
+    assert pairs.tolist() == [[0, 1566], [1, 1567], [2, 1568], [3, 1569], [4, 1570]]
+    gap = nominal[pairs[:, 1]] - nominal[pairs[:, 0]] - 360.0
+    assert np.all(np.abs(gap) <= 0.5 * 0.2299575)
+    assert len(turn_pairs(np.arange(720) * 1.0)) == 360              # two turns
+
+
+def test_view_pairs_add_the_closing_pair_with_loop_closure_only():
+    nominal = np.arange(5) * 90.0  # four steps and a closing view at 360 deg
+    assert view_pairs(5, (1,), nominal).tolist() == [[0, 1], [1, 2], [2, 3], [3, 4], [0, 4]]
+    assert view_pairs(5, (1,), nominal, loop_closure=False).tolist() == [[0, 1], [1, 2], [2, 3], [3, 4]]
+    angles = unwrap_pair_angles_deg([[0, 4]], [0.3], nominal)
+    assert angles.tolist() == [360.3]  # measured: the closing view is 0.3 deg past one turn
