@@ -162,6 +162,10 @@ _SECTION = "XTekCT"
 _CTDATA = "_ctdata.txt"
 _ANG_HEADER = "Proj\tAngle(deg)"
 _CTDATA_HEADERS = ("Projections\tFrames\tExposure(ms)", "Projection\tAngle(deg)\tTime(s)")
+#: The sense of a log whose values do not move: the ``.ang`` files of Nikon XT H scans run
+#: against ``AngularStep`` (0, -1.406, ..., -359.999 for a step of +1.40625), ``_ctdata.txt``
+#: with it (0.5613, 1.2693, ..., 360.5835 for +0.7031701); see the module docstring.
+_ANG_SENSE, _CTDATA_SENSE = -1, 1
 
 
 # --------------------------------------------------------------------------- reading
@@ -178,18 +182,35 @@ def detect(path: Path) -> bool:
         return False
 
 
-def _xtekct_file(path: Path) -> Path:
+def _xtekct_file(path: Path) -> tuple[Path, tuple[str, ...]]:
+    """The ``.xtekct`` to read, and notes on any others beside it.
+
+    CT Pro saves one ``.xtekct`` per reconstruction of a scan (``<Name>.xtekct``,
+    ``<Name>_01.xtekct``, ... as in the real Lego scan of xray-imaging/meta-cli): they differ
+    only in their ``Output*`` keys, so any of them describes the acquisition; ``<Name>.xtekct``
+    is read. Files that disagree on anything else are different scans, and the user must choose.
+    """
     if path.is_file():
         if path.suffix.lower() != ".xtekct":
             raise InputError(f"{path}: not a Nikon .xtekct file")
-        return path
+        return path, ()
     found = sorted(p for p in path.iterdir() if p.suffix.lower() == ".xtekct" and p.is_file())
     if not found:
         raise InputError(f"{path}: no .xtekct file in this folder, so not a Nikon scan")
-    if len(found) > 1:
-        raise InputError(f"{path}: holds {len(found)} .xtekct files ({', '.join(p.name for p in found)}); "
-                         "open the one you mean")
-    return found[0]
+    if len(found) == 1:
+        return found[0], ()
+    try:
+        acquisitions = [{k: v for k, v in read_xtekct(p).items() if not k.startswith("Output")} for p in found]
+    except (ConfigError, InputError):
+        acquisitions = [{}, None]
+    if any(a != acquisitions[0] for a in acquisitions[1:]):
+        raise InputError(f"{path}: holds {len(found)} .xtekct files ({', '.join(p.name for p in found)}) of "
+                         "different scans; open the one you mean")
+    named = [p for p in found if p.stem == acquisitions[0].get("Name")]
+    chosen = named[0] if named else found[0]
+    others = ", ".join(p.name for p in found if p != chosen)
+    return chosen, (f"{others} beside {chosen.name}: the same acquisition (only their Output* keys differ, "
+                    f"another reconstruction); {chosen.name} is read",)
 
 
 def read_xtekct(file: str | Path) -> dict[str, str]:
@@ -339,8 +360,9 @@ def _parse(file: Path) -> dict[str, Any]:
 
 
 def _projection_names(parsed: Mapping[str, Any]) -> list[str]:
+    """``Projections + 2`` file names: the views, the closing image, and one that must not exist."""
     pattern = f"{parsed['input_name']}{parsed['separator']}{{:0{parsed['digits']}d}}.tif"
-    return [pattern.format(i + 1) for i in range(parsed["n_views"] + 1)]
+    return [pattern.format(i + 1) for i in range(parsed["n_views"] + 2)]
 
 
 def _data_folder(file: Path, parsed: Mapping[str, Any]) -> Path:
@@ -354,18 +376,22 @@ def _data_folder(file: Path, parsed: Mapping[str, Any]) -> Path:
     return folder
 
 
-def _check_projection_files(file: Path, folder: Path, names: list[str], shape: tuple[int, int]) -> None:
-    """Every projection file exists, no extra one follows the last, and the first has the detector's size."""
+def _check_projection_files(file: Path, folder: Path, names: list[str], shape: tuple[int, int]) -> int:
+    """How many images the scan has: ``Projections``, or ``Projections + 1`` with the closing image.
+
+    Every one of the first ``Projections`` files must exist, nothing may follow the closing
+    image, and the first must have the detector's size.
+    """
     import tifffile
 
-    n_views = len(names) - 1
-    for i, name in enumerate(names[:-1]):
+    n_views = len(names) - 2
+    for i, name in enumerate(names[:n_views]):
         if not (folder / name).is_file():
             raise InputError(f"{folder / name}: no such file; {file.name} says Projections={n_views} but projection "
                              f"{i + 1} is missing")
     if (folder / names[-1]).is_file():
-        raise InputError(f"{folder / names[-1]}: exists, but {file.name} says Projections={n_views}; the count must "
-                         "match the projection files")
+        raise InputError(f"{folder / names[-1]}: exists, but {file.name} says Projections={n_views}; there must be "
+                         f"{n_views} projection files, or {n_views + 1} with the image that closes the turn")
     first = folder / names[0]
     try:
         with tifffile.TiffFile(first) as tif:
@@ -375,10 +401,11 @@ def _check_projection_files(file: Path, folder: Path, names: list[str], shape: t
     if page_shape != shape:
         raise InputError(f"{first}: must be a {shape[0]} x {shape[1]} image (DetectorPixelsY x DetectorPixelsX in "
                          f"{file.name}), got shape {page_shape}")
+    return n_views + 1 if (folder / names[n_views]).is_file() else n_views
 
 
 def _read_ang(path: Path, n_views: int) -> np.ndarray:
-    """Angles of ``<Name>.ang``: a header line, then ``<projection>:<TAB><angle>`` numbered from 1."""
+    """Values of ``<Name>.ang``: a header line, then ``<projection>:<TAB><angle>`` numbered from 1."""
     lines = _text_lines(path)
     if not lines or not lines[0].lower().startswith("proj"):
         raise InputError(f"{path}: must start with the header line 'Proj<TAB>Angle(deg)'")
@@ -390,7 +417,7 @@ def _read_ang(path: Path, n_views: int) -> np.ndarray:
 
 
 def _read_ctdata(path: Path, n_views: int) -> np.ndarray:
-    """Angles of ``_ctdata.txt``: three header lines, then ``<projection> <angle> <time>`` numbered from 1."""
+    """Values of ``_ctdata.txt``: three header lines, then ``<projection> <angle> <time>`` numbered from 1."""
     lines = _text_lines(path)
     if len(lines) < 3:
         raise InputError(f"{path}: must start with three header lines (Projections Frames Exposure, their values, "
@@ -425,24 +452,90 @@ def _log_row(path: Path, number: int, fields: list[str], line: str, layout: str)
 
 
 def _ordered(path: Path, rows: list[tuple[int, float]], n_views: int) -> np.ndarray:
-    if len(rows) != n_views:
+    """The logged values by projection number: ``Projections`` rows, or one more for the closing image."""
+    if len(rows) not in (n_views, n_views + 1):
         raise InputError(f"{path}: lists {len(rows)} angles but the .xtekct says Projections={n_views}; there must be "
-                         "one angle for every projection")
-    angles = np.full(n_views, np.nan)
+                         f"one angle for every projection ({n_views}), or {n_views + 1} with the one that closes "
+                         "the turn")
+    angles = np.full(len(rows), np.nan)
     for index, angle in rows:
-        if not 1 <= index <= n_views:
-            raise InputError(f"{path}: projection number {index} is outside 1..{n_views} (Projections)")
+        if not 1 <= index <= len(rows):
+            raise InputError(f"{path}: projection number {index} is outside 1..{len(rows)}")
         if not np.isnan(angles[index - 1]):
             raise InputError(f"{path}: projection {index} is listed twice")
         angles[index - 1] = angle
     return angles
 
 
+def _log_sense(values: np.ndarray, step: float, default: int) -> int:
+    """+1 when a log's values count like ``AngularStep``, -1 when they count against it.
+
+    Measured from the log itself (the sign of its mean step against ``AngularStep``'s); a log
+    that does not move, or a zero step, gets ``default``.
+    """
+    moved = float(values[-1] - values[0]) if values.size > 1 else 0.0
+    if step == 0.0 or moved == 0.0:
+        return default
+    return 1 if (moved > 0) == (step > 0) else -1
+
+
+def _sense_words(sense: int) -> str:
+    return "counts like AngularStep" if sense > 0 else "counts against AngularStep"
+
+
+def _recorded_angles(file: Path, parsed: Mapping[str, Any], n_images: int) -> tuple:
+    """The recorded angles of every image, the log read, its sense, row count and notes.
+
+    Both logs are read where both exist; ``<Name>.ang`` is the one returned and the two must agree.
+    """
+    initial, step, n_views = parsed["initial"], parsed["step"], parsed["n_views"]
+    ang, ctdata = file.parent / f"{parsed['name']}.ang", file.parent / _CTDATA
+    logs = []  # (path, recorded angles, sense, rows)
+    for path, read, default in ((ang, _read_ang, _ANG_SENSE), (ctdata, _read_ctdata, _CTDATA_SENSE)):
+        if path.is_file():
+            values = read(path, n_views)
+            sense = _log_sense(values, step, default)
+            logs.append((path, initial + sense * values, sense, len(values)))
+    if not logs:
+        return None, None, None, None, [f"no angle log ({ang.name} or {_CTDATA}) beside {file.name}: the recorded "
+                                         "angles are unknown"]
+    path, recorded, sense, rows = logs[0]
+    notes = [f"recorded angles: {path.name} {_sense_words(sense)} ({_span(recorded - initial, sense)}), read as "
+             f"InitialAngle {'+' if sense > 0 else '-'} its values"]
+    if len(logs) == 2:
+        other, other_recorded = logs[1][0], logs[1][1]
+        common = min(len(recorded), len(other_recorded))
+        gap = float(np.max(np.abs(recorded[:common] - other_recorded[:common])))
+        notes.append(f"{other.name} is read too and agrees with {path.name} within {gap:.4g} deg"
+                     + (" (they disagree: check which log belongs to this scan)" if gap > abs(step) / 2 else ""))
+    if rows < n_images:
+        # The log stops at Projections while the closing image exists: it was taken one turn after view 0.
+        recorded = np.append(recorded, recorded[0] + n_views * step)
+        notes.append(f"{path.name} has no row for the closing image {n_images}: its recorded angle is taken one "
+                     f"turn after view 0's ({n_views} x AngularStep)")
+    elif rows > n_images:
+        recorded = recorded[:n_images]
+        notes.append(f"{path.name} has a row {rows} for an image that closes the turn, which is not in the folder; "
+                     "that row is not used")
+    return recorded, path, sense, rows, notes
+
+
+def _span(relative: np.ndarray, sense: int) -> str:
+    """``0, -1.406, ..., -359.999``: how a log's values run, in its own sense."""
+    values = sense * relative
+    values = values + 0.0  # no "-0"
+    shown = [f"{v:.4g}" for v in values[:2]] + ["..."] + [f"{values[-1]:.6g}"] if values.size > 3 else \
+        [f"{v:.4g}" for v in values]
+    return ", ".join(shown)
+
+
 def open_nikon(path: str | Path) -> ScanFiles:
     """Open a Nikon scan (a folder with one ``.xtekct``, or the ``.xtekct`` itself) lazily.
 
-    Reads the ``.xtekct``, the angle log and the first projection's TIFF header; the views are
-    read on demand. See the module docstring for the keys, signs and offsets.
+    Reads the ``.xtekct``, the angle logs and the first projection's TIFF header; the views are
+    read on demand. The closing image (``Projections + 1``) is read as the last view, at
+    ``InitialAngle + Projections * AngularStep``. See the module docstring for the keys, signs,
+    closing image and offsets.
 
     Raises
     ------
@@ -454,38 +547,36 @@ def open_nikon(path: str | Path) -> ScanFiles:
     """
 
     path = Path(path)
-    file = _xtekct_file(path)
+    file, file_notes = _xtekct_file(path)
     parsed = _parse(file)
-    geometry, n_views = parsed["geometry"], parsed["n_views"]
+    geometry, n_views, step = parsed["geometry"], parsed["n_views"], parsed["step"]
     folder = _data_folder(file, parsed)
     names = _projection_names(parsed)
-    _check_projection_files(file, folder, names, geometry.shape)
-    nominal = parsed["initial"] + parsed["step"] * np.arange(n_views, dtype=np.float64)
+    n_images = _check_projection_files(file, folder, names, geometry.shape)
+    nominal = parsed["initial"] + step * np.arange(n_images, dtype=np.float64)
+    closing = n_images == n_views + 1
 
-    notes = list(parsed["notes"])
-    recorded, angle_log = None, None
-    ang, ctdata = file.parent / f"{parsed['name']}.ang", file.parent / _CTDATA
-    if ang.is_file():
-        recorded, angle_log = parsed["initial"] + _read_ang(ang, n_views), ang
-    elif ctdata.is_file():
-        recorded, angle_log = parsed["initial"] + _read_ctdata(ctdata, n_views), ctdata
-    if angle_log is None:
-        notes.append(f"no angle log ({ang.name} or {_CTDATA}) beside {file.name}: the recorded angles are unknown")
-    else:
-        other = ctdata if angle_log == ang and ctdata.is_file() else None
-        notes.append(f"recorded angles: InitialAngle + the angles of {angle_log.name}"
-                     + (f" ({other.name} is not read)" if other else ""))
-        recorded = check_angles(recorded, n_views, str(angle_log))
+    notes = [*file_notes, *parsed["notes"]]
+    if closing:
+        notes.append(f"{names[n_views]} is the image that closes the scan: Projections={n_views} and {n_images} images, "
+                     f"the last read as a view at InitialAngle + {n_views} x AngularStep, {n_views * step:.6g} deg "
+                     "after the first")
+    recorded, angle_log, sense, rows, log_notes = _recorded_angles(file, parsed, n_images)
+    notes += log_notes
+    if recorded is not None:
+        recorded = check_angles(recorded, n_images, str(angle_log))
     shape = geometry.shape
-    read = ViewFiles(tuple(folder / name for name in names), shape, missing="{file}: no such file",
+    read = ViewFiles(tuple(folder / name for name in names[:n_images]), shape, missing="{file}: no such file",
                      wrong_shape="{file}: must be a {rows} x {cols} image (DetectorPixelsY x DetectorPixelsX in "
                                  "{xtekct}), got shape {got}", context={"xtekct": file.name})
-    stack = ViewStack(read, n_views, shape, values="intensities", white_level=parsed["white"], name=str(folder))
+    stack = ViewStack(read, n_images, shape, values="intensities", white_level=parsed["white"], name=str(folder))
     metadata = {"xtekct": str(file), "projection_folder": str(folder),
                 "projection_files": f"{parsed['input_name']}{parsed['separator']}%0{parsed['digits']}d.tif",
-                **parsed["used"]}
+                "images": n_images, **parsed["used"]}
+    if angle_log is not None:
+        metadata.update(angle_log_sense=sense, angle_log_rows=rows)
     return ScanFiles("nikon", path, geometry, nominal, stack, recorded_angles_deg=recorded, angle_log=angle_log,
-                     notes=tuple(notes), metadata=metadata)
+                     notes=tuple(notes), metadata=metadata, closing_view=closing)
 
 
 # --------------------------------------------------------------------------- writing
@@ -496,24 +587,29 @@ def _float(value: float) -> str:
     return np.format_float_positional(float(value), unique=True, trim="0")
 
 
-def write_nikon_angles(path: str | Path, angles_deg, *, initial_angle_deg: float | None = None) -> Path:
+def write_nikon_angles(path: str | Path, angles_deg, *, initial_angle_deg: float | None = None,
+                       sense: int = _ANG_SENSE) -> Path:
     """Write a CT Pro angle file (``.ang``) from angles in ctpipe's convention.
 
     The file has the header ``Proj<TAB>Angle(deg)`` and one line ``<n>:<TAB><angle>`` per
-    projection, numbered from 1, the angle counted from the scan's ``InitialAngle`` and in the
-    sense of its ``AngularStep`` (the module docstring says why that is ctpipe's sense). To
-    have CT Pro reconstruct with it, name it ``<Name>.ang`` beside the ``.xtekct`` and set
-    ``AngleFile_Use=True`` in its ``[CTPro]`` section.
+    projection, numbered from 1, the angle counted from the scan's ``InitialAngle`` and, as in
+    the ``.ang`` files Nikon XT H scanners write, against the sense of its ``AngularStep``
+    (``sense=-1``: 0, -1.406, ... for a step of +1.40625; the module docstring has the
+    evidence). To have CT Pro reconstruct with it, name it ``<Name>.ang`` beside the ``.xtekct``
+    and set ``AngleFile_Use=True`` in its ``[CTPro]`` section.
 
     Parameters
     ----------
     path : path
         The file to write, ending in ``.ang``; it must not exist.
     angles_deg : array of shape (V,)
-        One angle per projection, degrees, ctpipe's convention, in the frame of the scan's
-        nominal angles (``InitialAngle + i * AngularStep``, as :func:`open_nikon` reads them).
+        One angle per projection (the closing image included, if the scan has one), degrees,
+        ctpipe's convention, in the frame of the scan's nominal angles
+        (``InitialAngle + i * AngularStep``, as :func:`open_nikon` reads them).
     initial_angle_deg : float or None
         The scan's ``InitialAngle``; None reads it from the one ``.xtekct`` in the folder of ``path``.
+    sense : {-1, 1}
+        -1 writes ``InitialAngle - angle`` (the scanners' ``.ang``), 1 ``angle - InitialAngle``.
 
     Returns
     -------
@@ -524,6 +620,8 @@ def write_nikon_angles(path: str | Path, angles_deg, *, initial_angle_deg: float
     path = check_output_file(path, "angle file", suffix=".ang")
     if path.exists():
         raise InputError(f"{path}: exists; write the angles to a new file rather than over the scanner's")
+    if sense not in (-1, 1):
+        raise InputError(f"sense: must be -1 (against AngularStep, as the scanners write) or 1, got {sense!r}")
     angles = np.asarray(angles_deg, dtype=np.float64)
     if angles.ndim != 1 or angles.size == 0:
         raise InputError(f"angles_deg: must be a 1-D array with one angle per projection, got shape {angles.shape}")
@@ -536,13 +634,14 @@ def write_nikon_angles(path: str | Path, angles_deg, *, initial_angle_deg: float
         initial_angle_deg = _Keys(found[0], read_xtekct(found[0])).number("InitialAngle", _REQUIRED, unit="deg")
     if not math.isfinite(initial_angle_deg):
         raise InputError(f"initial_angle_deg: must be a finite number (degrees), got {initial_angle_deg!r}")
-    lines = [_ANG_HEADER] + [f"{i + 1}:\t{_float(a - initial_angle_deg)}" for i, a in enumerate(angles)]
+    values = sense * (angles - initial_angle_deg) + 0.0
+    lines = [_ANG_HEADER] + [f"{i + 1}:\t{_float(a)}" for i, a in enumerate(values)]
     text = "\r\n".join(lines) + "\r\n"
     return atomic_write(path, lambda handle: handle.write(text.encode("ascii")))
 
 
-def _ctdata_text(relative: np.ndarray) -> str:
-    lines = [_CTDATA_HEADERS[0], f"{len(relative)}\t1\t0.00", _CTDATA_HEADERS[1]]
+def _ctdata_text(relative: np.ndarray, projections: int) -> str:
+    lines = [_CTDATA_HEADERS[0], f"{projections}\t1\t0.00", _CTDATA_HEADERS[1]]
     lines += [f"{i + 1}\t{_float(a)}\t0.0000" for i, a in enumerate(relative)]
     return "\r\n".join(lines) + "\r\n"
 
@@ -618,7 +717,10 @@ def write_nikon(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, r
     ``(I - mean dark) / (mean flat - mean dark) * white_level`` rounded to uint16 (pixels whose
     flat is not above their dark read ``white_level``), and written as ``<name>_0001.tif`` ...;
     the geometry and the uniform nominal angles go into ``<name>.xtekct``, the recorded angles
-    into the angle log, counted from ``InitialAngle``.
+    into the angle log, counted from ``InitialAngle`` (``_ctdata.txt`` with the sense of
+    ``AngularStep``, ``<name>.ang`` against it, as the scanners write them). Nominal angles that
+    end one full turn after they start are written as a real scanner saves a full turn:
+    ``Projections = V - 1`` and ``V`` images, the last closing the turn, and ``V`` log rows.
 
     Parameters
     ----------
@@ -674,30 +776,48 @@ def write_nikon(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, r
     if not np.allclose(uniform, nominal, rtol=0.0, atol=1e-9):
         raise InputError("nominal_angles_deg: must be uniformly spaced; a .xtekct holds only InitialAngle and "
                          "AngularStep")
+    # A full turn with an image at 360 deg: the scanner's Projections + 1 images.
+    projections = n_views - 1 if n_views > 2 and math.isclose(abs(step) * (n_views - 1), 360.0, abs_tol=1e-9) \
+        else n_views
     recorded = None
     if recorded_angles_deg is not None and angle_log is not None:
         recorded = check_angles(recorded_angles_deg, n_views, "recorded_angles_deg")
     corrected = _flat_correct(counts, flats, darks, float(white_level))
 
     with staged_folder(folder, "Nikon scan folder") as tmp:
-        text = _xtekct_text(name, geometry, n_views, initial, step, float(white_level), offset_keys)
+        text = _xtekct_text(name, geometry, projections, initial, step, float(white_level), offset_keys)
         (tmp / f"{name}.xtekct").write_bytes(text.encode("ascii"))
         for i, view in enumerate(corrected):
             tifffile.imwrite(tmp / f"{name}_{i + 1:04d}.tif", view)
         if recorded is not None and angle_log == "ctdata":
-            (tmp / _CTDATA).write_bytes(_ctdata_text(recorded - initial).encode("ascii"))
+            (tmp / _CTDATA).write_bytes(_ctdata_text(recorded - initial, projections).encode("ascii"))
         elif recorded is not None:
             write_nikon_angles(tmp / f"{name}.ang", recorded, initial_angle_deg=initial)
     return folder
 
 
 def _corrected_angle_log(scan: ScanFiles, angles_deg) -> tuple[str, bytes]:
-    """``<Name>.ang`` for CT Pro with ``angles_deg`` (ctpipe's convention, the nominal angles' frame)."""
+    """``<Name>.ang`` for CT Pro with ``angles_deg`` (ctpipe's convention, the nominal angles' frame).
+
+    It has as many rows as the scanner's own log (a row for the closing image too, taken one
+    turn after view 0 when that image is not in the folder) and counts in the sense of the
+    scanner's ``.ang`` (:data:`_ANG_SENSE` when the scanner wrote only ``_ctdata.txt``).
+    """
     import tempfile
 
-    name = Path(scan.metadata["xtekct"]).with_suffix(".ang").name
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    metadata = scan.metadata
+    rows = int(metadata.get("angle_log_rows", len(angles)))
+    if rows == len(angles) + 1:
+        angles = np.append(angles, angles[0] + int(metadata["Projections"]) * float(metadata["AngularStep"]))
+    elif rows == len(angles) - 1:
+        angles = angles[:rows]
+    log = scan.angle_log
+    sense = int(metadata["angle_log_sense"]) if log is not None and log.suffix.lower() == ".ang" else _ANG_SENSE
+    name = f"{metadata['Name']}.ang"
     with tempfile.TemporaryDirectory() as tmp:
-        path = write_nikon_angles(Path(tmp) / name, angles_deg, initial_angle_deg=float(scan.metadata["InitialAngle"]))
+        path = write_nikon_angles(Path(tmp) / name, angles, initial_angle_deg=float(metadata["InitialAngle"]),
+                                  sense=sense)
         return name, path.read_bytes()
 
 

@@ -137,7 +137,8 @@ def test_an_ang_file_is_read_and_written_in_ct_pros_layout(small_scan, raw_scan,
     lines = (folder / "scan.ang").read_text().splitlines()
     assert lines[0] == "Proj\tAngle(deg)" and len(lines) == 1 + len(raw_scan.true_deg)
     number, angle = lines[1].split(":\t")
-    assert number == "1" and float(angle) == pytest.approx(raw_scan.true_deg[0], abs=1e-12)
+    # Counted from InitialAngle and against AngularStep, as the scanners' own .ang files run.
+    assert number == "1" and float(angle) == pytest.approx(-raw_scan.true_deg[0], abs=1e-12)
     opened = open_scan(folder)
     assert opened.angle_log == folder / "scan.ang"
     np.testing.assert_allclose(opened.recorded_angles_deg, raw_scan.true_deg + 10.0, atol=1e-12)
@@ -148,7 +149,8 @@ def test_an_ang_file_is_read_and_written_in_ct_pros_layout(small_scan, raw_scan,
     assert nikon.write_nikon_angles(scan / "scan.ang", corrected) == scan / "scan.ang"
     reopened = open_scan(scan)
     np.testing.assert_array_equal(reopened.recorded_angles_deg, corrected)
-    assert any("_ctdata.txt is not read" in note for note in reopened.notes)
+    # Both logs are read; the corrected .ang and the scanner's _ctdata.txt differ by the jitter.
+    assert any(note.startswith("_ctdata.txt is read too and agrees with scan.ang within") for note in reopened.notes)
     with pytest.raises(InputError, match=r"scan\.ang: exists"):
         nikon.write_nikon_angles(scan / "scan.ang", corrected)
     with pytest.raises(InputError, match=r"must be a \.ang file name"):
@@ -198,10 +200,12 @@ def test_a_missing_or_bad_key_is_named(scan):
 
 def test_a_count_that_disagrees_with_the_files_is_refused(scan):
     file = scan / "scan.xtekct"
-    edit(file, "Projections=6", "Projections=5")
-    with pytest.raises(InputError, match=r"scan_0006\.tif: exists, but scan\.xtekct says Projections=5"):
+    # Six images for Projections=5 are five and the one closing the scan; for 4, one too many.
+    edit(file, "Projections=6", "Projections=4")
+    with pytest.raises(InputError, match=r"scan_0006\.tif: exists, but scan\.xtekct says Projections=4; there must be "
+                                         r"4 projection files, or 5 with the image that closes the turn"):
         open_scan(scan)
-    edit(file, "Projections=5", "Projections=7")
+    edit(file, "Projections=4", "Projections=7")
     with pytest.raises(InputError, match=r"scan_0007\.tif: no such file; scan\.xtekct says Projections=7"):
         open_scan(scan)
     edit(file, "Projections=7", "Projections=6")
@@ -246,7 +250,14 @@ def test_the_writers_refuse_what_a_nikon_scan_cannot_hold(small_scan, raw_scan, 
 
 
 def test_several_xtekct_files_in_one_folder_ask_which(scan):
-    shutil.copy(scan / "scan.xtekct", scan / "scan_01.xtekct")
-    with pytest.raises(InputError, match=r"holds 2 \.xtekct files \(scan\.xtekct, scan_01\.xtekct\); open the one"):
+    # CT Pro's second reconstruction of the same acquisition differs in its Output* keys only.
+    text = (scan / "scan.xtekct").read_text()
+    (scan / "scan_01.xtekct").write_text(text.replace("OutputName=scan", "OutputName=scan_01"))
+    opened = open_scan(scan)
+    assert opened.metadata["xtekct"] == str(scan / "scan.xtekct") and opened.n_views == 6
+    assert any(note.startswith("scan_01.xtekct beside scan.xtekct: the same acquisition") for note in opened.notes)
+    (scan / "scan_01.xtekct").write_text(text.replace("Projections=6", "Projections=5"))
+    with pytest.raises(InputError, match=r"holds 2 \.xtekct files \(scan\.xtekct, scan_01\.xtekct\) of different "
+                                         r"scans; open the one you mean"):
         open_scan(scan)
-    assert open_scan(scan / "scan_01.xtekct").n_views == 6
+    assert open_scan(scan / "scan.xtekct").n_views == 6
