@@ -16,8 +16,13 @@ its ``.pca``)::
     <name>.pcr                    reconstruction settings, written later by datos|x rec; not read
 
 A full turn ([CT] RotationSector = 360) has NumberImages + 1 images: the last one, at
-RotPos = 360, repeats the first. Only images 1 .. NumberImages are the scan's views, as in
-datos|x rec's own ``.pcr`` (StartImage=1, LastImage=NumberImages).
+RotPos = 360, repeats the first. When its file is there it is read as a view, the *closing
+view* (``ScanFiles.closing_view``): nominal angle first + 360, recorded angle the ``.pcp`` row
+ImgNr = NumberImages + 1, so that the pair graph can measure the whole turn from the images.
+datos|x rec itself reconstructs from images 1 .. NumberImages only (``.pcr`` StartImage=1,
+LastImage=NumberImages). Without that file, or when the ``.pcp`` has no row for it, the scan
+has NumberImages views (the latter said in the notes). Corrected angles go back with as many
+rows as the scanner's ``.pcp`` (see :func:`write_waygate_angles`).
 
 Keys read, and what they become
 -------------------------------
@@ -30,10 +35,11 @@ key (section, name)       ctpipe                  unit and conversion
                                                   left column and the top row (see below)
 [Detector] PixelsizeX/Y   pixel_pitch_u/v_mm      mm (checked against VoxelSizeX * FDD / FOD)
 [Image] DimX, DimY        detector_cols, _rows    pixels of the stored images
-[CT] NumberImages         number of views         images 1 .. NumberImages
+[CT] NumberImages         number of views         images 1 .. NumberImages, + 1 closing view
 [CT] RotationSector       nominal angles          deg: view i at i * RotationSector / NumberImages
 [Image] FreeRay           white level             counts of an unattenuated pixel
-<name>.pcp RotPos         recorded_angles_deg     deg, rows ImgNr = 1 .. NumberImages, as logged
+<name>.pcp RotPos         recorded_angles_deg     deg, rows ImgNr = 1 .. NumberImages (+ 1), as
+                                                  logged
 ========================  ======================  =============================================
 
 Also read, to refuse what ctpipe cannot model or to say what it leaves out: [Detector] Binning,
@@ -59,12 +65,24 @@ Conventions, and what is unclear
   and cy are pixels of the stored image with pixel centres at integers, as ctpipe's u0_px and
   v0_px. Whether they count from the left/top or the right/bottom edge cannot be told from
   centred values; ctpipe takes left/top (the image as stored), the usual image convention.
-* **Rotation-axis offset.** [Geometry] CalibValue (copied to the ``.pcr`` as CorrectionValue)
-  is the correction datos|x rec applies for the rotation axis not crossing the central ray; its
-  unit (detector pixels?) and sign are undocumented. ctpipe's axis passes through (u0, v0), and
-  the usual approximation of an axis offset of ``d`` detector pixels is ``u0 = cx + d``; since
-  neither the unit nor the sign of CalibValue is known, ctpipe does not apply it: it takes
-  u0_px = cx and says so in the scan's notes whenever CalibValue is not 0.
+* **Rotation-axis offset.** [Geometry] CalibValue is datos|x's correction for the rotation
+  axis not projecting onto cx. What the public files show: the ``.pcr`` of every run copies it
+  as [Reconstruction Settings] CorrectionValue (28.524 -> 28.52400016784668, a float32 round
+  trip), so datos|x rec applies it; its ``.pca`` section [CalibValue] (NumberImages=18,
+  Averaging=2, Skip=3) suggests it is measured from 18 images before each scan. In the five
+  FEG230530_409..413 runs (same FDD 807.135 mm, same sample-stage XS = 0 in the ``.pca`` [Axis]
+  and every ``.pcj`` row, magnification 9.94 to 29.11) CalibValue runs 11.283 to 43.873 in
+  step with the magnification: CalibValue * PixelsizeX / Magnification is 0.227 to 0.301 mm,
+  and a least-squares line CalibValue = 1.70 * M - 5.39 fits all five to 0.82. A value proportional
+  to the magnification is an offset at the object seen on the detector, which is what a
+  rotation axis beside the central ray gives: the unit is then detector pixels (the same
+  figure as voxels: VoxelSizeX = PixelsizeX / M), an axis 0.23 to 0.30 mm from the central ray.
+  This is inferred, not documented. The sign is not shown by anything public: the axis would
+  project at column cx + CalibValue or cx - CalibValue, and taking the wrong one would put
+  u0 2 * CalibValue (57 px in FEG230530_409) from the truth, twice the error of ignoring it.
+  No public reader applies it (the one public ``.pca`` reader found reads it as a number and
+  never uses it). ctpipe therefore keeps u0_px = cx and says in the notes, whenever CalibValue
+  is not 0, its value, the offset at the object it implies, and that it is not applied.
 * **Detector shift.** With [DetectorShift] Enable=1 the detector moves sideways between images
   by XDShift pixels (``.pcp``; the ``.pcj`` logs the same move as XD = XDShift * PixelsizeX
   mm). The public files have DimX = NrPixelsX - 2 Amplitude and cx = (DimX - 1) / 2, so the
@@ -107,6 +125,11 @@ Anchors
   ``-log(I / FreeRay)``.
 * CIL (``NikonDataReader``, ``ZEISSDataReader``), dxchange and tomopy have no datos|x reader, so
   none settles the sign.
+* A public ``.pca`` reader found by content in the code index (``read_pca_file``, "T H 2025",
+  with a ``get_ct_parameters`` beside it; repository not resolved): it reads CalibValue, cx,
+  cy, Tilt, DetectorRot as numbers but builds its geometry from FOD, FDD, PixelsizeX, DimX/Y
+  and ``linspace(0, RotationSector, NumberImages, endpoint=False)`` only: CalibValue unused,
+  the closing image not read.
 """
 
 from __future__ import annotations
@@ -213,8 +236,11 @@ def open_waygate(path: str | Path) -> ScanFiles:
     free_ray = settings.number("Image", "FreeRay", positive=True)
     calib = settings.number("Geometry", "CalibValue", 0.0)
     if calib != 0.0:
-        notes.append(f"[Geometry] CalibValue={calib:g} (datos|x rec's rotation-axis correction, unit and sign "
-                     f"undocumented) is not applied: u0_px is [Geometry] cx={cx:g}")
+        at_object_mm = calib * pitch_u * sod / sdd
+        notes.append(f"[Geometry] CalibValue={calib:g} (datos|x rec's rotation-axis correction) is not applied: "
+                     f"read as detector pixels it puts the axis {at_object_mm:.3f} mm from the central ray at the "
+                     f"object, at column cx {calib:+g} or cx {-calib:+g}, but its sign is undocumented, so u0_px is "
+                     f"[Geometry] cx={cx:g}")
     for key in ("DetectorRot", "Tilt"):
         value = settings.number("Geometry", key, 0.0)
         if value != 0.0:
@@ -227,10 +253,27 @@ def open_waygate(path: str | Path) -> ScanFiles:
         raise InputError(f"{pca}: {exc}") from None
 
     files = _projection_files(folder, name, n_views, pca)
+    closing_file = folder / _projection_name(name, n_views + 1)
+    full_turn = sector == 360.0
+    closing = full_turn and closing_file.is_file()
+    if closing_file.is_file() and not full_turn:
+        notes.append(f"{closing_file.name} (image NumberImages + 1) is not read: [CT] RotationSector={sector:g} is "
+                     f"not a full turn, so it does not repeat image 1")
     pcp = folder / f"{name}.pcp"
     recorded = None
+    pcp_rows = 0
+    closing_offset = None
     if pcp.is_file():
-        recorded, use = _read_pcp(pcp, n_views, pca)
+        recorded, use, extra = _read_pcp(pcp, n_views, pca)
+        pcp_rows = n_views + (extra is not None)
+        if extra is not None:
+            closing_offset = extra[0] - recorded[0]
+        if closing and extra is None:
+            closing = False
+            notes.append(f"{closing_file.name} closes the turn, but {pcp.name} has no row ImgNr {n_views + 1} for "
+                         f"it: read as {n_views} views, without it")
+        elif closing:
+            recorded, use = np.append(recorded, extra[0]), np.append(use, extra[1])
         unused = np.flatnonzero(use != 1)
         if unused.size:
             notes.append(f"{pcp.name} marks {unused.size} image(s) Use != 1 (first: ImgNr {unused[0] + 1}); "
@@ -240,20 +283,26 @@ def open_waygate(path: str | Path) -> ScanFiles:
                      f"counts the other way")
     else:
         notes.append(f"no {pcp.name}: no per-view angle log, only the nominal angles")
-    nominal = np.arange(n_views) * (sector / n_views)
+    if closing:
+        files.append(closing_file)
+    n_read = len(files)
+    nominal = np.arange(n_read) * (sector / n_views)
 
     read = ViewFiles(tuple(files), (rows, cols),
-                     missing="{file}: no such file (projection {number} of [CT] NumberImages={count} in {pca})",
+                     missing="{file}: no such file (image {number} of the {count} read, [CT] NumberImages="
+                             f"{n_views} in {{pca}})",
                      wrong_shape="{file}: must be a {rows} x {cols} image ([Image] DimY x DimX in {pca}), got "
                                  "shape {got}", context={"pca": pca})
     try:
-        stack = ViewStack(read, n_views, (rows, cols), values="intensities", white_level=free_ray, name=str(folder))
+        stack = ViewStack(read, n_read, (rows, cols), values="intensities", white_level=free_ray, name=str(folder))
     except InputError as exc:
         raise InputError(f"{pca}: {exc}") from None
     metadata = {"pca": str(pca), "name": name, "free_ray": free_ray, "calib_value": calib,
-                "rotation_sector_deg": sector, "settings": settings.used}
+                "rotation_sector_deg": sector, "number_images": n_views, "pcp_rows": pcp_rows,
+                "pcp_closing_offset_deg": closing_offset, "settings": settings.used}
     return ScanFiles("waygate", path, geometry, nominal, stack, recorded_angles_deg=recorded,
-                     angle_log=pcp if recorded is not None else None, notes=tuple(notes), metadata=metadata)
+                     angle_log=pcp if recorded is not None else None, notes=tuple(notes), metadata=metadata,
+                     closing_view=closing)
 
 
 def _find_pca(path: Path) -> tuple[Path, Path]:
@@ -396,8 +445,9 @@ def _projection_files(folder: Path, name: str, n_views: int, pca: Path) -> list[
     return files
 
 
-def _read_pcp(pcp: Path, n_views: int, pca: Path) -> tuple[np.ndarray, np.ndarray]:
-    """RotPos (deg) and Use of images 1 .. n_views from the acquisition protocol."""
+def _read_pcp(pcp: Path, n_views: int, pca: Path) -> tuple[np.ndarray, np.ndarray, tuple[float, int] | None]:
+    """RotPos (deg) and Use of images 1 .. n_views from the acquisition protocol, and (RotPos, Use) of image
+    n_views + 1 (the closing image of a full turn) or None when it has no row."""
     lines = _read_text(pcp, _PCP_MAX_BYTES, "acquisition protocol").splitlines()
     header = next((i for i, line in enumerate(lines[:_PCP_HEADER_LINES])
                    if {"ImgNr", "RotPos"} <= {c.strip() for c in line.split("\t")}), None)
@@ -408,8 +458,8 @@ def _read_pcp(pcp: Path, n_views: int, pca: Path) -> tuple[np.ndarray, np.ndarra
     i_nr, i_rot = columns.index("ImgNr"), columns.index("RotPos")
     i_use = columns.index("Use") if "Use" in columns else None
     needed = max(i for i in (i_nr, i_rot, i_use) if i is not None) + 1
-    angles = np.full(n_views, np.nan)
-    use = np.ones(n_views, np.int64)
+    angles = np.full(n_views + 1, np.nan)
+    use = np.ones(n_views + 1, np.int64)
     for lineno, line in enumerate(lines[header + 1:], start=header + 2):
         if not line.strip():
             continue
@@ -425,15 +475,16 @@ def _read_pcp(pcp: Path, n_views: int, pca: Path) -> tuple[np.ndarray, np.ndarra
                               f"numbers, got {line.strip()!r}") from None
         if not math.isfinite(angle):
             raise ConfigError(f"{pcp}: line {lineno}: RotPos must be a finite angle (deg), got {fields[i_rot]!r}")
-        if 1 <= number <= n_views:
+        if 1 <= number <= n_views + 1:
             if not np.isnan(angles[number - 1]):
                 raise ConfigError(f"{pcp}: line {lineno}: ImgNr {number} appears twice")
             angles[number - 1], use[number - 1] = angle, flag
-    missing = np.flatnonzero(np.isnan(angles))
+    missing = np.flatnonzero(np.isnan(angles[:n_views]))
     if missing.size:
         raise InputError(f"{pcp}: no row for ImgNr {missing[0] + 1}; {missing.size} of the {n_views} images of "
                          f"[CT] NumberImages in {pca.name} are not logged, and the protocol must list every projection")
-    return angles, use
+    extra = None if np.isnan(angles[n_views]) else (float(angles[n_views]), int(use[n_views]))
+    return angles[:n_views], use[:n_views], extra
 
 
 # --- writing ------------------------------------------------------------------------------------
@@ -478,7 +529,7 @@ def write_waygate(folder: str | Path, *, geometry: Geometry, nominal_angles_deg,
         [DetectorShift] Amplitude: > 0 records a detector shift whose images were shifted back and
         cropped (NrPixelsX = cols + 2 * amplitude, XDShift per image in the ``.pcp``).
     calib_value : float
-        [Geometry] CalibValue (not applied by the reader; see the module docstring).
+        [Geometry] CalibValue (reported, not applied by the reader; see the module docstring).
     name : str or None
         The scan's name (file prefix); None takes the folder's name.
 
@@ -642,7 +693,10 @@ def write_waygate_angles(path: str | Path, angles_deg) -> Path:
     """Write per-view angles (ctpipe's convention) as a datos|x acquisition protocol (``.pcp``).
 
     One row per view, ``ImgNr`` from 1 and ``RotPos`` in degrees with 3 decimals, the sign kept
-    (the reader takes RotPos with ctpipe's sign; see the module docstring). Only these two
+    (the reader takes RotPos with ctpipe's sign; see the module docstring). A scan read with its
+    closing view has NumberImages + 1 views, so the file has the NumberImages + 1 rows of the
+    scanner's own ``.pcp``; the corrected log of a scan read without it still gets that row
+    (``ctpipe estimate`` writes it through the format's ``corrected_angle_log``). Only these two
     columns are written: the tube and grey-value columns of a scanner's ``.pcp`` are not ctpipe's
     to invent, and :func:`open_waygate` needs only ImgNr and RotPos. The title line says that
     ctpipe wrote the file. Whether datos|x rec reads angles back from a ``.pcp`` is undocumented.
@@ -675,12 +729,22 @@ def write_waygate_angles(path: str | Path, angles_deg) -> Path:
 
 
 def _corrected_angle_log(scan: ScanFiles, angles_deg) -> tuple[str, bytes]:
-    """``<name>.pcp`` with ``angles_deg`` (ctpipe's convention, the nominal angles' frame)."""
+    """``<name>.pcp`` with ``angles_deg`` (ctpipe's convention, the nominal angles' frame), one row per row of the
+    scanner's ``.pcp``.
+
+    A scan read without its closing view whose ``.pcp`` logs image NumberImages + 1 gets that row too, at view
+    0's corrected angle plus the scanner's own RotPos step from image 1 to it (360 for a full turn): the closing
+    image is view 0 one turn later, a turn the images of this scan did not measure.
+    """
     import tempfile
 
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    offset = scan.metadata.get("pcp_closing_offset_deg")
+    if not scan.closing_view and offset is not None and angles.shape == (scan.metadata["number_images"],):
+        angles = np.append(angles, angles[0] + offset)
     name = f"{scan.metadata['name']}.pcp"
     with tempfile.TemporaryDirectory() as tmp:
-        return name, write_waygate_angles(Path(tmp) / name, angles_deg).read_bytes()
+        return name, write_waygate_angles(Path(tmp) / name, angles).read_bytes()
 
 
 register_format("waygate", detect, open_waygate,

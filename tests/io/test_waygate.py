@@ -47,33 +47,43 @@ def copy(scan, tmp_path):
 
 def test_a_written_scan_reads_back_with_the_geometry_angles_and_pixels_of_the_reference(raw_scan, scan, tmp_path):
     opened = open_scan(scan)
+    n = len(raw_scan.nominal_deg)
     assert opened.format == "waygate" and opened.path == scan
     assert opened.geometry == raw_scan.geometry  # 8 decimals in the .pca hold these values exactly
-    np.testing.assert_array_equal(opened.nominal_angles_deg, raw_scan.nominal_deg)
-    np.testing.assert_allclose(opened.recorded_angles_deg, raw_scan.true_deg, rtol=0, atol=ROTPOS_ATOL)
+    # A full turn: image 121 at RotPos = first + 360 is read as the closing view.
+    assert opened.closing_view and opened.n_views == n + 1
+    np.testing.assert_array_equal(opened.nominal_angles_deg[:n], raw_scan.nominal_deg)
+    assert opened.nominal_angles_deg[n] == raw_scan.nominal_deg[0] + 360.0
+    np.testing.assert_allclose(opened.recorded_angles_deg[:n], raw_scan.true_deg, rtol=0, atol=ROTPOS_ATOL)
+    assert opened.recorded_angles_deg[n] == pytest.approx(raw_scan.true_deg[0] + 360.0, abs=ROTPOS_ATOL)
     assert opened.angle_log == scan / "scan.pcp" and opened.true_angles_deg is None
     # The scanner stores offset/gain-corrected counts at the FreeRay level (its own flat correction).
-    stored, free_ray = _stored(scan, len(raw_scan.nominal_deg)), _free_ray(scan)
+    stored, free_ray = _stored(scan, n), _free_ray(scan)
     flat, dark = raw_scan.flats.mean(axis=0), raw_scan.darks.mean(axis=0)
     expected = (raw_scan.intensities - dark) / (flat - dark) * free_ray
     assert np.abs(stored - expected).max() <= 0.5 + 1e-9
     reference = open_scan(write_reference(tmp_path / "ref", raw_scan, stored, white_level=free_ray))
-    assert reference.projections.shape == opened.projections.shape
-    for view in range(len(raw_scan.nominal_deg)):
+    assert reference.projections.shape == (n, *opened.projections.shape[1:])
+    for view in range(n):
         np.testing.assert_array_equal(opened.projections[view], reference.projections[view])
+    np.testing.assert_array_equal(opened.projections[n], reference.projections[0])
 
 
-def test_estimate_equals_the_reference_and_moves_with_the_angle_log(raw_scan, scan, tmp_path, capsys):
-    stored, free_ray = _stored(scan, len(raw_scan.nominal_deg)), _free_ray(scan)
+def test_estimate_equals_the_reference_and_moves_with_the_angle_log(raw_scan, copy, tmp_path, capsys):
+    # Without its closing image the scan is the reference's 120 views (the closing view's pairing is the pair
+    # graph's, tested there).
+    (copy / "scan00121.tif").unlink()
+    stored, free_ray = _stored(copy, len(raw_scan.nominal_deg)), _free_ray(copy)
     reference = write_reference(tmp_path / "ref", raw_scan, stored, white_level=free_ray)
-    estimate = estimate_angles(scan, tmp_path, capsys)
+    estimate = estimate_angles(copy, tmp_path, capsys)
     np.testing.assert_array_equal(estimate, estimate_angles(reference, tmp_path, capsys))
     # Sign: the images turn the way the nominal angles count (slope +1, not -1), and their
     # view-to-view steps follow the RotPos log as read (a reader that negated RotPos would give a
     # correlation near -0.6). The steps, not the departures from nominal: this fast pipeline's
     # error (about 1.3 deg RMS) accumulates over the turn and exceeds the 0.4 deg jitter, so the
     # departures correlate only about 0.36.
-    opened = open_waygate(scan)
+    opened = open_waygate(copy)
+    assert not opened.closing_view and opened.n_views == len(raw_scan.nominal_deg)
     nominal = opened.nominal_angles_deg - opened.nominal_angles_deg[0]
     recorded = opened.recorded_angles_deg - opened.recorded_angles_deg[0]
     assert np.polyfit(nominal, estimate, 1)[0] > 0.9
@@ -90,12 +100,30 @@ def test_the_off_centre_principal_point_survives_cx_cy_and_the_detector_shift_ma
     assert geometry.detector_cols == 128 and geometry.detector_rows == 96
 
 
-def test_a_full_turn_has_one_image_more_at_360_which_is_not_a_view(raw_scan, scan):
-    assert (scan / "scan00121.tif").is_file() and not (scan / "scan00122.tif").exists()
-    np.testing.assert_array_equal(tifffile.imread(scan / "scan00121.tif"), tifffile.imread(scan / "scan00001.tif"))
-    last = (scan / "scan.pcp").read_text().splitlines()[-1].split("\t")
+def test_a_full_turn_has_one_image_more_at_360_read_as_the_closing_view_when_it_is_there(raw_scan, copy):
+    assert (copy / "scan00121.tif").is_file() and not (copy / "scan00122.tif").exists()
+    np.testing.assert_array_equal(tifffile.imread(copy / "scan00121.tif"), tifffile.imread(copy / "scan00001.tif"))
+    last = (copy / "scan.pcp").read_text().splitlines()[-1].split("\t")
     assert last[0] == "121" and float(last[1]) == pytest.approx(raw_scan.true_deg[0] + 360, abs=ROTPOS_ATOL)
-    assert open_waygate(scan).n_views == 120
+    opened = open_waygate(copy)
+    assert opened.closing_view and opened.n_views == 121
+    assert opened.nominal_angles_deg[-1] == 360.0 and opened.recorded_angles_deg[-1] == float(last[1])
+    # Without its file: the 120 views of NumberImages, as before.
+    (copy / "scan00121.tif").rename(copy / "kept.tif")
+    opened = open_waygate(copy)
+    assert not opened.closing_view and opened.n_views == 120 and len(opened.recorded_angles_deg) == 120
+    # With its file but no .pcp row for it: not read, and said.
+    (copy / "kept.tif").rename(copy / "scan00121.tif")
+    pcp = (copy / "scan.pcp").read_bytes()
+    (copy / "scan.pcp").write_bytes(pcp[:pcp.rstrip().rindex(b"\r\n") + 2])
+    opened = open_waygate(copy)
+    assert not opened.closing_view and opened.n_views == 120
+    assert any("scan00121.tif closes the turn, but scan.pcp has no row ImgNr 121" in note for note in opened.notes)
+    # Not a full turn: image NumberImages + 1 does not repeat image 1, and is not read.
+    _edit("RotationSector=360.00000000", "RotationSector=180.00000000")(copy)
+    opened = open_waygate(copy)
+    assert not opened.closing_view and opened.n_views == 120 and opened.nominal_angles_deg[-1] == 119 * 1.5
+    assert any("scan00121.tif (image NumberImages + 1) is not read" in note for note in opened.notes)
 
 
 def test_reads_settings_and_protocol_laid_out_as_datos_x_writes_them(copy):
@@ -116,11 +144,15 @@ def test_reads_settings_and_protocol_laid_out_as_datos_x_writes_them(copy):
 def test_calib_value_is_reported_not_applied_and_a_missing_log_is_said(raw_scan, tmp_path):
     folder = _write(raw_scan, tmp_path / "s", calib_value=28.524)
     opened = open_waygate(folder)
-    assert opened.geometry.u0_px == 66.25
-    assert any("CalibValue=28.524" in note and "not applied" in note for note in opened.notes)
+    assert opened.geometry.u0_px == 66.25 and opened.metadata["calib_value"] == 28.524
+    # 28.524 px of 1.6 mm at magnification 300 / 130: 19.777 mm at the object.
+    note = next(note for note in opened.notes if "CalibValue" in note)
+    assert "CalibValue=28.524" in note and "not applied" in note and "19.777 mm" in note
+    assert "cx +28.524 or cx -28.524" in note
     (folder / "s.pcp").unlink()
     opened = open_waygate(folder)
     assert opened.recorded_angles_deg is None and opened.angle_log is None
+    assert opened.closing_view  # the closing view needs its image, not the protocol
     assert any("no s.pcp" in note for note in opened.notes)
 
 
@@ -135,6 +167,28 @@ def test_corrected_angles_are_written_as_a_new_protocol_the_reader_reads(raw_sca
         write_waygate_angles(tmp_path / "nan.pcp", [0.0, np.nan])
     shutil.copy(out, copy / "scan.pcp")
     np.testing.assert_allclose(open_waygate(copy).recorded_angles_deg, corrected, rtol=0, atol=ROTPOS_ATOL)
+
+
+def test_corrected_angles_go_back_with_as_many_rows_as_the_scanners_protocol(raw_scan, copy):
+    from ctpipe.io.scans import FORMATS
+
+    write = FORMATS["waygate"].corrected_angle_log
+    scanner_rows = (copy / "scan.pcp").read_text().splitlines()[2:]
+    opened = open_waygate(copy)  # with its closing view: 121 views, 121 rows
+    corrected = np.append(raw_scan.true_deg, raw_scan.true_deg[0] + 359.9) + 0.01
+    name, data = write(opened, corrected)
+    rows = [line.split("\t") for line in data.decode("ascii").splitlines()[2:]]
+    assert name == "scan.pcp" and len(rows) == len(scanner_rows) == 121
+    np.testing.assert_allclose([float(r[1]) for r in rows], corrected, rtol=0, atol=ROTPOS_ATOL)
+    # Read without the closing image (120 views), the row of image 121 is still written: view 0's corrected
+    # angle one turn (the scanner's own RotPos step from image 1 to 121) later.
+    (copy / "scan00121.tif").unlink()
+    opened = open_waygate(copy)
+    name, data = write(opened, corrected[:120])
+    rows = [line.split("\t") for line in data.decode("ascii").splitlines()[2:]]
+    assert [r[0] for r in rows] == [str(i) for i in range(1, 122)]
+    step = float(scanner_rows[120].split("\t")[1]) - float(scanner_rows[0].split("\t")[1])
+    assert float(rows[120][1]) == pytest.approx(corrected[0] + step, abs=ROTPOS_ATOL)
 
 
 def test_detect_looks_at_names_and_first_bytes_only(scan, tmp_path):
