@@ -16,6 +16,7 @@ from ctpipe.io.bruker import open_bruker, read_skyscan_log, write_bruker
 from ctpipe.io.corrected import CONE_VECTOR_COLUMNS, TO_ASTRA, cone_vectors, scanner_frame_deg
 from ctpipe.io.flatfield import MAX_DEAD_FRACTION, log_transform, mean_frame
 from ctpipe.io.nikon import open_nikon, read_xtekct, write_nikon, write_nikon_angles
+from ctpipe.io.nsi import open_nsi, read_nsipro
 from ctpipe.io.outputs import (atomic_write, check_output_dir, check_output_file, csv_bytes, json_bytes,
                                keypoints_writer, staged_folder, to_jsonable, write_csv, write_files, write_json,
                                write_keypoints)
@@ -30,7 +31,7 @@ __all__ = ["cone_vectors", "scanner_frame_deg", "CONE_VECTOR_COLUMNS", "TO_ASTRA
            "open_tiff_stack",
            "open_nikon", "write_nikon", "write_nikon_angles", "read_xtekct", "open_waygate",
            "write_waygate", "write_waygate_angles", "open_zeiss", "write_zeiss", "open_bruker", "write_bruker",
-           "read_skyscan_log",
+           "read_skyscan_log", "open_nsi", "read_nsipro",
            "Scan", "read_scan", "write_scan", "check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS",
            "read_projections", "read_image", "read_array", "log_transform", "mean_frame", "MAX_DEAD_FRACTION", "atomic_write",
            "write_files", "staged_folder", "write_json", "write_csv", "json_bytes", "csv_bytes", "to_jsonable",

@@ -321,14 +321,14 @@ def register_format(name: str, detect: Callable[[Path], bool], open: Callable[[P
 
 
 #: The built-in formats in the order they are tried (most specific first), then any others.
-_BUILTIN_ORDER = ("ctpipe", "nikon", "zeiss", "bruker", "waygate", "tiff-yaml")
+_BUILTIN_ORDER = ("ctpipe", "nikon", "zeiss", "bruker", "waygate", "nsi", "tiff-yaml")
 
 
 def _load_builtin_formats() -> None:
     # The format modules register themselves; imported here so that open_scan knows them all.
     import importlib
 
-    for module in ("scan_folder", "nikon", "zeiss", "bruker", "waygate", "tiff_stack"):
+    for module in ("scan_folder", "nikon", "zeiss", "bruker", "waygate", "nsi", "tiff_stack"):
         try:
             importlib.import_module(f"ctpipe.io.{module}")
         except ModuleNotFoundError as exc:
