@@ -177,7 +177,7 @@ def _check_graph(n_views, pairs, angles, weights):
 
 
 def _solve(n_views: int, pairs: np.ndarray, angles: np.ndarray, w: np.ndarray, loss: str, scale: float,
-           max_iterations: int, tolerance: float) -> PairGraphSolution:
+           max_iterations: int, tolerance: float, pinned: np.ndarray | None = None) -> PairGraphSolution:
     """Gauge ``theta[0] = 0``; angles in any unit, ``scale`` and ``tolerance`` in the same unit."""
     theta = np.full(n_views, np.nan)
     theta[0] = 0.0
@@ -196,7 +196,10 @@ def _solve(n_views: int, pairs: np.ndarray, angles: np.ndarray, w: np.ndarray, l
     position[component] = np.arange(component.size)
     inside = usable & (position[pairs[:, 0]] >= 0) & (position[pairs[:, 1]] >= 0)
     i, j = position[pairs[inside, 0]], position[pairs[inside, 1]]
-    alpha, prior = angles[inside], w[inside]
+    alpha, prior = angles[inside], w[inside].copy()
+    pin = np.zeros(alpha.size, bool) if pinned is None else pinned[inside]
+    if pin.any():
+        prior[pin] = PIN_WEIGHT * float(prior.max())
     rows = np.arange(inside.sum())
     # Incidence without view 0's column: the gauge theta[0] = 0 is built into the unknowns.
     incidence = sp.csr_matrix((np.r_[-np.ones(rows.size), np.ones(rows.size)], (np.r_[rows, rows], np.r_[i, j])),
@@ -213,13 +216,13 @@ def _solve(n_views: int, pairs: np.ndarray, angles: np.ndarray, w: np.ndarray, l
     x = solve(prior)
     iterations, converged = 0, loss == "linear"
     while not converged and iterations < max_iterations:
-        weights = _robust_weights(x[j] - x[i] - alpha, loss, scale)
+        weights = np.where(pin, 1.0, _robust_weights(x[j] - x[i] - alpha, loss, scale))
         previous, x = x, solve(prior * weights)
         iterations += 1
         converged = float(np.max(np.abs(x - previous))) <= tolerance
     theta[component] = x
     residuals[inside] = x[j] - x[i] - alpha
-    robust[inside] = _robust_weights(residuals[inside], loss, scale)
+    robust[inside] = np.where(pin, 1.0, _robust_weights(residuals[inside], loss, scale))
     return PairGraphSolution(theta, residuals, robust, iterations, converged)
 
 
@@ -247,9 +250,14 @@ def chain_pair_angles(n_views: int, pairs, angles_rad, weights=None) -> np.ndarr
     return _solve(int(n_views), pairs, angles, w, "linear", 1.0, 0, 0.0).angles_deg
 
 
+#: How much more a pinned pair weighs than the heaviest other pair: enough to hold it to ~1e-6 of
+#: the misclosure, little enough for the normal equations to stay well conditioned.
+PIN_WEIGHT = 1e6
+
+
 def solve_pair_graph(n_views: int, pairs, pair_angles_deg, weights=None, *,
                      loss: Literal["linear", "soft-l1", "huber", "cauchy"] = "soft-l1", scale_deg: float = 0.1,
-                     max_iterations: int = 100, tolerance_deg: float = 1e-7) -> PairGraphSolution:
+                     max_iterations: int = 100, tolerance_deg: float = 1e-7, pinned=None) -> PairGraphSolution:
     """Per-view angles from pair angles with a robust loss, by iteratively reweighted least squares.
 
     Minimises ``sum_k w_k rho((theta[j_k] - theta[i_k] - alpha_k)^2 / scale_deg^2)`` with
@@ -270,6 +278,12 @@ def solve_pair_graph(n_views: int, pairs, pair_angles_deg, weights=None, *,
         NaN for failed pairs, which are ignored.
     weights : ndarray of shape (P,), optional
         Prior weight of each pair (e.g. its inlier count), >= 0; 0 drops a pair.
+    pinned : ndarray of shape (P,), bool, optional
+        Pairs held to their measured angle (:data:`PIN_WEIGHT` times the heaviest pair, never
+        down-weighted): the pairs of views one turn apart (:func:`turn_pairs`), whose angle is
+        the whole turn measured at once. Under a robust loss a single loop-closing pair would
+        otherwise take the chain's whole misclosure as its own residual and be voted out, which
+        leaves the chain's drift (a scale bias of the pair angles, say) in the answer.
     loss : {"soft-l1", "huber", "cauchy", "linear"}
     scale_deg : float
         Residual (degrees) up to which a pair counts as an inlier; > 0. About the spread of the
@@ -292,4 +306,8 @@ def solve_pair_graph(n_views: int, pairs, pair_angles_deg, weights=None, *,
     if not isinstance(max_iterations, (int, np.integer)) or max_iterations < 0:
         raise InputError(f"max_iterations: must be an integer >= 0, got {max_iterations!r}")
     pairs, angles, w = _check_graph(n_views, pairs, pair_angles_deg, weights)
-    return _solve(int(n_views), pairs, angles, w, loss, float(scale_deg), int(max_iterations), float(tolerance_deg))
+    pin = np.zeros(len(pairs), bool) if pinned is None else np.asarray(pinned, dtype=bool).reshape(-1)
+    if pin.size != len(pairs):
+        raise InputError(f"pinned: must be {len(pairs)} booleans, one per pair, got {pin.size}")
+    return _solve(int(n_views), pairs, angles, w, loss, float(scale_deg), int(max_iterations), float(tolerance_deg),
+                  pin)

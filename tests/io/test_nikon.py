@@ -261,3 +261,32 @@ def test_several_xtekct_files_in_one_folder_ask_which(scan):
                                          r"scans; open the one you mean"):
         open_scan(scan)
     assert open_scan(scan / "scan.xtekct").n_views == 6
+
+
+def test_a_closing_image_is_estimated_as_a_view_one_measured_turn_after_view_0(raw_scan, tmp_path, capsys):
+    """A full turn saved as real scanners save it: Projections + 1 images, the last one turn on.
+
+    The closing image is taken 0.3 deg past one turn: the estimate must measure that from the
+    images (pair (0, V)), not assume the turn is exactly 360 deg.
+    """
+    from ctpipe.sim import load_phantom
+    from ctpipe.sim.acquisition import beer_lambert
+    from ctpipe.sim.simulator import project_phantom
+
+    closing_true = raw_scan.true_deg[0] + 360.3
+    line_integrals = project_phantom(load_phantom("bead-cylinder"), raw_scan.geometry, [closing_true], blur_px=0.5)
+    expected = beer_lambert(line_integrals, 20000, 100)
+    closing = np.random.default_rng(9).poisson(expected).astype(np.uint16)
+    step = raw_scan.nominal_deg[1] - raw_scan.nominal_deg[0]
+    folder = write(tmp_path / "closing", raw_scan, intensities=np.concatenate([raw_scan.intensities, closing]),
+                   nominal_angles_deg=np.append(raw_scan.nominal_deg, raw_scan.nominal_deg[-1] + step),
+                   recorded_angles_deg=np.append(raw_scan.true_deg, closing_true))
+    keys = nikon.read_xtekct(folder / "scan.xtekct")
+    n = len(raw_scan.nominal_deg)
+    assert int(keys["Projections"]) == n and (folder / f"scan_{n + 1:04d}.tif").is_file()
+    scan = open_scan(folder)
+    assert scan.closing_view and scan.n_views == n + 1 and scan.nominal_angles_deg[-1] == 360.0
+
+    angles = estimate_angles(folder, tmp_path, capsys)
+    assert len(angles) == n + 1
+    assert angles[-1] - angles[0] == pytest.approx(360.3, abs=0.1)

@@ -173,3 +173,20 @@ def test_view_pairs_add_the_closing_pair_with_loop_closure_only():
     assert view_pairs(5, (1,), nominal, loop_closure=False).tolist() == [[0, 1], [1, 2], [2, 3], [3, 4]]
     angles = unwrap_pair_angles_deg([[0, 4]], [0.3], nominal)
     assert angles.tolist() == [360.3]  # measured: the closing view is 0.3 deg past one turn
+
+
+def test_a_pinned_turn_pair_holds_the_measured_turn_against_a_biased_chain():
+    # A chain whose steps all read 1 % low, closed by the pair of view 0 and the closing view,
+    # which measures the turn at once: 360.2 deg.
+    nominal = np.arange(37) * 10.0
+    pairs = view_pairs(37, (1,), nominal)
+    angles = np.where(pairs[:, 1] - pairs[:, 0] == 1, 9.9, 360.2 - 360.0)
+    angles = unwrap_pair_angles_deg(pairs, angles, nominal)
+    robust = solve_pair_graph(37, pairs, angles, loss="soft-l1", scale_deg=0.1)
+    pinned = solve_pair_graph(37, pairs, angles, loss="soft-l1", scale_deg=0.1,
+                              pinned=(pairs[:, 0] == 0) & (pairs[:, 1] == 36))
+    # Unpinned, the one closing pair is a vote among 37 and gives way to the chain's drift.
+    assert abs(robust.angles_deg[-1] - 360.2) > 0.05
+    assert pinned.angles_deg[-1] == pytest.approx(360.2, abs=1e-4)
+    assert pinned.robust_weights[-1] == 1.0
+    np.testing.assert_allclose(np.diff(pinned.angles_deg), 360.2 / 36, atol=1e-4)
