@@ -108,6 +108,8 @@ def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, execu
         nominal = scan.nominal_angles_deg
         if args.geometry:
             raise InputError(f"{source} is a {scan.format} scan with its own geometry; drop --geometry")
+        if progress and not args.json:
+            print("\n".join(scan.describe()), flush=True)
     else:
         if not args.geometry:
             raise InputError(f"{source}: a projection file needs --geometry GEOMETRY.yaml (or give a scan folder)")
@@ -119,7 +121,8 @@ def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, execu
     files = _estimate_files(Path(out), report, columns, geometry, result, scan) if out is not None else {}
     if files:
         write_files(files)
-    summary = _estimate_summary(report, result, scan, source, sorted(path.name for path in files))
+    summary = _estimate_summary(report, result, scan, source, sorted(path.name for path in files),
+                                described=scan is not None and progress and not args.json)
     failed = [s for s in result.pair_status if s != "ok"]
     warning = f"warning: {len(failed)} pairs failed, e.g. {failed[0]}" if failed else None
     return report, summary, warning
@@ -282,6 +285,11 @@ def _estimate_report(config, geometry, result, scan, nominal, truth) -> tuple[di
         columns["nominal_deg"] = nominal
         columns["estimated_minus_nominal_deg"] = estimated - nominal
     recorded = None if scan is None else scan.recorded_angles_deg
+    if scan is not None and scan.closing_view:
+        # The closing view is view 0's pose one turn on: how far it turned, measured from the images.
+        report["closing_view"] = {"view": scan.n_views - 1, "nominal_turn_deg": float(nominal[-1] - nominal[0]),
+                                  "estimated_turn_deg": float(result.angles_deg[-1] - result.angles_deg[0]),
+                                  "recorded_turn_deg": None if recorded is None else float(recorded[-1] - recorded[0])}
     if recorded is not None:
         report["recorded_deg"] = recorded
         report["against_recorded"] = _difference_table(estimated, recorded)
@@ -338,15 +346,16 @@ def _angle_log_writer(format_name: str):
     return None if fmt is None else fmt.corrected_angle_log
 
 
-def _estimate_summary(report: dict, result, scan, source: Path, written: list[str]) -> str:
-    """One screen: what was read, how the estimate went, how far it is from the nominal and logged angles."""
+def _estimate_summary(report: dict, result, scan, source: Path, written: list[str], *, described: bool = False) -> str:
+    """One screen: what was read (unless ``described`` before the run), how the estimate went,
+    how far it is from the nominal and logged angles."""
     g = report["geometry"]
     lines = []
-    what = f"{scan.format} scan" if scan is not None else "projections"
-    lines.append(f"{what} {source}: {len(result.angles_deg)} views of {g['detector_rows']} x {g['detector_cols']} "
-                 f"px, SOD {g['source_to_object_mm']:g} mm, SDD {g['source_to_detector_mm']:g} mm")
-    for note in ([] if scan is None else scan.notes):
-        lines.append(f"  note: {note}")
+    if scan is not None and not described:
+        lines += scan.describe()
+    elif scan is None:
+        lines.append(f"projections {source}: {len(result.angles_deg)} views of {g['detector_rows']} x "
+                     f"{g['detector_cols']} px, SOD {g['source_to_object_mm']:g} mm, SDD {g['source_to_detector_mm']:g} mm")
     stages = report["pipeline"]
     lines.append("pipeline: " + " -> ".join(stages[k]["name"] for k in ("detector", "matcher", "estimator", "refiner")))
     failed = sum(s != "ok" for s in result.pair_status)
@@ -362,6 +371,11 @@ def _estimate_summary(report: dict, result, scan, source: Path, written: list[st
         if table and table.get("views"):
             lines.append(f"estimated minus {label}: RMS {table['rms_deg']:.4f} deg, max {table['max_deg']:.4f} deg "
                          f"(view {table['worst_view']}), median offset removed")
+    closing = report.get("closing_view")
+    if closing:
+        logged = "" if closing["recorded_turn_deg"] is None else f", logged {closing['recorded_turn_deg']:.4f}"
+        lines.append(f"closing view {closing['view']}: {closing['estimated_turn_deg']:.4f} deg after view 0, measured "
+                     f"from the images (nominal {closing['nominal_turn_deg']:.4f}{logged})")
     if "angle_errors" in report:
         table = report["angle_errors"]["views"]
         lines.append(f"against the true angles: RMS {table['rms_deg']:.4f} deg, MAE {table['mae_deg']:.4f} deg, "

@@ -293,6 +293,37 @@ class ScanFiles:
     def n_views(self) -> int:
         return len(self.projections)
 
+    def describe(self) -> list[str]:
+        """What was read, as the lines a person checks before the long work starts.
+
+        Format and detector, geometry, views (a closing one said as such), the nominal angles,
+        the scanner's angle log and which way it runs against the nominal angles, and the
+        reader's notes.
+        """
+        g, nominal = self.geometry, np.asarray(self.nominal_angles_deg, dtype=np.float64)
+        views = f"{self.n_views} views"
+        if self.closing_view:
+            views += (f" ({self.n_views - 1} and the closing view, {nominal[-1] - nominal[0]:g} deg after view 0, "
+                      "paired with it)")
+        lines = [f"{self.format} scan {self.path}: {views} of {g.detector_rows} x {g.detector_cols} px, "
+                 f"pixels {g.pixel_pitch_u_mm:g} x {g.pixel_pitch_v_mm:g} mm",
+                 f"geometry: source to axis {g.source_to_object_mm:g} mm, source to detector "
+                 f"{g.source_to_detector_mm:g} mm (magnification {g.source_to_detector_mm / g.source_to_object_mm:.4g}), "
+                 f"principal point u0 {g.u0_px:.2f} px, v0 {g.v0_px:.2f} px"]
+        if nominal.size > 1:
+            lines.append(f"nominal angles: {nominal[0]:g} .. {nominal[-1]:g} deg in steps of "
+                         f"{float(np.median(np.diff(nominal))):+g} deg")
+        recorded = self.recorded_angles_deg
+        if recorded is not None and recorded.size > 1:
+            log = self.angle_log.name if self.angle_log is not None else "the scanner's log"
+            along = np.sign(recorded[-1] - recorded[0]) == np.sign(nominal[-1] - nominal[0])
+            difference = recorded - nominal
+            lines.append(f"logged angles ({log}): {recorded[0]:g} .. {recorded[-1]:g} deg, "
+                         f"{'turning with' if along else 'turning AGAINST'} the nominal ones; logged minus nominal: "
+                         f"median {float(np.median(difference)):+.4f} deg, spread {float(np.ptp(difference)):.4f} deg")
+        lines += [f"  note: {note}" for note in self.notes]
+        return lines
+
 
 @dataclass(frozen=True)
 class _Format:

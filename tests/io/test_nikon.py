@@ -290,3 +290,30 @@ def test_a_closing_image_is_estimated_as_a_view_one_measured_turn_after_view_0(r
     angles = estimate_angles(folder, tmp_path, capsys)
     assert len(angles) == n + 1
     assert angles[-1] - angles[0] == pytest.approx(360.3, abs=0.1)
+
+
+def test_estimate_says_what_it_read_before_the_long_work(raw_scan, tmp_path, capsys, monkeypatch):
+    import ctpipe.pipeline
+    from ctpipe.cli import main
+
+    step = raw_scan.nominal_deg[1] - raw_scan.nominal_deg[0]
+    folder = write(tmp_path / "said", raw_scan, intensities=np.concatenate([raw_scan.intensities,
+                                                                            raw_scan.intensities[:1]]),
+                   nominal_angles_deg=np.append(raw_scan.nominal_deg, raw_scan.nominal_deg[-1] + step),
+                   recorded_angles_deg=np.append(raw_scan.true_deg, raw_scan.true_deg[0] + 360.0), angle_log="ang")
+    said = []
+
+    def stop(*args, **kwargs):  # the long work: record what was on stdout by then, and stop
+        said.append(capsys.readouterr().out)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ctpipe.pipeline.Pipeline, "run", stop)
+    assert main(["estimate", str(folder)]) == 130
+    lines = said[0].splitlines()
+    assert lines[0] == (f"nikon scan {folder}: 121 views (120 and the closing view, 360 deg after view 0, paired "
+                        "with it) of 96 x 128 px, pixels 1.6 x 1.6 mm")
+    assert lines[1].startswith("geometry: source to axis 130 mm, source to detector 300 mm (magnification 2.308), "
+                               "principal point u0 66.25 px, v0 45.50 px")
+    assert lines[2] == "nominal angles: 0 .. 360 deg in steps of +3 deg"
+    assert lines[3].startswith("logged angles (scan.ang): ") and "turning with the nominal ones" in lines[3]
+    assert any("scan.ang counts against AngularStep" in line for line in lines[4:])
