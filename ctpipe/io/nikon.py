@@ -32,7 +32,8 @@ CentreOfRotationTop, ...   axis shift at the detector, top and bottom rows (olde
 Bottom                     files; used when ObjectOffsetX is absent) -> ``u0_px``
 ObjectRoll, ObjectTilt     axis roll and tilt (optional): not modelled, a note        deg
 ObjectOffsetY              axis shift along the beam (optional): not modelled, a note mm
-Projections                number of projections (must match the files and logs)
+Projections                number of projections; the folder holds as many images, or
+                           one more that closes the turn (see below)
 InitialAngle, AngularStep  nominal angle of projection i: InitialAngle + i * Step     deg
 WhiteLevel                 counts of an unattenuated pixel -> ``white_level``
 Name, InputName,           file names of the projections (InputName defaults to
@@ -42,32 +43,66 @@ InputFolderName
 Scattering                 a scatter percentage CT Pro subtracts: not applied, a note  %
 =========================  =========================================================  ======
 
+The closing image
+-----------------
+A Nikon scan of a full turn saves ``Projections + 1`` images and logs ``Projections + 1``
+angles: every real folder in ``shared/real-metadata`` does (XT H: ``ivan-cube``, ``pillars``,
+``ivan-balls 3`` with 257, 129, 257 ``.ang`` rows for Projections 256, 128, 256, and
+``ivan-balls-7`` with 513 ``_ctdata.txt`` rows for 512; CT Pro 5.4's Lego scan with 1571 for
+1570), and the images are named on to ``<Name>_<Projections + 1>.tif``. The last image is taken
+at ``InitialAngle + Projections * AngularStep``: one turn after view 0 (360.000 deg in the XT H
+sets, 360.02 in ``ivan-balls-7``, 361.03 in the Lego scan, whose step is 0.2299575). TIGRE's
+``NikonDataLoader`` reads every ``.tif`` in the folder and every log row, so it reconstructs with
+the closing image too. ctpipe reads it as the last view (``ScanFiles.closing_view``) at that
+nominal angle, and the pair graph pairs it with view 0 (:func:`ctpipe.solve.turn_pairs`), so
+the turn is measured from the images. A folder with only ``Projections`` images reads as
+``Projections`` views (a log row for the missing image is left out, and said); anything else
+is refused.
+
 Angle logs
 ----------
-``_ctdata.txt`` (a real one: xray-imaging/meta-cli, ``docs/source/demo/nikon/``)::
+``_ctdata.txt`` (real ones: xray-imaging/meta-cli ``docs/source/demo/nikon/``,
+igrega348/nerf_data ``balls7``)::
 
     Projections<TAB>Frames<TAB>Exposure(ms)
     1570<TAB>1<TAB>708.00
     Projection<TAB>Angle(deg)<TAB>Time(s)
     1<TAB>000.0342<TAB>002.8319
     ...
+    1571<TAB>361.0664<TAB>1114.7200
 
-``<Name>.ang`` (the ``AngleFile`` of ``[CTPro] AngleFile_Use``): a header line
-``Proj<TAB>Angle(deg)``, then ``<projection>:<TAB><angle>`` per projection, numbered from 1;
-the readers that parse it (CCPi's ``XtekReader``, TIGRE, OMEGA, CIL's predecessor of 2019)
-agree on that layout, and the reader here accepts the colon or not and any blank separator.
-``<Name>.ang`` is preferred when both exist; the one read is ``angle_log`` and is said in
-``notes``.
+``<Name>.ang`` (real ones: igrega348/nerf_data ``cube``, ``pillars``, ``balls``): a header
+line ``Proj<TAB>Angle(deg)``, then ``<projection>:<TAB><angle>`` per image, numbered from 1::
 
-Both logs count the angles from the start of the scan: in the real ``_ctdata.txt`` above the
-first projection is at 0.0342 deg while the ``.xtekct`` says ``InitialAngle=40.20631``. The
-recorded angles are therefore ``InitialAngle + logged angle``, in the frame of the nominal
-ones (CIL's predecessor of 2019 added ``InitialAngle`` to both logs too), and
-:func:`write_nikon_angles` subtracts it again.
+    Proj<TAB>Angle(deg)
+    1:<TAB>000.000
+    2:<TAB>-001.406
+    ...
+    257:<TAB>-359.999
+
+Both are read where both exist (``<Name>.ang`` is the one used, and the notes say how far
+``_ctdata.txt`` agrees with it). Both count from the start of the scan: the real
+``_ctdata.txt`` files start at 0.0342 and 0.5613 deg while their ``.xtekct`` say
+``InitialAngle`` = 40.20631 and 5.211245, so the recorded angles are ``InitialAngle`` plus or
+minus the logged values (CIL's predecessor of 2019 added ``InitialAngle`` to both logs too).
+
+Sense of the logs. The real ``.ang`` files run *against* ``AngularStep`` (0, -1.406, ...,
+-359.999 for a step of +1.40625), the real ``_ctdata.txt`` files *with* it (0.5613, 1.2693, ...,
+360.5835 for +0.7031701). The public readers agree once their own frames are accounted for:
+TIGRE (``Python/tigre/utilities/io/NikonDataLoader.py``, after CERN/TIGRE#418 fixed "a
+difference in expected rotation direction") negates the nominal angles and ``_ctdata.txt`` but
+takes the ``.ang`` as it is; OMEGA (villekf/OMEGA ``loadNikonData.py``) negates the ``.ang``;
+CCPi's ``XtekReader`` reverses its order, the same correction for uniform steps. So the reader
+measures each log's sense from its values against ``AngularStep`` (a log that does not move
+takes the real files' sense: ``.ang`` against, ``_ctdata.txt`` with) and reads
+``recorded = InitialAngle + sense * value``; the sense is in ``metadata["angle_log_sense"]`` and
+the notes. Taking the ``.ang`` as it stands, as ctpipe did before, put "logged minus nominal"
+at -717 deg on the XT H sets. :func:`write_nikon_angles` writes ``.ang`` files the scanners'
+way (against ``AngularStep``), with as many rows as the scanner's own log.
 
 Sign of the angles
 ------------------
-Neither the ``.xtekct`` nor the logs are negated: an angle that grows by +a is a turn of +a in
+The ``.xtekct`` angles are not negated: an angle that grows by +a is a turn of +a in
 ctpipe's convention, for the images as they are stored. The anchor is CIL's
 ``NikonDataReader`` (TomographicImaging/CIL, ``Wrappers/Python/cil/io/NikonDataReader.py``):
 it sets ``angles = -(InitialAngle + i * AngularStep) + 180`` *and* declares the panel origin
@@ -78,20 +113,8 @@ towards *smaller* stored columns; in ctpipe a turn of +t moves it towards *large
 So ctpipe's angle is ``-(CIL angle)`` plus a constant, which is ``+(InitialAngle + i * Step)``:
 CIL's two reversals (of the angle and of the column axis) cancel for a reader that keeps the
 stored image as it is. The conclusion holds whichever way round the real turntable turns, as
-long as CIL's angle and panel origin are right relative to each other.
-
-The logs count the same way as ``AngularStep``: in the real ``_ctdata.txt`` the angle grows by
-0.23 deg per projection, the ``AngularStep`` of its ``.xtekct``. Older readers disagree on the
-``.ang``: CCPi's ``XtekReader::readAngFile`` (``XtekReader.cpp``, the Avizo plug-in whose header
-is vais-ral/CCPi-Reconstruction ``branches/tune/Avizo/src/CCPiReconstruction/XtekReader.h``)
-and CIL's predecessor of 2019 (``ccpi.io.NikonDataReader``, vais-ral/CCPi-Framework) reverse
-its order, OMEGA (villekf/OMEGA, ``source/Python/omegatomo/fileio/loadNikonData.py``) negates
-it and TIGRE (CERN/TIGRE, ``Python/tigre/utilities/io/NikonDataLoader.py``) takes it as it is.
-For uniform steps, reversing and negating are the same correction (each turns an increasing
-list into a decreasing one), the one CIL applies to the nominal angles for its own frame; read
-that way, all of them describe an ``.ang`` that counts like ``AngularStep``, which is what
-this reader assumes. CIL has ignored both logs since 2020 ("appear to hold angular data but
-it's not correct", TomographicImaging/CIL#703).
+long as CIL's angle and panel origin are right relative to each other. CIL has ignored both
+logs since 2020 ("appear to hold angular data but it's not correct", TomographicImaging/CIL#703).
 
 Offsets and the principal point
 -------------------------------
@@ -119,10 +142,11 @@ differ at all, however little; the estimate degrades with the lean, and the note
 
 What is unclear
 ---------------
-* Whether ``.ang`` values include ``InitialAngle`` (taken: they do not, like ``_ctdata.txt``),
-  and whether a real ``.ang`` numbers its lines ``1:`` or ``0001:`` (both are read).
-* Whether the ``.ang`` lists projections in reverse order, as CCPi's ``XtekReader`` assumes
-  (taken: it does not; see above).
+* Whether ``.ang`` values include ``InitialAngle`` (taken: they do not, like ``_ctdata.txt``;
+  every real ``.ang`` here has ``InitialAngle=0``), and whether a real ``.ang`` numbers its lines
+  ``1:`` or ``0001:`` (both are read).
+* Whether an ``.ang`` of a scan with a negative ``AngularStep`` runs against it too (taken: the
+  sense is measured from each file's values, so either reads right).
 * ``DetectorOffsetX``'s sign and use: the current CIL ignores it, the one of 2022 used it as
   above, TIGRE passes it to ``offDetector`` unsigned and says it is untested.
 * ``Scattering``: CT Pro subtracts ``WhiteLevel * Scattering / 100`` in some way before the
@@ -132,8 +156,9 @@ What is unclear
 
 Public readers used as anchors: CIL ``NikonDataReader`` (current and of 2022), its test
 ``Wrappers/Python/test/test_io.py`` and its predecessor of 2019; CCPi ``XtekReader``; TIGRE
-``NikonDataLoader``; OMEGA ``loadNikonData``; real files in xray-imaging/meta-cli
-``docs/source/demo/nikon/``.
+``NikonDataLoader`` and CERN/TIGRE#418; OMEGA ``loadNikonData``; real files in
+xray-imaging/meta-cli ``docs/source/demo/nikon/`` (CT Pro 5.4) and igrega348/nerf_data
+``experimental/`` (XT H), read value by value in ``tests/io/test_real_nikon.py``.
 """
 
 from __future__ import annotations
