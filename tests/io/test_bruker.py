@@ -163,6 +163,20 @@ def test_optical_axis_and_postalignment_give_the_principal_point(tmp_path):
     assert opened.geometry.u0_px == 4.5 and any("Postalignment" in note for note in opened.notes)
 
 
+def test_image_rotation_is_said_with_its_lean_over_the_rows_and_not_applied(tmp_path):
+    folder = small_scan(tmp_path / "s")  # 8 rows; the writer logs Image Rotation=0.00000: no note
+    assert not any("Image Rotation" in note for note in open_scan(folder).notes)
+    before = open_scan(folder).geometry
+    edit_log(folder, "Image Rotation=0.00000", "Image Rotation=-30.0")  # large, so that 8 rows lean 4.6 px
+    opened = open_scan(folder)
+    assert opened.geometry == before
+    assert any("Image Rotation=-30 deg" in note and "not applied" in note and "over the 8 rows the axis would "
+               "lean 4.6 px" in note for note in opened.notes)
+    edit_log(folder, "Image Rotation=-30.0", "Image Rotation=tilted")
+    opened = open_scan(folder)  # never applied, so a broken value is said, not refused
+    assert opened.geometry == before and any("Image Rotation='tilted' is not a number" in n for n in opened.notes)
+
+
 def test_a_sub_scan_takes_its_own_post_alignment(tmp_path):
     folder = small_scan(tmp_path / "s", prefix="part~01")
     edit_log(folder, "Postalignment=0.50", "Sub-scan post alignment [0]=0.000000\r\n"
