@@ -126,24 +126,27 @@ Unclear, and said in notes when it applies
 artefacts; the saved projections are believed to be shifted back, which ctpipe assumes (a
 residual vertical shift between views biases the estimate). ``TS modified according to
 <prefix>_TS.csv``: a thermal-shift table NRecon applies when reconstructing, not to the
-TIFFs; ctpipe does not apply it. ``Image Rotation``: see below. A non-zero ``Image crop origin Y``: ``Optical Axis (line)`` is taken as a row of
-the stored image, which is what NRecon sees.
+TIFFs; ctpipe does not apply it. ``Image Rotation``: see below. A non-zero ``Image crop
+origin Y``: ``Optical Axis (line)`` is taken as a row of the stored image, which is what
+NRecon sees.
 
 *Image Rotation.* ``[Acquisition] Image Rotation`` is a small angle the scanner writes for
 every scan: 0.1700 (SkyScan 1173), 0.05700 (1272, ``xray-imaging/meta-cli``), -0.35000 (another
-1272 log) and 0.9900 (a 1176 log quoted in ``ufo-kit/tofu`` issue 89 and ``leehoy/BPF`` issue
-1), unchanged by NRecon (the 1272's ``_Rec/..._rec.log`` repeats the acquisition keys; its own
-rotations are ``CS Static Rotation (deg)``, of the reconstructed slice, and ``Used extra
-rotation per scan(deg)``, between sub-scans). Inferred, not documented: it is in degrees (0.99
-radians would be a 57 deg camera) and it is the in-plane rotation (roll) of the camera about
-the central ray against the turntable axis, the one angle of a detector that a calibration can
-measure from the projections. No public SkyScan reader uses it (TIGRE's loaders,
-``tleissner/cil-import-bruker``, the MATLAB ``SkyScanParser``), no document says whether the
-scanner rotated the saved TIFFs by it or leaves that to NRecon, nor which way is positive.
-ctpipe's :class:`~ctpipe.geometry.Geometry` has no roll, so it is not applied; when it is not
-0 a note gives it and how far the rotation axis leans over the image height,
-``rows * tan(Image Rotation)`` pixels (6.6 px over the 2240 rows of the 1173 log, 0.9 px over
-the 896 rows of the 1272 one), so that a user can judge whether it matters for the scan.
+1272 log, quoted in a public file found by content whose repository was not resolved) and
+0.9900 (a 1176 log quoted in ``ufo-kit/tofu`` issue 89 and ``leehoy/BPF`` issue 1), unchanged
+by NRecon (the 1272's ``_Rec/..._rec.log`` repeats the acquisition keys; its own rotations are
+``CS Static Rotation (deg)``, of the reconstructed slice, and ``Used extra rotation per
+scan(deg)``, between sub-scans). Inferred, not documented: it is in degrees (0.99 radians would
+be a 57 deg camera) and it is the in-plane rotation (roll) of the camera about the central ray
+against the turntable axis, the one angle of a detector that a calibration can measure from the
+projections. No public SkyScan reader found uses it (TIGRE's ``BrukerDataLoader.py``,
+``tleissner/cil-import-bruker``'s ``bruker2cil/geometry_utils.py`` and ``import_utils.py``), no
+document says whether the scanner rotated the saved TIFFs by it or leaves that to NRecon, nor
+which way is positive. ctpipe's :class:`~ctpipe.geometry.Geometry` has no roll, so it is not
+applied; when it is not 0 a note gives it and how far the rotation axis leans over the image
+height, ``rows * tan(Image Rotation)`` pixels (6.6 px over the 2240 rows of the 1173 log, 0.9
+px over the 896 rows of the 1272 one), so that a user can judge whether it matters for the
+scan.
 
 *Post alignment.* Only NRecon writes it, into the ``[Reconstruction]`` section it appends to
 the acquisition log (``Postalignment=0.50`` in the 1173 log) or, for a connected scan, as
