@@ -74,8 +74,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numba import njit
-from scipy import fft, ndimage, optimize
+from numba import njit, prange
+from scipy import fft, ndimage
 from scipy.spatial import cKDTree
 
 from ctpipe.data import Features
@@ -94,6 +94,8 @@ _SCALE_STEP = 2.0 ** 0.25
 # Cells the disc is sampled on in the model, px (exactly integrated, so only the shape's fidelity
 # depends on it, not the centre's symmetry).
 _CELL_PX = 0.4
+_MAX_CELLS = 96
+_CELL_SAMPLES = 4
 _DIAMETER_TOLERANCE = 1.2
 # Overlapping neighbours fitted jointly with a ball; further ones are masked out of its window.
 _MAX_NUISANCE = 3
@@ -107,15 +109,35 @@ _PAIR_EXTENT = 0.65
 _PAIR_EVIDENCE = 50.0
 # Most balls a connected crowd is split into.
 _MAX_CROWD = 12
+# A fit is repeated without the pixels beyond this many robust deviations of its residual
+# (dust on a ball), when they are fewer than this share of its window.
+_OUTLIER_SIGMA = 8.0
+_MAX_OUTLIERS = 0.02
 _CLEAN, _OVERLAP, _TRUNCATED = 0, 1, 2
+# Default diameter range: 10 px to a third of the image's smaller side.
+_AUTO_MIN_DIAMETER_PX = 10.0
+# Radii of one octave of the scale space, in pixels of its pyramid level.
+_LEVEL_RADIUS_PX = 2.0
+# Candidates found on a coarse level are located again this many levels finer.
+_REFINE_LEVELS = 2
+# Balls of one phantom project within this factor of their median radius (depth, overlaps).
+_SIZE_SPREAD = 2.5
+# Dead and hot pixels: beyond both neighbours by this many noise deviations and this fraction of
+# the neighbours' distance from the image's median.
+_SPIKE_SIGMA = 10.0
+_SPIKE_FRACTION = 0.25
 
 
 @dataclass(frozen=True)
 class BeadDetector(Detector):
     """Balls of a calibration phantom: sub-pixel disc centres, radii and contrasts."""
 
-    min_diameter_px: float = param(6.0, doc="smallest projected ball diameter, px", ge=2, le=4096)
-    max_diameter_px: float = param(40.0, doc="largest projected ball diameter, px", ge=2, le=4096)
+    min_diameter_px: float | None = param(
+        None, doc="smallest projected ball diameter, px (null: 10 px, and the balls' own size decides)", ge=2,
+        le=4096)
+    max_diameter_px: float | None = param(
+        None, doc="largest projected ball diameter, px (null: a third of the image, and the balls' own size decides)",
+        ge=2, le=4096)
     polarity: Literal["auto", "bright", "dark"] = param(
         "auto", doc="bright discs on dark (line integrals), dark on bright (raw intensities), or decide per image")
     min_contrast_sigma: float = param(5.0, doc="smallest ball height above background, in noise standard deviations",
@@ -126,7 +148,8 @@ class BeadDetector(Detector):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.min_diameter_px > self.max_diameter_px:
+        if (self.min_diameter_px is not None and self.max_diameter_px is not None
+                and self.min_diameter_px > self.max_diameter_px):
             raise ConfigError(f"BeadDetector.min_diameter_px: must be <= max_diameter_px ({self.max_diameter_px:g}), "
                               f"got {self.min_diameter_px:g}")
 
@@ -153,15 +176,22 @@ class BeadDetector(Detector):
         if span == 0.0:
             return _features(np.zeros((0, 5)))
         noise = _noise_sigma(f, integer=integer, span=span)
-        r_min, r_max = self.min_diameter_px / 2.0, self.max_diameter_px / 2.0
-        radii, stack = _log_stack(f, r_min, r_max)
-        sign = {"bright": 1.0, "dark": -1.0}.get(self.polarity) or (1.0 if stack.max() >= -stack.min() else -1.0)
-        if sign < 0:
-            np.negative(stack, out=stack)
-        candidates = _candidates(stack, radii, 0.7 * self.min_contrast_sigma * noise)
-        del stack
+        f = _despike(f, noise)
+        auto = self.min_diameter_px is None and self.max_diameter_px is None
+        d_min = _AUTO_MIN_DIAMETER_PX if self.min_diameter_px is None else self.min_diameter_px
+        d_max = (max(min(f.shape) / 3.0, d_min) if self.max_diameter_px is None else self.max_diameter_px)
+        r_min, r_max = 0.5 * min(d_min, d_max), 0.5 * d_max
+        polarity = {"bright": (1.0,), "dark": (-1.0,)}.get(self.polarity, (1.0, -1.0))
+        threshold = 0.7 * self.min_contrast_sigma * noise
+        sign, candidates = _scale_space_candidates(f, r_min, r_max, threshold, polarity)
         if not len(candidates):
             return _features(np.zeros((0, 5)))
+        if auto:
+            # The balls' own size sets the range from here on: a scale step either way of the
+            # candidates kept, as if it had been given.
+            candidates = _of_the_balls_size(candidates)
+            r_min = max(r_min, float(candidates[:, 2].min()) / _SCALE_STEP)
+            r_max = min(r_max, float(candidates[:, 2].max()) * _SCALE_STEP)
         g, noise = _line_integrals(f, sign, noise, integer=integer)
         min_height = self.min_contrast_sigma * noise
         tophat = g - _background(g, int(math.ceil(2.0 * r_max)) + 3)
@@ -171,7 +201,10 @@ class BeadDetector(Detector):
               np.clip(np.rint(candidates[:, 0]).astype(np.intp), 0, f.shape[1] - 1))
         candidates[:, 3] = tophat[at]
         candidates = candidates[(candidates[:, 3] >= 0.7 * min_height) & _across(tophat, candidates)]
+        if not len(candidates):
+            return _features(np.zeros((0, 5)))
         if self.centre_method == "fit":
+            candidates = _recentred(tophat, candidates)
             beads = _fit_all(tophat, candidates, noise=noise, min_height=min_height)
             beads = _clusters(tophat, beads, noise=noise, min_height=min_height)[:, [0, 1, 2, 3, 5]]
         else:
@@ -237,22 +270,65 @@ def _background(g: np.ndarray, footprint: int) -> np.ndarray:
                                 mode="reflect")
 
 
-def _log_stack(f: np.ndarray, r_min: float, r_max: float) -> tuple[np.ndarray, np.ndarray]:
-    """Radii and ``-s^2 LoG_s * f`` (float32, (scales, rows, cols)) at ``s = 0.602 r``.
+def _despike(f: np.ndarray, noise: float) -> np.ndarray:
+    """``f`` with dead and hot pixels, and lines of them one pixel wide, replaced by their neighbours.
 
-    Radii run from one step below ``r_min`` to one step above ``r_max`` so that balls at either end
-    of the range are maxima in scale. Computed by FFT with symmetric padding of 4 s.
+    A pixel is a defect along x when it lies beyond both its left and right neighbours by more
+    than ``_SPIKE_SIGMA`` noise deviations and more than ``_SPIKE_FRACTION`` of how far those
+    neighbours stand from the image's median (a ball's own curvature over one pixel is a small
+    fraction of its height; a dead or saturated pixel is not), likewise along y; a defect along
+    either axis becomes the mean of the neighbours along it (both: of all four). Defects are no
+    balls, but a dead pixel would outweigh the balls in the scale space and a line of them would
+    pull any disc it crosses.
     """
+    out = f.astype(np.float32)
+    _despike_kernel(out, f.astype(np.float32), np.float32(_SPIKE_SIGMA * noise), np.float32(np.median(f)),
+                    np.float32(_SPIKE_FRACTION))
+    return out.astype(np.float64)
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _despike_kernel(out, f, floor, level, fraction):  # pragma: no cover - numba
+    rows, cols = f.shape
+    for i in prange(1, rows - 1):
+        for j in range(1, cols - 1):
+            v = f[i, j]
+            left, right, up, down = f[i, j - 1], f[i, j + 1], f[i - 1, j], f[i + 1, j]
+            lo_x, hi_x = min(left, right), max(left, right)
+            lo_y, hi_y = min(up, down), max(up, down)
+            reach_x = max(floor, fraction * max(abs(lo_x - level), abs(hi_x - level)))
+            reach_y = max(floor, fraction * max(abs(lo_y - level), abs(hi_y - level)))
+            along_x = v > hi_x + reach_x or v < lo_x - reach_x
+            along_y = v > hi_y + reach_y or v < lo_y - reach_y
+            if along_x and along_y:
+                out[i, j] = 0.25 * (left + right + up + down)
+            elif along_x:
+                out[i, j] = 0.5 * (left + right)
+            elif along_y:
+                out[i, j] = 0.5 * (up + down)
+
+
+def _radii(r_min: float, r_max: float) -> np.ndarray:
+    """Scale-space radii: one ``_SCALE_STEP`` below ``r_min`` to one above ``r_max``, so that balls
+    at either end of the range are maxima in scale."""
     radii = [r_min / _SCALE_STEP]
     while radii[-1] < r_max * _SCALE_STEP:
         radii.append(radii[-1] * _SCALE_STEP)
-    radii = np.asarray(radii)
-    sigmas = _SIGMA_PER_RADIUS * radii
+    return np.asarray(radii)
+
+
+def _log_stack(f: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """``-s^2 LoG_s * f`` (float32, (scales, rows, cols)) at ``s = 0.602 r`` for each of ``radii``.
+
+    Computed by FFT with symmetric padding of 4 s.
+    """
+    sigmas = _SIGMA_PER_RADIUS * np.asarray(radii, dtype=np.float64)
     pad = int(math.ceil(4.0 * sigmas[-1]))
     rows, cols = f.shape
     shape = (fft.next_fast_len(rows + 2 * pad, real=True), fft.next_fast_len(cols + 2 * pad, real=True))
-    padded = np.pad(f - np.median(f), ((pad, shape[0] - rows - pad), (pad, shape[1] - cols - pad)), mode="symmetric")
-    spectrum = fft.rfft2(padded.astype(np.float32))
+    padded = np.pad(f.astype(np.float32), ((pad, shape[0] - rows - pad), (pad, shape[1] - cols - pad)),
+                    mode="symmetric")
+    spectrum = fft.rfft2(padded)
     fy = fft.fftfreq(shape[0])[:, None]
     fx = fft.rfftfreq(shape[1])[None, :]
     q2 = (4.0 * np.pi**2 * (fx**2 + fy**2)).astype(np.float32)
@@ -261,14 +337,113 @@ def _log_stack(f: np.ndarray, r_min: float, r_max: float) -> tuple[np.ndarray, n
         # -s^2 LoG_s has the transfer function s^2 |w|^2 exp(-s^2 |w|^2 / 2).
         response = fft.irfft2(spectrum * (s * s * q2 * np.exp(-0.5 * s * s * q2)), s=shape)
         stack[k] = response[pad:pad + rows, pad:pad + cols]
-    return radii, stack
+    return stack
 
 
-def _candidates(stack: np.ndarray, radii: np.ndarray, min_height: float) -> np.ndarray:
-    """Scale-space maxima of the LoG stack above ``min_height`` (in the stack's units of height),
-    strongest first: rows ``(cx, cy, r, height, roundness, axis_x, axis_y, extent)``."""
+def _scale_space_candidates(f: np.ndarray, r_min: float, r_max: float, min_height: float,
+                            signs: tuple[float, ...]) -> tuple[float, np.ndarray]:
+    """Blobs of radius ``r_min`` .. ``r_max`` in ``f``: the polarity and its candidates.
+
+    The scale-normalised LoG runs on a pyramid of 2 x 2 block means: the radii of octave ``L``
+    (``_LEVEL_RADIUS_PX`` to twice that at level ``L``, i.e. ``2^L`` times that in full-resolution
+    pixels) on level ``L``, so a 2000^2 image with balls 160 px across costs about as much as a
+    256^2 one. Each level also computes the radius below and above its own, so that maxima in
+    (scale, row, col) are found across octaves; only maxima inside the radius range count (not
+    on its first or last radius): a speck, a dead pixel or a line thinner than the smallest ball
+    peaks at the smallest scale and is no candidate. ``signs``: 1 bright balls, -1 dark ones;
+    given both, the polarity whose strongest candidate is stronger wins.
+
+    Returns ``(sign, candidates)``, the candidates as rows ``(cx, cy, r, height, roundness, axis_x,
+    axis_y, extent)`` in full-resolution pixels, strongest first.
+    """
+    radii = _radii(r_min, r_max)
+    level_of = np.maximum(np.floor(np.log2(radii / _LEVEL_RADIUS_PX)), 0).astype(int)
+    pyramid = [f - np.median(f)]
+    found = {sign: [] for sign in signs}
+    for level in range(int(level_of.max()) + 1):
+        if level:
+            rows, cols = (pyramid[-1].shape[0] // 2) * 2, (pyramid[-1].shape[1] // 2) * 2
+            pyramid.append(pyramid[-1][:rows, :cols].reshape(rows // 2, 2, cols // 2, 2).mean(axis=(1, 3)))
+        level_image = pyramid[level]
+        own = np.nonzero(level_of == level)[0]
+        if not len(own) or min(level_image.shape) < 3:
+            continue
+        planes = np.arange(max(own[0] - 1, 0), min(own[-1] + 2, len(radii)))
+        scale = 2.0 ** level
+        stack = _log_stack(level_image, radii[planes] / scale)
+        # Maxima on this level's own radii, never on the first or last radius of the range.
+        allowed = np.isin(planes, own) & (planes > 0) & (planes < len(radii) - 1)
+        for sign in signs:
+            if sign < 0:
+                np.negative(stack, out=stack)
+            rows_ = _candidates(stack, radii[planes] / scale, min_height, allowed)
+            rows_[:, 2] *= scale
+            fine = max(level - _REFINE_LEVELS, 1)
+            if level > fine:
+                rows_[:, :2] = _finer(pyramid[fine], rows_, sign, level, fine)
+                scale = 2.0 ** fine
+            # Block means of 2^L pixels: level pixel i covers full pixels i 2^L .. (i + 1) 2^L - 1.
+            rows_[:, :2] = (rows_[:, :2] + 0.5) * scale - 0.5
+            scale = 2.0 ** level
+            found[sign].append(rows_)
+    best = {}
+    for sign, parts in found.items():
+        rows_ = np.concatenate(parts) if parts else np.zeros((0, 8))
+        best[sign] = _suppress(rows_[np.argsort(-rows_[:, 3], kind="stable")])
+    sign = max(signs, key=lambda s: float(best[s][0, 3]) if len(best[s]) else -np.inf)
+    return sign, best[sign]
+
+
+def _finer(image: np.ndarray, rows_: np.ndarray, sign: float, level: int, fine: int) -> np.ndarray:
+    """Candidate centres found on pyramid ``level`` (rows ``(x, y, r_full, ...)`` in that level's
+    pixels), located again on the finer level ``fine`` (its ``image``): the LoG maximum at each
+    candidate's radius within a few pixels, with a parabola through its neighbours. A ball found
+    on a coarse level is off by a fraction of a coarse pixel, many full pixels; its fit should
+    start closer than that. Returns ``(x, y)`` in the fine level's pixels."""
+    factor = 2.0 ** (level - fine)
+    xy = (rows_[:, :2] + 0.5) * factor - 0.5
+    out = xy.copy()
+    reach = int(math.ceil(factor)) + 1
+    for radius in np.unique(rows_[:, 2]):
+        which = np.nonzero(rows_[:, 2] == radius)[0]
+        plane = sign * _log_stack(image, np.array([radius / 2.0 ** fine]))
+        for i in which:
+            x0, y0 = int(round(xy[i, 0])), int(round(xy[i, 1]))
+            y_lo, y_hi = max(y0 - reach, 0), min(y0 + reach + 1, image.shape[0])
+            x_lo, x_hi = max(x0 - reach, 0), min(x0 + reach + 1, image.shape[1])
+            if y_lo >= y_hi or x_lo >= x_hi:
+                continue
+            patch = plane[0, y_lo:y_hi, x_lo:x_hi]
+            py, px = np.unravel_index(int(np.argmax(patch)), patch.shape)
+            y, x = np.array([y_lo + py]), np.array([x_lo + px])
+            k = np.zeros(1, np.intp)
+            out[i] = x[0] + _parabola(plane, k, y, x, 0, 1)[0], y[0] + _parabola(plane, k, y, x, 1, 0)[0]
+    return out
+
+
+def _of_the_balls_size(candidates: np.ndarray) -> np.ndarray:
+    """The candidates of the phantom's ball size: within ``_SIZE_SPREAD`` of the median radius of
+    the round candidates at least half as high as the highest round one.
+
+    A calibration phantom's balls are identical; only their depth changes the size they
+    project, by far less than that factor. Dust, a holder's blobs and the large-scale blob a
+    group of balls makes together are of other sizes.
+    """
+    round_ = candidates[candidates[:, 4] >= _PAIR_ROUNDNESS]
+    if not len(round_):
+        round_ = candidates
+    strong = round_[round_[:, 3] >= 0.5 * round_[:, 3].max()]
+    r_ref = float(np.median(strong[:, 2]))
+    keep = (candidates[:, 2] >= r_ref / _SIZE_SPREAD) & (candidates[:, 2] <= r_ref * _SIZE_SPREAD)
+    return candidates[keep]
+
+
+def _candidates(stack: np.ndarray, radii: np.ndarray, min_height: float, allowed: np.ndarray) -> np.ndarray:
+    """Scale-space maxima of the LoG stack above ``min_height`` (in the stack's units of height)
+    on the planes ``allowed``: rows ``(cx, cy, r, height, roundness, axis_x, axis_y, extent)``."""
     threshold = _LOG_PEAK * min_height
     peaks = (stack >= ndimage.maximum_filter(stack, size=3, mode="nearest")) & (stack > threshold)
+    peaks &= allowed[:, None, None]
     k, y, x = np.nonzero(peaks)
     if not len(k):
         return np.zeros((0, 8))
@@ -282,9 +457,36 @@ def _candidates(stack: np.ndarray, radii: np.ndarray, min_height: float) -> np.n
     # Sub-pixel start: a parabola through the response and its two neighbours along each axis.
     dx = _parabola(stack, k, y, x, 0, 1)
     dy = _parabola(stack, k, y, x, 1, 0)
-    found = np.stack([x + dx, y + dy, r, value / _LOG_PEAK, roundness, axis_x, axis_y, extent], axis=1)
-    found = found[np.argsort(-found[:, 3], kind="stable")]
-    return _suppress(found)
+    return np.stack([x + dx, y + dy, r, value / _LOG_PEAK, roundness, axis_x, axis_y, extent], axis=1)
+
+
+def _recentred(t: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """Round candidates moved to the centroid of the top-hat ``t`` within 1.1 radii (three
+    rounds), where that moves them less than a quarter radius.
+
+    The LoG of a large ball on a coarse pyramid level places it a few full pixels off; a fit
+    started there needs several more model evaluations, each costing as much as this whole
+    correction. Elongated candidates (overlapping balls) keep their LoG position: a centroid would
+    pull them onto each other.
+    """
+    out = candidates.copy()
+    for row in out:
+        cx, cy, r = row[:3]
+        if row[4] < _PAIR_ROUNDNESS:
+            continue
+        x, y = cx, cy
+        for _ in range(3):
+            x_lo, x_hi, y_lo, y_hi = _window_of(np.array([[x, y, r]]), t.shape)
+            xs = np.arange(x_lo, x_hi, dtype=np.float64)[None, :]
+            ys = np.arange(y_lo, y_hi, dtype=np.float64)[:, None]
+            w = np.clip(t[y_lo:y_hi, x_lo:x_hi], 0.0, None) * ((xs - x) ** 2 + (ys - y) ** 2 <= (1.1 * r) ** 2)
+            mass = float(w.sum())
+            if mass <= 0:
+                break
+            x, y = float((w * xs).sum()) / mass, float((w * ys).sum()) / mass
+        if mass > 0 and math.hypot(x - cx, y - cy) < 0.25 * r:
+            row[0], row[1] = x, y
+    return out
 
 
 def _across(t: np.ndarray, candidates: np.ndarray) -> np.ndarray:
@@ -304,16 +506,8 @@ def _across(t: np.ndarray, candidates: np.ndarray) -> np.ndarray:
 def _bilinear(image: np.ndarray, y: np.ndarray, x: np.ndarray, plane: np.ndarray | None = None) -> np.ndarray:
     """``image`` (2-D, or 3-D with ``plane`` the plane of each point) at fractional ``(y, x)``,
     clamped to the image."""
-    rows, cols = image.shape[-2:]
-    y = np.clip(y, 0.0, rows - 1.0)
-    x = np.clip(x, 0.0, cols - 1.0)
-    y0 = np.minimum(np.floor(y).astype(np.intp), max(rows - 2, 0))
-    x0 = np.minimum(np.floor(x).astype(np.intp), max(cols - 2, 0))
-    y1, x1 = np.minimum(y0 + 1, rows - 1), np.minimum(x0 + 1, cols - 1)
-    fy, fx = y - y0, x - x0
-    at = () if plane is None else (plane,)
-    return ((1 - fy) * ((1 - fx) * image[at + (y0, x0)] + fx * image[at + (y0, x1)])
-            + fy * ((1 - fx) * image[at + (y1, x0)] + fx * image[at + (y1, x1)]))
+    coords = [y, x] if plane is None else [plane, y, x]
+    return ndimage.map_coordinates(image, np.asarray(coords, dtype=np.float64), order=1, mode="nearest")
 
 
 def _curvatures(stack, k, y, x):
@@ -365,13 +559,18 @@ def _suppress(found: np.ndarray) -> np.ndarray:
 
 
 class _Disc:
-    """One disc's cells: edges in units of its radius, and the chord profile (height 1) on them."""
+    """One disc's cells: edges in units of its radius, and the chord profile (height 1) on them,
+    each cell's mean over ``_CELL_SAMPLES^2`` points (so a cell the rim cuts holds its share)."""
 
     def __init__(self, r0: float):
-        n = max(int(math.ceil(2.0 * r0 / _CELL_PX)), 8)
+        # Cells of _CELL_PX up to _MAX_CELLS across: a large disc's rim still falls on cells of a
+        # small fraction of its radius, and the cost (cells^2 per pixel row) stays bounded.
+        n = min(max(int(math.ceil(2.0 * r0 / _CELL_PX)), 8), _MAX_CELLS)
         self.edges = np.linspace(-1.0, 1.0, n + 1)
-        v = 0.5 * (self.edges[:-1] + self.edges[1:])
-        self.chord = np.sqrt(np.clip(1.0 - v[:, None] ** 2 - v[None, :] ** 2, 0.0, None))
+        offsets = (np.arange(_CELL_SAMPLES) + 0.5) / _CELL_SAMPLES
+        v = (self.edges[:-1, None] + np.diff(self.edges)[:, None] * offsets[None, :]).ravel()
+        chord = np.sqrt(np.clip(1.0 - v[:, None] ** 2 - v[None, :] ** 2, 0.0, None))
+        self.chord = chord.reshape(n, _CELL_SAMPLES, n, _CELL_SAMPLES).mean(axis=(1, 3))
 
 
 def _axis(pixels: np.ndarray, centre: float, radius: float, edges: np.ndarray, sigma: float):
@@ -491,6 +690,10 @@ class _Window:
             jac[:, 4 + i] = column.ravel()[self.keep]
         return model.ravel()[self.keep] + self.plane @ p[:3], jac
 
+    def residuals_and_jacobian(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        model, jac = self._evaluate(p)
+        return model - self.data, jac
+
     def residuals(self, p: np.ndarray) -> np.ndarray:
         model, jac = self._evaluate(p)
         self._cached = (p.copy(), jac)
@@ -499,6 +702,61 @@ class _Window:
     def jacobian(self, p: np.ndarray) -> np.ndarray:
         at, jac = self._cached
         return jac if at is not None and np.array_equal(at, p) else self._evaluate(p)[1]
+
+
+@dataclass(frozen=True)
+class _Solution:
+    """What :func:`_levenberg_marquardt` found: ``x``, half the sum of squares ``cost`` and ``status``
+    (0: evaluations ran out, 2: the cost stopped falling, 3: the parameters stopped moving)."""
+
+    x: np.ndarray
+    cost: float
+    status: int
+
+
+def _levenberg_marquardt(fun, x0: np.ndarray, bounds, *, max_nfev: int, ftol: float = 1e-7,
+                         xtol: float = 1e-8) -> _Solution:
+    """Bounded Levenberg-Marquardt on ``fun(x) -> (residuals, jacobian)``.
+
+    A window holds 10^4-10^5 pixels and a handful of parameters, so each step solves the damped
+    normal equations (parameters x parameters) instead of factoring the Jacobian as
+    ``scipy.optimize.least_squares`` does (its SVD of the tall Jacobian cost more than the model).
+    Columns are scaled by their norms (``x_scale="jac"``), steps are clipped to the bounds, and
+    the stopping rules are scipy's: the cost falls by less than ``ftol`` of itself, or the step is
+    below ``xtol (xtol + |x|)``.
+    """
+    lo, hi = bounds
+    x = np.clip(np.asarray(x0, dtype=np.float64), lo, hi)
+    r, jac = fun(x)
+    cost, nfev = 0.5 * float(r @ r), 1
+    damping = 1e-3
+    while nfev < max_nfev:
+        scale = np.maximum(np.sqrt(np.einsum("ij,ij->j", jac, jac)), 1e-12)
+        js = jac / scale
+        normal, gradient = js.T @ js, js.T @ r
+        diagonal = np.diag(normal).copy()
+        while nfev < max_nfev:
+            step = -np.linalg.solve(normal + damping * np.diag(np.maximum(diagonal, 1e-12)), gradient) / scale
+            x_new = np.clip(x + step, lo, hi)
+            if np.linalg.norm(x_new - x) < xtol * (xtol + float(np.linalg.norm(x))):
+                return _Solution(x, cost, 3)  # at the minimum: no step lowers the cost any more
+            r_new, jac_new = fun(x_new)
+            nfev += 1
+            cost_new = 0.5 * float(r_new @ r_new)
+            if np.isfinite(cost_new) and cost_new < cost:
+                break
+            damping *= 4.0
+        else:
+            return _Solution(x, cost, 0)
+        moved = float(np.linalg.norm(x_new - x))
+        fell = cost - cost_new
+        x, r, jac, cost = x_new, r_new, jac_new, cost_new
+        damping = max(damping / 3.0, 1e-9)
+        if fell < ftol * cost:
+            return _Solution(x, cost, 2)
+        if moved < xtol * (xtol + float(np.linalg.norm(x))):
+            return _Solution(x, cost, 3)
+    return _Solution(x, cost, 0)
 
 
 def _window_of(seeds: np.ndarray, shape: tuple[int, int]) -> tuple[int, int, int, int]:
@@ -602,7 +860,7 @@ def _row_seeds(weights: np.ndarray, x_lo: int, y_lo: int, n: int, r: float, heig
     return np.column_stack([mx + offsets * axes[0, 1], my + offsets * axes[1, 1], np.full(n, r), np.full(n, height)])
 
 
-def _fit_discs(t, window, seeds, candidates, tree, own, min_height, strict=True, max_nfev=15):
+def _fit_discs(t, window, seeds, candidates, tree, own, min_height, strict=True, max_nfev=30):
     """Least-squares fit of the ``seeds`` (rows ``(cx, cy, r, A)``) in ``window`` of the top-hat.
 
     Other candidates overlapping a seed's disc are fitted with them (the nearest
@@ -641,8 +899,7 @@ def _fit_discs(t, window, seeds, candidates, tree, own, min_height, strict=True,
             return None
         x0, bounds = problem.start_and_bounds(starts, float(np.median(problem.data)))
         try:
-            result = optimize.least_squares(problem.residuals, x0, jac=problem.jacobian, bounds=bounds,
-                                            method="trf", x_scale="jac", xtol=1e-8, ftol=1e-7, max_nfev=max_nfev)
+            result = _levenberg_marquardt(problem.residuals_and_jacobian, x0, bounds, max_nfev=max_nfev)
         except (ValueError, np.linalg.LinAlgError):
             return None
         if not np.all(np.isfinite(result.x)):
@@ -657,12 +914,32 @@ def _fit_discs(t, window, seeds, candidates, tree, own, min_height, strict=True,
         if not faint.any():
             break
         starts = np.concatenate([fitted[:len(seeds)], fitted[len(seeds):][~faint]])
+    if converged:
+        result, problem = _without_outliers(problem, result, data, xs, ys, keep, starts, bounds, min_height, max_nfev)
     if strict and not converged:
         return None
     if np.any(np.hypot(*(fitted[:len(seeds), :2] - seeds[:, :2]).T) > np.maximum(seeds[:, 2], 1.0)):
         return None
     discs = np.column_stack([fitted[:len(seeds)], np.full(len(seeds), result.x[3])])
     return discs, float(result.cost), math.sqrt(2.0 * result.cost / len(problem.data))
+
+
+def _without_outliers(problem, result, data, xs, ys, keep, starts, bounds, min_height, max_nfev):
+    """The fit again without the pixels it cannot explain: dust on a ball, a defect the despiking
+    left. Pixels beyond ``_OUTLIER_SIGMA`` robust deviations of the residual (and 1.6
+    ``min_height``, i.e. 8 noise deviations), grown by a pixel, are masked when they are fewer than
+    ``_MAX_OUTLIERS`` of the window; returns ``(result, problem)`` of the fit used."""
+    residual = problem.residuals_and_jacobian(result.x)[0]
+    spread = 1.4826 * float(np.median(np.abs(residual)))
+    bad = np.zeros(keep.shape, bool)
+    bad[keep] = np.abs(residual) > max(_OUTLIER_SIGMA * spread, 1.6 * min_height)
+    if not bad.any() or bad.sum() > _MAX_OUTLIERS * keep.sum():
+        return result, problem
+    trimmed = _Window(data, xs, ys, keep & ~ndimage.binary_dilation(bad, np.ones((3, 3), bool)), starts)
+    if len(trimmed.data) < 3 * trimmed.n_params:
+        return result, problem
+    again = _levenberg_marquardt(trimmed.residuals_and_jacobian, result.x, bounds, max_nfev=max_nfev)
+    return (again, trimmed) if again.status > 0 and np.all(np.isfinite(again.x)) else (result, problem)
 
 
 def _render(balls: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
