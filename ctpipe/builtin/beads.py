@@ -11,41 +11,56 @@ Method
     1. Noise: the robust standard deviation of the finest diagonal Haar band
        (``median(|HH|) / 0.6745``, Donoho's estimator), floored at the quantisation of integer
        images and at 1e-4 of a float image's range, so that noise-free images work.
-    2. Scale space: the scale-normalised Laplacian of Gaussian ``-s^2 LoG_s`` (FFT, symmetric
+    2. Defects: a pixel beyond both neighbours along x (or y) by 10 noise deviations and a quarter
+       of their distance from the median is a dead or hot pixel, or part of a dead line one pixel
+       wide, and takes their mean (numba).
+    3. Scale space: the scale-normalised Laplacian of Gaussian ``-s^2 LoG_s`` (FFT, symmetric
        padding) at ``s = 0.602 r`` (where its response to a chord profile of radius ``r``
        peaks, at 0.641 times its height) for ``r`` over the diameter range in steps of
-       ``2^(1/4)``. Polarity ``auto``: bright if the strongest response is positive.
-       Candidates: maxima in (scale, row, col) that imply a height of ``0.7 min_contrast_sigma``
-       noise deviations, with the roundness (smaller / larger curvature) and long axis of the
-       response at each (SIFT's edge test) and how far it stays up along that axis.
-    3. Background: dark images of positive intensities become line integrals (``-log``): a
+       ``2^(1/4)``, each octave of radii on its own level of a pyramid of 2 x 2 block means
+       (radii 2-4 px at that level, with the radius below and above for the maxima across
+       octaves): the range 10 px to a third of the image costs about as much on 2000^2 as on
+       256^2. Polarity ``auto``: the sign of the strongest candidate. Candidates: maxima in
+       (scale, row, col) strictly inside the radius range (a speck, dead pixel or line thinner
+       than the smallest ball peaks at its smallest radius) that imply a height of
+       ``0.7 min_contrast_sigma`` noise deviations, with the roundness (smaller / larger curvature)
+       and long axis of the response at each (SIFT's edge test) and how far it stays up along that
+       axis; a coarse candidate is located again on a level two octaves finer. Without a diameter
+       range the balls decide their size: the candidates within 2.5x of the median radius of the
+       strong round ones are kept (identical balls; dust and the blob a group of balls makes
+       together are of other sizes), and that range is used from here on.
+    4. Background: dark images of positive intensities become line integrals (``-log``): a
        ball then adds its chord profile to whatever lies behind it, and overlapping balls add.
        A grey opening by a square wider than any ball (of the image smoothed by 1 px) is the
        background; it follows the holder, a rod and their edges, and the top-hat (image less
        opening) keeps the balls. Candidates must stand out of it, elongated ones across their
        axis too (not the inner side of an edge).
-    4. Sub-pixel centre (``centre_method="fit"``): least squares (``scipy.optimize.
-       least_squares``, trf, analytic Jacobian) on a window of ``1.3 r + 4`` px::
+    5. Sub-pixel centre (``centre_method="fit"``): round candidates start from the top-hat's
+       centroid; bounded Levenberg-Marquardt (damped normal equations, analytic Jacobian) at full
+       resolution on a window of ``1.3 r + 4`` px::
 
            model = b0 + bx x + by y + sum_j A_j (PSF * pixel box * chord_j)(x - cx_j, y - cy_j)
 
        with a Gaussian PSF of fitted sigma and exact integration over each pixel. Each disc is
        cut into cells of about 0.4 px tied to its centre, over which PSF and pixel box are
-       integrated in closed form (``F(t) = t E(t) + s^2 n(t)`` is the Gaussian's double
+       integrated in closed form (at most 96 cells across, each holding the chord's mean over
+       it; ``F(t) = t E(t) + s^2 n(t)`` is the Gaussian's double
        antiderivative; numba): the model is separable (``A Wy C Wx^T``) and exactly symmetric
        about the centre, so its discretisation cannot pull the centre. Candidates overlapping
-       the ball are fitted with it, farther ones masked out. A fit that leaves its window
+       the ball are fitted with it, farther ones masked out; pixels the fit leaves beyond 8
+       robust deviations (dust on the ball), if under 2 % of the window, are masked and it is
+       fitted again. A fit that leaves its window
        unexplained (residual RMS above twice the noise and 1 % of the height), or a short
        elongated candidate, is split into 2, 3, 4 balls in a row along the blob's long axis,
        kept when they lower the sum of squares clearly.
-    5. Crowds: regions of the top-hat above a tenth of the balls' median height that hold
+    6. Crowds: regions of the top-hat above a tenth of the balls' median height that hold
        several balls or leave part unexplained are counted by mass (``2 pi A r^2 / 3`` per
        ball: identical balls), the missing balls seeded in a row through the residual, and all
        fitted together: a chain of seven overlapping balls seen end-on is resolved, two balls a
-       sixth of a radius apart too. ``centre_method="centroid"`` replaces 4-5 by the iterative
+       sixth of a radius apart too. ``centre_method="centroid"`` replaces 5-6 by the iterative
        intensity-weighted centroid of the top-hat (``r + 2`` px, 1 px taper), which is a little
        less precise and does not separate overlapping balls.
-    6. Kept: heights of at least ``min_contrast_sigma`` noise deviations, diameters within 20 %
+    7. Kept: heights of at least ``min_contrast_sigma`` noise deviations, diameters within 20 %
        of the range, centres on the image; fits of one ball by two candidates merged.
 
 Accuracy (``benchmarks/bench_beads.py``: 512^2 images of 30 balls of peak line integral 1, a
@@ -394,6 +409,33 @@ def _scale_space_candidates(f: np.ndarray, r_min: float, r_max: float, min_heigh
     return sign, best[sign]
 
 
+@njit(parallel=True, fastmath=True, cache=True)
+def _peaks_kernel(stack, threshold, allowed, peaks):  # pragma: no cover - numba
+    """``peaks[k, i, j]``: ``stack[k, i, j]`` is above ``threshold``, on an ``allowed`` plane, and no
+    smaller than any of its 26 neighbours (edges clamped), as ``maximum_filter(size=3,
+    mode="nearest")`` would say, but looking only at the few points above the threshold."""
+    planes, rows, cols = stack.shape
+    for i in prange(rows):
+        for k in range(planes):
+            if not allowed[k]:
+                continue
+            for j in range(cols):
+                v = stack[k, i, j]
+                if not v > threshold:
+                    continue
+                top = True
+                for dk in range(-1, 2):
+                    kk = min(max(k + dk, 0), planes - 1)
+                    for di in range(-1, 2):
+                        ii = min(max(i + di, 0), rows - 1)
+                        for dj in range(-1, 2):
+                            jj = min(max(j + dj, 0), cols - 1)
+                            if stack[kk, ii, jj] > v:
+                                top = False
+                if top:
+                    peaks[k, i, j] = True
+
+
 def _finer(image: np.ndarray, rows_: np.ndarray, sign: float, level: int, fine: int) -> np.ndarray:
     """Candidate centres found on pyramid ``level`` (rows ``(x, y, r_full, ...)`` in that level's
     pixels), located again on the finer level ``fine`` (its ``image``): the LoG maximum at each
@@ -442,8 +484,8 @@ def _candidates(stack: np.ndarray, radii: np.ndarray, min_height: float, allowed
     """Scale-space maxima of the LoG stack above ``min_height`` (in the stack's units of height)
     on the planes ``allowed``: rows ``(cx, cy, r, height, roundness, axis_x, axis_y, extent)``."""
     threshold = _LOG_PEAK * min_height
-    peaks = (stack >= ndimage.maximum_filter(stack, size=3, mode="nearest")) & (stack > threshold)
-    peaks &= allowed[:, None, None]
+    peaks = np.zeros(stack.shape, np.bool_)
+    _peaks_kernel(stack, np.float32(threshold), allowed.astype(np.bool_), peaks)
     k, y, x = np.nonzero(peaks)
     if not len(k):
         return np.zeros((0, 8))
@@ -632,6 +674,68 @@ def _axis_kernel(first_pixel, n_pixels, a, edges, sigma):
     return weights, d_centre, d_radius, d_sigma
 
 
+@njit(fastmath=True, cache=True)
+def _disc_products(chord, x_weights, y_weights):  # pragma: no cover - numba
+    """The model of one disc and its derivatives, each of shape (rows, cols): ``Wy C Wx^T`` and
+    ``Wy C Dx^T`` for the three x derivatives, ``Dy C Wx^T`` for the three y derivatives.
+
+    ``x_weights`` is ``(Wx, Dx_centre, Dx_radius, Dx_sigma)`` of shape (4, cols, cells), likewise
+    ``y_weights``. A pixel sees only the cells within the PSF's reach (the weights are exactly zero
+    beyond it), so each row of these matrices is a short band: the products run over the bands
+    (a few cells per pixel for a large disc) rather than through BLAS over every cell, which
+    also keeps them single-threaded under the pipeline's own threads.
+    """
+    cells = chord.shape[0]
+    cols, rows = x_weights.shape[1], y_weights.shape[1]
+    x_lo, x_hi = _bands(x_weights)
+    y_lo, y_hi = _bands(y_weights)
+    # t[k, p, j] = sum_m C[p, m] X_k[j, m]; C is symmetric, so C[m, p] runs along memory.
+    t = np.zeros((4, cols, cells))
+    for j in range(cols):
+        for m in range(x_lo[j], x_hi[j]):
+            a0, a1, a2, a3 = x_weights[0, j, m], x_weights[1, j, m], x_weights[2, j, m], x_weights[3, j, m]
+            for p in range(cells):
+                c = chord[m, p]
+                t[0, j, p] += c * a0
+                t[1, j, p] += c * a1
+                t[2, j, p] += c * a2
+                t[3, j, p] += c * a3
+    tt = np.ascontiguousarray(t.transpose(0, 2, 1))
+    out = np.zeros((7, rows, cols))
+    for i in range(rows):
+        for p in range(y_lo[i], y_hi[i]):
+            b0, b1, b2, b3 = y_weights[0, i, p], y_weights[1, i, p], y_weights[2, i, p], y_weights[3, i, p]
+            for j in range(cols):
+                t0 = tt[0, p, j]
+                out[0, i, j] += b0 * t0
+                out[1, i, j] += b0 * tt[1, p, j]
+                out[2, i, j] += b0 * tt[2, p, j]
+                out[3, i, j] += b0 * tt[3, p, j]
+                out[4, i, j] += b1 * t0
+                out[5, i, j] += b2 * t0
+                out[6, i, j] += b3 * t0
+    return out[0], out[1], out[2], out[3], out[4], out[5], out[6]
+
+
+@njit(cache=True)
+def _bands(weights):  # pragma: no cover - numba
+    """Per row of ``weights`` (4, rows, cells), the range of cells where any of the four is nonzero."""
+    rows, cells = weights.shape[1], weights.shape[2]
+    lo = np.zeros(rows, np.int64)
+    hi = np.zeros(rows, np.int64)
+    for i in range(rows):
+        first, last = cells, -1
+        for m in range(cells):
+            if (weights[0, i, m] != 0.0 or weights[1, i, m] != 0.0 or weights[2, i, m] != 0.0
+                    or weights[3, i, m] != 0.0):
+                if first == cells:
+                    first = m
+                last = m
+        lo[i] = first if last >= 0 else 0
+        hi[i] = last + 1 if last >= 0 else 0
+    return lo, hi
+
+
 class _Window:
     """Least-squares problem of one window of the top-hat image: a plane, a shared PSF sigma and
     one or more discs; pixels outside ``keep`` (other balls, not modelled) carry no weight.
@@ -677,12 +781,11 @@ class _Window:
             wx, dx_c, dx_r, dx_s = _axis(self.xs, cx, r, disc.edges, sigma)
             wy, dy_c, dy_r, dy_s = _axis(self.ys, cy, r, disc.edges, sigma)
             # model = A Wy C Wx^T: one product with C for the x weights and their derivatives.
-            right = disc.chord @ np.concatenate([wx, dx_c, dx_r, dx_s], axis=0).T
-            t_w, t_c, t_r, t_s = right[:, :n], right[:, n:2 * n], right[:, 2 * n:3 * n], right[:, 3 * n:]
-            unit = wy @ t_w
+            unit, w_c, w_r, w_s, c_w, r_w, s_w = _disc_products(
+                disc.chord, np.stack([wx, dx_c, dx_r, dx_s]), np.stack([wy, dy_c, dy_r, dy_s]))
             model += amp * unit
-            d_sigma += amp * (dy_s @ t_w + wy @ t_s)
-            columns += [amp * (wy @ t_c), amp * (dy_c @ t_w), amp * (dy_r @ t_w + wy @ t_r), unit]
+            d_sigma += amp * (s_w + w_s)
+            columns += [amp * w_c, amp * c_w, amp * (r_w + w_r), unit]
         jac = np.empty((len(self.data), self.n_params))
         jac[:, :3] = self.plane
         jac[:, 3] = d_sigma.ravel()[self.keep]
