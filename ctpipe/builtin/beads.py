@@ -702,10 +702,16 @@ def _disc_products(chord, x_weights, y_weights):  # pragma: no cover - numba
                 t[3, j, p] += c * a3
     tt = np.ascontiguousarray(t.transpose(0, 2, 1))
     out = np.zeros((7, rows, cols))
+    # Only the columns the disc reaches (in a window of several balls, a fraction of them).
+    j_first, j_last = cols, 0
+    for j in range(cols):
+        if x_hi[j] > x_lo[j]:
+            j_first = min(j_first, j)
+            j_last = j + 1
     for i in range(rows):
         for p in range(y_lo[i], y_hi[i]):
             b0, b1, b2, b3 = y_weights[0, i, p], y_weights[1, i, p], y_weights[2, i, p], y_weights[3, i, p]
-            for j in range(cols):
+            for j in range(j_first, j_last):
                 t0 = tt[0, p, j]
                 out[0, i, j] += b0 * t0
                 out[1, i, j] += b0 * tt[1, p, j]
@@ -749,10 +755,9 @@ class _Window:
         self.xs, self.ys = xs, ys
         self.discs = [_Disc(r0) for r0 in starts[:, 2]]
         self.n_params = 4 + 4 * len(starts)
-        self.plane = np.stack([np.ones(len(ys) * len(xs)),
-                               np.tile(xs - xs.mean(), len(ys)),
-                               np.repeat(ys - ys.mean(), len(xs))], axis=1)[self.keep]
-        self._cached = (None, None)
+        self.all_kept = bool(self.keep.all())
+        self.plane_full = np.stack([np.ones(len(ys) * len(xs)), np.tile(xs - xs.mean(), len(ys)),
+                                    np.repeat(ys - ys.mean(), len(xs))])
 
     def start_and_bounds(self, starts: np.ndarray, b0: float):
         """Start vector and (lower, upper) bounds: centres within half a radius (+1 px) of the
@@ -769,42 +774,40 @@ class _Window:
         return np.clip(x0, lo, hi), (lo, hi)
 
     def _evaluate(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Model and Jacobian at ``p`` (least_squares asks for the Jacobian at the point it has
-        just evaluated, so both are computed at once and the Jacobian kept)."""
+        """Model (pixels,) and Jacobian (pixels, parameters) at ``p``."""
+        model, jac_t = self._evaluate_t(p)
+        return model, jac_t.T
+
+    def _evaluate_t(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Model (pixels,) and transposed Jacobian (parameters, pixels), C-contiguous, at ``p``."""
         sigma = p[3]
-        n = len(self.xs)
-        model = np.zeros((len(self.ys), n))
-        d_sigma = np.zeros_like(model)
-        columns = []
+        full = np.empty((self.n_params, len(self.ys) * len(self.xs)))
+        full[:3] = self.plane_full
+        model = np.zeros((len(self.ys), len(self.xs)))
+        d_sigma = full[3].reshape(model.shape)
+        d_sigma[:] = 0.0
         for j, disc in enumerate(self.discs):
             cx, cy, r, amp = p[4 + 4 * j: 8 + 4 * j]
             wx, dx_c, dx_r, dx_s = _axis(self.xs, cx, r, disc.edges, sigma)
             wy, dy_c, dy_r, dy_s = _axis(self.ys, cy, r, disc.edges, sigma)
-            # model = A Wy C Wx^T: one product with C for the x weights and their derivatives.
             unit, w_c, w_r, w_s, c_w, r_w, s_w = _disc_products(
                 disc.chord, np.stack([wx, dx_c, dx_r, dx_s]), np.stack([wy, dy_c, dy_r, dy_s]))
             model += amp * unit
             d_sigma += amp * (s_w + w_s)
-            columns += [amp * w_c, amp * c_w, amp * (r_w + w_r), unit]
-        jac = np.empty((len(self.data), self.n_params))
-        jac[:, :3] = self.plane
-        jac[:, 3] = d_sigma.ravel()[self.keep]
-        for i, column in enumerate(columns):
-            jac[:, 4 + i] = column.ravel()[self.keep]
-        return model.ravel()[self.keep] + self.plane @ p[:3], jac
+            rows_ = full[4 + 4 * j: 8 + 4 * j].reshape(4, *model.shape)
+            np.multiply(w_c, amp, out=rows_[0])
+            np.multiply(c_w, amp, out=rows_[1])
+            np.multiply(r_w + w_r, amp, out=rows_[2])
+            rows_[3] = unit
+        model = model.ravel() + p[:3] @ self.plane_full
+        if self.all_kept:
+            return model, full
+        return model[self.keep], np.ascontiguousarray(full[:, self.keep])
 
     def residuals_and_jacobian(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        model, jac = self._evaluate(p)
-        return model - self.data, jac
-
-    def residuals(self, p: np.ndarray) -> np.ndarray:
-        model, jac = self._evaluate(p)
-        self._cached = (p.copy(), jac)
-        return model - self.data
-
-    def jacobian(self, p: np.ndarray) -> np.ndarray:
-        at, jac = self._cached
-        return jac if at is not None and np.array_equal(at, p) else self._evaluate(p)[1]
+        """Residuals (pixels,) and the transposed Jacobian (parameters, pixels) at ``p``."""
+        model, jac_t = self._evaluate_t(p)
+        return model - self.data, jac_t
 
 
 @dataclass(frozen=True)
@@ -819,7 +822,7 @@ class _Solution:
 
 def _levenberg_marquardt(fun, x0: np.ndarray, bounds, *, max_nfev: int, ftol: float = 1e-7,
                          xtol: float = 1e-8) -> _Solution:
-    """Bounded Levenberg-Marquardt on ``fun(x) -> (residuals, jacobian)``.
+    """Bounded Levenberg-Marquardt on ``fun(x) -> (residuals, transposed jacobian)``.
 
     A window holds 10^4-10^5 pixels and a handful of parameters, so each step solves the damped
     normal equations (parameters x parameters) instead of factoring the Jacobian as
@@ -830,13 +833,13 @@ def _levenberg_marquardt(fun, x0: np.ndarray, bounds, *, max_nfev: int, ftol: fl
     """
     lo, hi = bounds
     x = np.clip(np.asarray(x0, dtype=np.float64), lo, hi)
-    r, jac = fun(x)
+    r, jac_t = fun(x)
     cost, nfev = 0.5 * float(r @ r), 1
     damping = 1e-3
     while nfev < max_nfev:
-        scale = np.maximum(np.sqrt(np.einsum("ij,ij->j", jac, jac)), 1e-12)
-        js = jac / scale
-        normal, gradient = js.T @ js, js.T @ r
+        product = jac_t @ jac_t.T
+        scale = np.maximum(np.sqrt(np.diag(product)), 1e-12)
+        normal, gradient = product / np.outer(scale, scale), (jac_t @ r) / scale
         diagonal = np.diag(normal).copy()
         while nfev < max_nfev:
             step = -np.linalg.solve(normal + damping * np.diag(np.maximum(diagonal, 1e-12)), gradient) / scale
@@ -853,7 +856,7 @@ def _levenberg_marquardt(fun, x0: np.ndarray, bounds, *, max_nfev: int, ftol: fl
             return _Solution(x, cost, 0)
         moved = float(np.linalg.norm(x_new - x))
         fell = cost - cost_new
-        x, r, jac, cost = x_new, r_new, jac_new, cost_new
+        x, r, jac_t, cost = x_new, r_new, jac_new, cost_new
         damping = max(damping / 3.0, 1e-9)
         if fell < ftol * cost:
             return _Solution(x, cost, 2)
