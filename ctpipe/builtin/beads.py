@@ -69,8 +69,9 @@ Accuracy (``benchmarks/bench_beads.py``: 512^2 images of 30 balls of peak line i
 without noise (the renderer's own sampling), 1e-5 px on the model's own images. Overlapping
 balls: 0.005-0.06 px, worst when centres are a quarter diameter apart; there the line
 integrals add before the detector blurs intensities, which the model (blurring line integrals)
-does not follow. 0.24-0.42 s per 512^2 image of 30 balls on one core (diameters 8-40 px), about
-0.2 s of it scale space and background. The centre does not depend on the PSF being Gaussian
+does not follow. 0.16-0.28 s per 512^2 image of 30 balls on one core (diameters 8-20 px); 2-4 s
+per 2000^2 view of six balls 160 px across (``benchmarks/bench_ball_scan_2k.py``), about 0.7 s
+of it scale space and background. The centre does not depend on the PSF being Gaussian
 (the model stays symmetric); radius and contrast absorb the mismatch.
 
 Output: ``xy`` the centre, ``size`` the diameter, ``angle_deg`` NaN, ``response`` the contrast
