@@ -47,7 +47,7 @@ Method
        it; ``F(t) = t E(t) + s^2 n(t)`` is the Gaussian's double
        antiderivative; numba): the model is separable (``A Wy C Wx^T``) and exactly symmetric
        about the centre, so its discretisation cannot pull the centre. Candidates overlapping
-       the ball are fitted with it, farther ones masked out; pixels the fit leaves beyond 8
+       the ball are fitted with it, farther ones masked out; clumps of pixels the fit leaves beyond 12
        robust deviations (dust on the ball), if under 2 % of the window, are masked and it is
        fitted again. A fit that leaves its window
        unexplained (residual RMS above twice the noise and 1 % of the height), or a short
@@ -127,13 +127,17 @@ _PAIR_EVIDENCE = 50.0
 _MAX_CROWD = 12
 # A fit is repeated without the pixels beyond this many robust deviations of its residual
 # (dust on a ball), when they are fewer than this share of its window.
-_OUTLIER_SIGMA = 8.0
+_OUTLIER_SIGMA = 12.0
+_OUTLIER_PIXELS = 3
 _MAX_OUTLIERS = 0.02
 _CLEAN, _OVERLAP, _TRUNCATED = 0, 1, 2
 # Default diameter range: 10 px to a third of the image's smaller side.
 _AUTO_MIN_DIAMETER_PX = 10.0
 # Radii of one octave of the scale space, in pixels of its pyramid level.
-_LEVEL_RADIUS_PX = 2.0
+_LEVEL_RADIUS_PX = 4.0
+# Smaller radii (down to 2 px at this level) go on the first level too; full resolution only
+# for balls asked for under 8 px across.
+_FIRST_LEVEL = 1
 # Candidates found on a coarse level are located again this many levels finer.
 _REFINE_LEVELS = 2
 # Balls of one phantom project within this factor of their median radius (depth, overlaps).
@@ -373,7 +377,8 @@ def _scale_space_candidates(f: np.ndarray, r_min: float, r_max: float, min_heigh
     axis_y, extent)`` in full-resolution pixels, strongest first.
     """
     radii = _radii(r_min, r_max)
-    level_of = np.maximum(np.floor(np.log2(radii / _LEVEL_RADIUS_PX)), 0).astype(int)
+    level_of = np.maximum(np.floor(np.log2(radii / _LEVEL_RADIUS_PX)), _FIRST_LEVEL).astype(int)
+    level_of[radii < 2.0 ** (_FIRST_LEVEL + 1)] = 0   # under 2 px on the first level: full resolution
     pyramid = [f - np.median(f)]
     found = {sign: [] for sign in signs}
     for level in range(int(level_of.max()) + 1):
@@ -1033,13 +1038,19 @@ def _fit_discs(t, window, seeds, candidates, tree, own, min_height, strict=True,
 
 def _without_outliers(problem, result, data, xs, ys, keep, starts, bounds, min_height, max_nfev):
     """The fit again without the pixels it cannot explain: dust on a ball, a defect the despiking
-    left. Pixels beyond ``_OUTLIER_SIGMA`` robust deviations of the residual (and 1.6
-    ``min_height``, i.e. 8 noise deviations), grown by a pixel, are masked when they are fewer than
+    left. Pixels beyond ``_OUTLIER_SIGMA`` robust deviations of the residual (and a noise deviation),
+    in clumps of ``_OUTLIER_PIXELS`` or more, grown by a pixel, are masked when they are fewer than
     ``_MAX_OUTLIERS`` of the window; returns ``(result, problem)`` of the fit used."""
     residual = problem.residuals_and_jacobian(result.x)[0]
     spread = 1.4826 * float(np.median(np.abs(residual)))
     bad = np.zeros(keep.shape, bool)
-    bad[keep] = np.abs(residual) > max(_OUTLIER_SIGMA * spread, 1.6 * min_height)
+    bad[keep] = np.abs(residual) > max(_OUTLIER_SIGMA * spread, 0.2 * min_height)
+    if bad.any():
+        # Dust covers a few pixels together; noise (larger inside a strong ball than the window's
+        # median says) exceeds the bound in a pixel here and there, never in a clump.
+        labels, _ = ndimage.label(bad, np.ones((3, 3), bool))
+        bad = np.bincount(labels.ravel())[labels] >= _OUTLIER_PIXELS
+        bad[labels == 0] = False
     if not bad.any() or bad.sum() > _MAX_OUTLIERS * keep.sum():
         return result, problem
     trimmed = _Window(data, xs, ys, keep & ~ndimage.binary_dilation(bad, np.ones((3, 3), bool)), starts)
