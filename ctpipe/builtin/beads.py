@@ -18,7 +18,8 @@ Method
        padding) at ``s = 0.602 r`` (where its response to a chord profile of radius ``r``
        peaks, at 0.641 times its height) for ``r`` over the diameter range in steps of
        ``2^(1/4)``, each octave of radii on its own level of a pyramid of 2 x 2 block means
-       (radii 2-4 px at that level, with the radius below and above for the maxima across
+       (radii 4-8 px at that level from level 1 on, full resolution only for balls under 8 px;
+       with the radius below and above for the maxima across
        octaves): the range 10 px to a third of the image costs about as much on 2000^2 as on
        256^2. Polarity ``auto``: the sign of the strongest candidate. Candidates: maxima in
        (scale, row, col) strictly inside the radius range (a speck, dead pixel or line thinner
