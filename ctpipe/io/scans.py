@@ -269,12 +269,11 @@ class ScanFiles:
     metadata : dict
         The raw keys the reader used, for the report.
     closing_view : bool
-        The last view closes the turn: the scanner took it one full turn after view 0
-        (``nominal_angles_deg[-1] - nominal_angles_deg[0]`` is one turn, 360 deg in the sense of the
-        steps, as Nikon and Waygate scanners
-        save ``Projections + 1`` images of a full turn). It is read as a view like the others;
-        the pair graph pairs it with view 0 (:func:`ctpipe.solve.view_pairs`), so the whole
-        turn is measured from the images rather than assumed.
+        The last view is the image a scanner saves to close the scan (Nikon and Waygate save
+        ``Projections + 1`` images of a full turn), nominally one turn after view 0 (361.03 deg
+        in a real CT Pro scan whose step does not divide 360). It is read as a view like the
+        others; the pair graph pairs it with the view one turn before it
+        (:func:`ctpipe.solve.turn_pairs`), so the whole turn is measured from the images.
     """
 
     format: str
