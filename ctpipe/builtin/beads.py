@@ -95,6 +95,7 @@ from numba import njit, prange
 from scipy import fft, ndimage
 from scipy.spatial import cKDTree
 
+from ctpipe._jit import FASTMATH
 from ctpipe.data import Features
 from ctpipe.errors import ConfigError
 from ctpipe.hookspecs import hookimpl
@@ -308,7 +309,7 @@ def _despike(f: np.ndarray, noise: float) -> np.ndarray:
     return out.astype(np.float64)
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _despike_kernel(out, f, floor, level, fraction):  # pragma: no cover - numba
     rows, cols = f.shape
     for i in prange(1, rows - 1):
@@ -416,7 +417,7 @@ def _scale_space_candidates(f: np.ndarray, r_min: float, r_max: float, min_heigh
     return sign, best[sign]
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _peaks_kernel(stack, threshold, allowed, peaks):  # pragma: no cover - numba
     """``peaks[k, i, j]``: ``stack[k, i, j]`` is above ``threshold``, on an ``allowed`` plane, and no
     smaller than any of its 26 neighbours (edges clamped), as ``maximum_filter(size=3,
@@ -681,7 +682,7 @@ def _axis_kernel(first_pixel, n_pixels, a, edges, sigma):
     return weights, d_centre, d_radius, d_sigma
 
 
-@njit(fastmath=True, cache=True)
+@njit(fastmath=FASTMATH, cache=True)
 def _disc_products(chord, x_weights, y_weights):  # pragma: no cover - numba
     """The model of one disc and its derivatives, each of shape (rows, cols): ``Wy C Wx^T`` and
     ``Wy C Dx^T`` for the three x derivatives, ``Dy C Wx^T`` for the three y derivatives.

@@ -38,6 +38,7 @@ from numba import njit, prange
 from scipy import fft as sp_fft
 
 from ctpipe._checks import as_angles_deg
+from ctpipe._jit import FASTMATH
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
@@ -273,7 +274,7 @@ def _scan_weights(angles_rad: np.ndarray, geometry: Geometry, short_scan: bool |
 _TILE = 16
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _backproject(acc, proj_t, cos_t, sin_t, weight, xs, zs, y0, dy, sod, su, sv, u0, v0):
     """Add the views of ``proj_t`` to ``acc``.
 

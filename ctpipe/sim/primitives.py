@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from ctpipe._jit import FASTMATH
 from ctpipe.errors import InputError
 from ctpipe.recon.volume import VolumeGrid
 
@@ -192,7 +193,7 @@ def unit_interval(kind, a0, a1, a2, b0, b1, b2):
     return _box_interval(a0, a1, a2, b0, b1, b2)
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=FASTMATH)
 def _inside(kind, u0, u1, u2):
     if kind == 0:
         return u0 * u0 + u1 * u1 + u2 * u2 <= 1.0
@@ -201,7 +202,7 @@ def _inside(kind, u0, u1, u2):
     return abs(u0) <= 1.0 and abs(u1) <= 1.0 and abs(u2) <= 1.0
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _voxelise(volume, kind, centre, maps, density, lo_idx, hi_idx, origin, voxel, ss):
     """Add each primitive's mean density to the voxels of its index box.
 

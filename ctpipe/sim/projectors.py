@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit, prange
 
 from ctpipe._checks import as_angles_deg
+from ctpipe._jit import FASTMATH
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
@@ -232,7 +233,7 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
 
 # --------------------------------------------------------------------------- voxel projector
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _to_layouts(volume, vol_x, vol_z, vol_y, with_y):
     """Copy ``volume[iy, iz, ix]`` into the padded stepping layouts.
 
@@ -255,7 +256,7 @@ def _to_layouts(volume, vol_x, vol_z, vol_y, with_y):
                     vol_y[iz + 1, ix + 1, iy] = volume[iy, iz, ix]
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _from_layouts(out, buf_x, buf_z, buf_y, with_y):
     """``out[iy, iz, ix]`` = sum over buffers of the interior of every layout (the adjoint of
     :func:`_to_layouts`, summed over the per-thread buffers)."""
@@ -272,7 +273,7 @@ def _from_layouts(out, buf_x, buf_z, buf_y, with_y):
                 out[iy, iz, ix] = acc
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _range_within(k_lo, k_hi, f0, f1, upper):
     """Narrow ``[k_lo, k_hi]`` to the ``k`` with ``0 <= f0 + k f1 <= upper``."""
     if f1 == 0.0:
@@ -284,7 +285,7 @@ def _range_within(k_lo, k_hi, f0, f1, upper):
     return max(k_lo, min(k_a, k_b)), min(k_hi, max(k_a, k_b))
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _ray_setup(s_a, s_p, s_q, d_a, d_p, d_q, n_a, n_p, n_q, norm, voxel):
     """Joseph stepping of the ray ``index(t) = s + t d`` (voxel-index units, unpadded) along axis a.
 
@@ -310,7 +311,7 @@ def _ray_setup(s_a, s_p, s_q, d_a, d_p, d_q, n_a, n_p, n_q, norm, voxel):
     return k0, k1, p0, dp, q0, dq, step
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _ray_sum(vol, k0, k1, p0, dp, q0, dq, n_p, n_q):
     acc = np.float32(0.0)
     for k in range(k0, k1):
@@ -330,7 +331,7 @@ def _ray_sum(vol, k0, k1, p0, dp, q0, dq, n_p, n_q):
     return acc
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _ray_scatter(vol, value, k0, k1, p0, dp, q0, dq, n_p, n_q):
     for k in range(k0, k1):
         p = p0 + k * dp
@@ -347,7 +348,7 @@ def _ray_scatter(vol, value, k0, k1, p0, dp, q0, dq, n_p, n_q):
         vol[ip + 1, iq + 1, k] += w_hi * fq
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel, row, col):
     """Source and direction of a pixel's ray in voxel-index units (unpadded), and ``|d|`` in mm."""
     dxc = (col - u0) * pu
@@ -363,7 +364,7 @@ def _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel, row, col):
     return s_x, s_y, s_z, d_x * inv, d_y * inv, d_z * inv, norm
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _forward(out, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y, n_z):
     """Joseph line integrals of every pixel of every view into ``out`` (V, rows, cols); a view per thread."""
     n_views, n_rows, n_cols = out.shape
@@ -390,7 +391,7 @@ def _forward(out, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, o
                 out[v, row, col] = total * np.float32(step)
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _back(buf_x, buf_z, buf_y, proj, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y, n_z):
     """Scatter every view with the weights of :func:`_forward`; buffer ``b`` takes views b, b + B, ..."""
     n_views, n_rows, n_cols = proj.shape

@@ -188,3 +188,30 @@ def test_a_dense_turn_with_jitter_as_large_as_its_step_is_a_full_scan():
         assert covers_full_circle(angles), seed
     rng = np.random.default_rng(0)
     assert not covers_full_circle(np.linspace(0.0, 245.0, 1440) + rng.normal(0.0, 0.2, 1440))
+
+
+_FDK_DIGEST = """
+import hashlib, numpy as np
+from ctpipe.geometry import Geometry
+from ctpipe.recon.feldkamp import fdk
+from ctpipe.recon.volume import VolumeGrid
+geometry = Geometry(source_to_object_mm=400.0, source_to_detector_mm=800.0, detector_cols=32, detector_rows=24,
+                    pixel_pitch_u_mm=0.4, pixel_pitch_v_mm=0.4)
+views = np.random.default_rng(3).random((40, 24, 32), dtype=np.float32)
+volume = fdk(views, geometry, np.linspace(0.0, 360.0, 40, endpoint=False), VolumeGrid.cube(24, 0.25))
+print(hashlib.sha256(volume.tobytes()).hexdigest())
+"""
+
+
+def test_fdk_compiled_here_and_loaded_from_numba_cache_agree_bit_for_bit(tmp_path):
+    """A Dask worker loads the kernels from numba's cache while the client compiled them: the
+    two must compute the same bits (``fastmath=True``'s ``nsz`` broke this; see ctpipe._jit)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    compiled, loaded = (subprocess.run([sys.executable, "-c", _FDK_DIGEST], env=env, capture_output=True, text=True,
+                                       check=True).stdout.split()[-1] for _ in range(2))
+    assert any((tmp_path / "numba-cache").rglob("*.nbi")), "the first run wrote no cache"
+    assert compiled == loaded
