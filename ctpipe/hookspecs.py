@@ -1,8 +1,10 @@
 """Hook specifications of ctpipe: the contract between ctpipe and its plugins.
 
-A plugin is a module (or object) with functions decorated by :data:`hookimpl`. Built-in
-stages are plugins too (``ctpipe.plugins.BUILTIN_PLUGINS``); third-party distributions expose
-theirs through the ``ctpipe`` entry-point group::
+A plugin is a module (or object) with functions decorated by :data:`hookimpl`, one hook per
+extension point: :func:`ctpipe_register_stages` for detectors, matchers, estimators and
+refiners, :func:`ctpipe_register_formats` for scan formats. Built-in stages and formats are
+plugins too (``ctpipe.plugins.BUILTIN_PLUGINS``); third-party distributions expose theirs
+through the ``ctpipe`` entry-point group::
 
     [project.entry-points.ctpipe]
     myplugin = "my_package.ctpipe_plugin"
@@ -12,9 +14,9 @@ from __future__ import annotations
 
 import pluggy
 
-from ctpipe.registry import StageRegistrar
+from ctpipe.registry import FormatRegistrar, StageRegistrar
 
-__all__ = ["hookspec", "hookimpl", "ctpipe_register_stages"]
+__all__ = ["hookspec", "hookimpl", "ctpipe_register_stages", "ctpipe_register_formats"]
 
 hookspec = pluggy.HookspecMarker("ctpipe")
 hookimpl = pluggy.HookimplMarker("ctpipe")
@@ -32,4 +34,19 @@ def ctpipe_register_stages(registry: StageRegistrar) -> None:
         base in :mod:`ctpipe.stages`; its docstring's first line is the description that
         ``ctpipe plugins`` shows. A name already taken by another plugin is an error naming
         both plugins.
+    """
+
+
+@hookspec
+def ctpipe_register_formats(registry: FormatRegistrar) -> None:
+    """Register the scan formats this plugin reads.
+
+    Parameters
+    ----------
+    registry : FormatRegistrar
+        Call ``registry.add_format(name, detect, open, description, corrected_angle_log=None)``
+        once per format: ``detect(path) -> bool`` recognises a scan (a folder or a file) without
+        raising, ``open(path) -> ctpipe.io.ScanFiles`` opens it. :func:`ctpipe.io.open_scan`
+        tries the built-in formats first, then third-party ones in the order they load. A
+        name already taken by another plugin is an error naming both plugins.
     """

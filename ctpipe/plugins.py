@@ -1,7 +1,11 @@
 """Loading plugins: built-in ones and third-party ones, through the same path.
 
 Every run builds a fresh plugin manager with :func:`get_plugin_manager` (no module-level
-global), then :func:`collect_stages` asks each plugin to register its stages.
+global), then :func:`collect_stages` asks each plugin to register its stages and
+:func:`collect_formats` its scan formats. Modules are imported when a manager loads them, not
+before: a blocked plugin is never imported, and a manager that only needs formats
+(:func:`get_formats`, what :func:`ctpipe.io.open_scan` uses) imports no stage module (so
+neither OpenCV nor numba).
 """
 
 from __future__ import annotations
@@ -13,12 +17,25 @@ import pluggy
 
 from ctpipe import hookspecs
 from ctpipe.errors import PluginError
-from ctpipe.registry import StageRegistry
+from ctpipe.registry import FormatRegistry, StageRegistry
 
-__all__ = ["BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "get_plugin_manager", "collect_stages", "get_registry"]
+__all__ = ["BUILTIN_PLUGINS", "BUILTIN_STAGE_PLUGINS", "BUILTIN_FORMAT_PLUGINS", "ENTRY_POINT_GROUP",
+           "get_plugin_manager", "collect_stages", "collect_formats", "get_registry", "get_formats"]
 
-#: Modules holding ctpipe's own stages, registered by name like any other plugin.
-BUILTIN_PLUGINS: tuple[str, ...] = (
+#: Modules holding ctpipe's own scan formats, in the order :func:`ctpipe.io.open_scan` tries
+#: them (most specific first: a scan.yaml beside a vendor's files makes it ctpipe's folder).
+BUILTIN_FORMAT_PLUGINS: tuple[str, ...] = (
+    "ctpipe.io.scan_folder",
+    "ctpipe.io.nikon",
+    "ctpipe.io.zeiss",
+    "ctpipe.io.bruker",
+    "ctpipe.io.waygate",
+    "ctpipe.io.nsi",
+    "ctpipe.io.tiff_stack",
+)
+
+#: Modules holding ctpipe's own stages.
+BUILTIN_STAGE_PLUGINS: tuple[str, ...] = (
     "ctpipe.builtin.opencv_detectors",
     "ctpipe.builtin.surf",
     "ctpipe.builtin.beads",
@@ -29,26 +46,33 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "ctpipe.builtin.bundle",
 )
 
+#: Every built-in plugin module, registered by name like any third-party plugin.
+BUILTIN_PLUGINS: tuple[str, ...] = BUILTIN_STAGE_PLUGINS + BUILTIN_FORMAT_PLUGINS
+
 #: Entry-point group third-party distributions advertise their plugins in.
 ENTRY_POINT_GROUP = "ctpipe"
 
 
-def get_plugin_manager(*, blocked: Iterable[str] = (), entry_points: bool = True) -> pluggy.PluginManager:
+def get_plugin_manager(*, blocked: Iterable[str] = (), entry_points: bool = True,
+                       builtins: Iterable[str] = BUILTIN_PLUGINS) -> pluggy.PluginManager:
     """A new plugin manager with the built-in and (optionally) entry-point plugins loaded.
 
     Parameters
     ----------
     blocked : iterable of str
-        Plugin names not to load: a built-in module name from :data:`BUILTIN_PLUGINS` or a
-        third-party entry-point name.
+        Plugin names not to load (nor import): a built-in module name from
+        :data:`BUILTIN_PLUGINS` or a third-party entry-point name.
     entry_points : bool
         Load third-party plugins from the ``ctpipe`` entry-point group.
+    builtins : iterable of str
+        The built-in modules to load: all by default, :data:`BUILTIN_FORMAT_PLUGINS` when only
+        formats are wanted.
     """
     pm = pluggy.PluginManager("ctpipe")
     pm.add_hookspecs(hookspecs)
     for name in blocked:
         pm.set_blocked(name)
-    for module_name in BUILTIN_PLUGINS:
+    for module_name in builtins:
         if not pm.is_blocked(module_name):
             pm.register(importlib.import_module(module_name), name=module_name)
     if entry_points:
@@ -90,6 +114,19 @@ def collect_stages(pm: pluggy.PluginManager) -> StageRegistry:
     return registry
 
 
+def collect_formats(pm: pluggy.PluginManager) -> FormatRegistry:
+    """Ask every registered plugin for its scan formats, in the order the plugins were loaded."""
+    registry = FormatRegistry()
+    for impl in pm.hook.ctpipe_register_formats.get_hookimpls():
+        impl.function(registry=registry.registrar(impl.plugin_name))
+    return registry
+
+
 def get_registry(*, blocked: Iterable[str] = ()) -> StageRegistry:
-    """Shortcut: a fresh plugin manager's registry."""
+    """Shortcut: a fresh plugin manager's stage registry."""
     return collect_stages(get_plugin_manager(blocked=blocked))
+
+
+def get_formats(*, blocked: Iterable[str] = ()) -> FormatRegistry:
+    """Shortcut: the scan formats of the built-in format plugins and the entry-point plugins."""
+    return collect_formats(get_plugin_manager(blocked=blocked, builtins=BUILTIN_FORMAT_PLUGINS))

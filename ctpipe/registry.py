@@ -1,16 +1,18 @@
-"""The typed registry that plugins add their stages to."""
+"""The typed registries that plugins add their stages and scan formats to."""
 
 from __future__ import annotations
 
 import dataclasses
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 from ctpipe.errors import ConfigError, PluginError
 from ctpipe.stages import STAGE_KINDS, Stage
 
-__all__ = ["StageInfo", "StageRegistry", "StageRegistrar"]
+__all__ = ["StageInfo", "StageRegistry", "StageRegistrar", "FormatInfo", "FormatRegistry", "FormatRegistrar"]
 
 _NAME = re.compile(r"^[a-z0-9][a-z0-9_-]*$")
 
@@ -100,3 +102,97 @@ class StageRegistrar:
     def add_refiner(self, name: str, cls: type) -> None:
         """Register a :class:`~ctpipe.stages.Refiner` subclass under ``name``."""
         self._registry._add("refiner", name, cls, self.plugin)
+
+
+@dataclass(frozen=True)
+class FormatInfo:
+    """One registered scan format: how :func:`ctpipe.io.open_scan` recognises and opens it.
+
+    Attributes
+    ----------
+    name : str
+        The format's name (``nikon``, ``bruker``, ...), as ``ScanFiles.format`` and a
+        :class:`~ctpipe.io.StackReference` carry it.
+    detect : callable
+        ``detect(path) -> bool``: whether ``path`` (a folder or a file) is a scan in this format.
+        Cheap and silent: it looks at names and magic bytes, never raises on a foreign scan.
+    open : callable
+        ``open(path) -> ScanFiles``.
+    description : str
+        What the format looks like on disk, for the message listing the formats.
+    plugin : str
+        The plugin that registered it.
+    corrected_angle_log : callable or None
+        ``corrected_angle_log(scan, angles_deg) -> (file name, bytes)``: the scanner's own
+        per-view angle file for corrected angles, for formats whose software reads one.
+    """
+
+    name: str
+    detect: Callable[[Path], bool]
+    open: Callable[[Path], Any]
+    description: str
+    plugin: str
+    corrected_angle_log: Callable[[Any, Any], tuple[str, bytes]] | None = None
+
+    def to_dict(self) -> dict:
+        return {"kind": "format", "name": self.name, "plugin": self.plugin, "description": self.description}
+
+
+class FormatRegistry:
+    """All scan formats known to one run, in the order :func:`ctpipe.io.open_scan` tries them."""
+
+    def __init__(self) -> None:
+        self._formats: dict[str, FormatInfo] = {}
+
+    def registrar(self, plugin: str) -> "FormatRegistrar":
+        """The object handed to ``plugin``'s ``ctpipe_register_formats`` hook."""
+        return FormatRegistrar(self, plugin)
+
+    def _add(self, info: FormatInfo) -> None:
+        if not isinstance(info.name, str) or not _NAME.match(info.name):
+            raise PluginError(f"plugin {info.plugin!r}: format name {info.name!r} must match {_NAME.pattern}")
+        for what in ("detect", "open"):
+            if not callable(getattr(info, what)):
+                raise PluginError(f"plugin {info.plugin!r}: format {info.name!r}: {what} must be callable")
+        if info.corrected_angle_log is not None and not callable(info.corrected_angle_log):
+            raise PluginError(f"plugin {info.plugin!r}: format {info.name!r}: corrected_angle_log must be callable")
+        if not isinstance(info.description, str) or not info.description.strip():
+            raise PluginError(f"plugin {info.plugin!r}: format {info.name!r} needs a description")
+        existing = self._formats.get(info.name)
+        if existing is not None:
+            raise PluginError(f"format {info.name!r} is registered twice: by plugin {existing.plugin!r} and by plugin "
+                              f"{info.plugin!r}; block one of them")
+        self._formats[info.name] = info
+
+    def get(self, name: str) -> FormatInfo | None:
+        """The format called ``name``, or None."""
+        return self._formats.get(name)
+
+    def __getitem__(self, name: str) -> FormatInfo:
+        return self._formats[name]
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._formats
+
+    def names(self) -> list[str]:
+        """Names in the order they are tried."""
+        return list(self._formats)
+
+    def __iter__(self) -> Iterator[FormatInfo]:
+        return iter(list(self._formats.values()))
+
+    def __len__(self) -> int:
+        return len(self._formats)
+
+
+class FormatRegistrar:
+    """A plugin's view of the format registry: every format it adds is recorded as its own."""
+
+    def __init__(self, registry: FormatRegistry, plugin: str) -> None:
+        self._registry = registry
+        self.plugin = plugin
+
+    def add_format(self, name: str, detect: Callable[[Path], bool], open: Callable[[Path], Any], description: str, *,
+                   corrected_angle_log: Callable[[Any, Any], tuple[str, bytes]] | None = None) -> None:
+        """Register a scan format; see :class:`FormatInfo` for what each argument must do."""
+        self._registry._add(FormatInfo(name, detect, open, description, self.plugin, corrected_angle_log))

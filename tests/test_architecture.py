@@ -29,15 +29,17 @@ LAYERS = (
     "ctpipe.images",
     # the framework's contracts: data passed between stages, stages, registry, hooks, configuration
     "ctpipe.data", "ctpipe.stages", "ctpipe.registry", "ctpipe.hookspecs", "ctpipe.config",
+    # loading plugins by name (stages and scan formats); it imports no plugin module itself
+    "ctpipe.plugins",
     # the areas, each a folder
-    "ctpipe.io", "ctpipe.recon", "ctpipe.sim", "ctpipe.solve", "ctpipe.builtin",
-    # assembly: loading plugins, running a pipeline
-    "ctpipe.plugins", "ctpipe.execution", "ctpipe.pipeline",
+    "ctpipe.io", "ctpipe.recon", "ctpipe.features", "ctpipe.sim", "ctpipe.solve", "ctpipe.builtin",
+    # assembly: running a pipeline
+    "ctpipe.execution", "ctpipe.pipeline",
     # what uses a whole pipeline: evaluation, helpers for tests and benchmarks, entry points
     "ctpipe.evaluate", "ctpipe.testing", "ctpipe.cli", "ctpipe",
 )
 
-AREAS = ("ctpipe.builtin", "ctpipe.solve", "ctpipe.sim", "ctpipe.recon", "ctpipe.io", "ctpipe.evaluate")
+AREAS = ("ctpipe.builtin", "ctpipe.solve", "ctpipe.sim", "ctpipe.recon", "ctpipe.io", "ctpipe.evaluate", "ctpipe.features")
 
 
 def _modules() -> dict[str, Path]:
@@ -153,6 +155,15 @@ _INTERNAL = {
     "ctpipe.evaluate.synthetic": {"project", "PIXEL_NORMALISED"},
     "ctpipe.builtin.refiners": {"chain_pair_angles"},
     "ctpipe.builtin.surf": {"surf"},
+    # ctpipe.io: the CLI's output plumbing, the calibration-frame helpers, the corrected angle
+    # logs (written through each format's corrected_angle_log), the scan folder's constants
+    "ctpipe.io.outputs": {"atomic_write", "write_json", "write_csv", "write_files", "staged_folder", "json_bytes",
+                          "csv_bytes", "to_jsonable", "check_output_dir", "check_output_file", "write_keypoints",
+                          "keypoints_writer"},
+    "ctpipe.io.flatfield": {"mean_frame", "MAX_DEAD_FRACTION"},
+    "ctpipe.io.nikon": {"write_nikon_angles"},
+    "ctpipe.io.waygate": {"write_waygate_angles"},
+    "ctpipe.io.scan_folder": {"check_scan_folder_free", "SCAN_FORMAT", "VALUE_KINDS"},
 }
 
 

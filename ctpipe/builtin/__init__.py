@@ -5,19 +5,41 @@ through the same hook third-party plugins implement, so the built-in stages are 
 (``surf``, ``beads``, ``ransac-1pt``, ``projection-matching``, ...) exactly as theirs are. The
 classes can also be built directly from Python. Every ``cv2`` call is in
 :mod:`~ctpipe.builtin._opencv`, the adapter that absorbs OpenCV's version differences. The
-refiners are thin stages over the solvers of :mod:`ctpipe.solve`.
+stages are thin: the feature numerics are in :mod:`ctpipe.features`, the solvers in
+:mod:`ctpipe.solve`. No module here imports another's stages (a stage that needs another, such
+as projection matching's start, gets it from the registry).
+
+The modules are imported on first use of a name, so that ``--block-plugin`` keeps a module
+(and what it imports, e.g. OpenCV) out of the process.
 """
 
-from ctpipe.builtin.beads import BeadDetector
-from ctpipe.builtin.bundle import BundleAdjustmentRefiner
-from ctpipe.builtin.estimators import HistogramEstimator, MedianEstimator, OpenCV5ptEstimator, Ransac1ptEstimator
-from ctpipe.builtin.matchers import BruteForceMatcher, FlannMatcher
-from ctpipe.builtin.opencv_detectors import AkazeDetector, BriskDetector, KazeDetector, OrbDetector, SiftDetector
-from ctpipe.builtin.projection_matching import ProjectionMatchingRefiner
-from ctpipe.builtin.refiners import LeastSquaresRefiner
-from ctpipe.builtin.surf import SurfDetector
+from __future__ import annotations
 
-__all__ = ["SurfDetector", "BeadDetector", "SiftDetector", "OrbDetector", "AkazeDetector", "BriskDetector",
-           "KazeDetector", "BruteForceMatcher", "FlannMatcher", "Ransac1ptEstimator", "HistogramEstimator",
-           "MedianEstimator", "OpenCV5ptEstimator", "LeastSquaresRefiner", "BundleAdjustmentRefiner",
-           "ProjectionMatchingRefiner"]
+import importlib
+
+#: Public name -> the module of this package that defines it.
+_EXPORTS = {
+    "SurfDetector": "surf", "BeadDetector": "beads",
+    "SiftDetector": "opencv_detectors", "OrbDetector": "opencv_detectors", "AkazeDetector": "opencv_detectors",
+    "BriskDetector": "opencv_detectors", "KazeDetector": "opencv_detectors",
+    "BruteForceMatcher": "matchers", "FlannMatcher": "matchers",
+    "Ransac1ptEstimator": "estimators", "HistogramEstimator": "estimators", "MedianEstimator": "estimators",
+    "OpenCV5ptEstimator": "estimators",
+    "LeastSquaresRefiner": "refiners", "BundleAdjustmentRefiner": "bundle",
+    "ProjectionMatchingRefiner": "projection_matching",
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'ctpipe.builtin' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"ctpipe.builtin.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -179,7 +179,8 @@ import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry, check_geometry
-from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles, register_format
+from ctpipe.hookspecs import hookimpl
+from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles
 
 __all__ = ["open_bruker", "write_bruker", "read_skyscan_log"]
 
@@ -742,6 +743,8 @@ def write_bruker(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, 
     return folder
 
 
-register_format("bruker", detect, open_bruker,
-                "a Bruker SkyScan folder: a <prefix>.log starting with [System] beside <prefix>NNNNNNNN.tif "
-                "(or that .log)")
+@hookimpl
+def ctpipe_register_formats(registry) -> None:
+    registry.add_format("bruker", detect, open_bruker,
+                        "a Bruker SkyScan folder: a <prefix>.log starting with [System] beside <prefix>NNNNNNNN.tif "
+                        "(or that .log)")

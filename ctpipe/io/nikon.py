@@ -173,7 +173,8 @@ import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry, check_geometry
-from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles, register_format
+from ctpipe.hookspecs import hookimpl
+from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles
 
 __all__ = ["open_nikon", "write_nikon", "write_nikon_angles", "read_xtekct"]
 
@@ -846,5 +847,7 @@ def _corrected_angle_log(scan: ScanFiles, angles_deg) -> tuple[str, bytes]:
         return name, path.read_bytes()
 
 
-register_format("nikon", detect, open_nikon, "a folder with one <Name>.xtekct beside <Name>_0001.tif ... "
-                "(Nikon / X-Tek, CT Pro)", corrected_angle_log=_corrected_angle_log)
+@hookimpl
+def ctpipe_register_formats(registry) -> None:
+    registry.add_format("nikon", detect, open_nikon, "a folder with one <Name>.xtekct beside <Name>_0001.tif ... "
+                        "(Nikon / X-Tek, CT Pro)", corrected_angle_log=_corrected_angle_log)

@@ -159,7 +159,8 @@ import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
-from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, register_format
+from ctpipe.hookspecs import hookimpl
+from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack
 
 __all__ = ["open_nsi", "read_nsipro"]
 
@@ -701,5 +702,7 @@ def _read_calibration(file: Path, shape: tuple[int, int], key: str, nsipro: Path
     return image.astype(np.float64)
 
 
-register_format("nsi", detect, open_nsi,
-                "a folder with <name>.nsipro beside Radiographs-<name>/ and Corrections/ (North Star Imaging efX-CT)")
+@hookimpl
+def ctpipe_register_formats(registry) -> None:
+    registry.add_format("nsi", detect, open_nsi,
+                        "a folder with <name>.nsipro beside Radiographs-<name>/ and Corrections/ (North Star Imaging efX-CT)")

@@ -55,9 +55,10 @@ import yaml
 from ctpipe.config import check_keys, load_yaml, parse_geometry
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry, check_geometry
+from ctpipe.hookspecs import hookimpl
 from ctpipe.io.flatfield import log_transform
 from ctpipe.io.outputs import to_jsonable
-from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, register_format
+from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack
 from ctpipe.stages import ParamSpec, check_value
 
 __all__ = ["Scan", "read_scan", "open_scan_folder", "write_scan", "check_scan_folder_free", "SCAN_FORMAT",
@@ -412,4 +413,10 @@ def _swap_into_place(tmp: Path, folder: Path, overwrite: bool) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-register_format("ctpipe", lambda path: path.is_dir() and (path / "scan.yaml").is_file(), open_scan_folder, "a folder with scan.yaml (ctpipe's scan folder)")
+def _detect(path: Path) -> bool:
+    return path.is_dir() and (path / "scan.yaml").is_file()
+
+
+@hookimpl
+def ctpipe_register_formats(registry) -> None:
+    registry.add_format("ctpipe", _detect, open_scan_folder, "a folder with scan.yaml (ctpipe's scan folder)")

@@ -1,19 +1,24 @@
 """Scans on disk in any format ctpipe reads: detect the format, open the scan, read views on demand.
 
 :func:`open_scan` looks at a path (a folder, or a single file for formats that keep the whole
-scan in one), asks every format in :data:`FORMATS` whether it is theirs, and returns a
+scan in one), asks every registered scan format whether it is theirs, and returns a
 :class:`ScanFiles`: the geometry in ctpipe's names and conventions, the nominal angles, the
 angles the scanner logged if it did, and the projections as a :class:`ViewStack`, which reads,
 flat/dark-corrects and returns one view at a time. Nothing the size of the whole scan is read
 until a caller asks for it, view by view.
 
-Every format module (:mod:`ctpipe.io.nikon`, ...) has a ``detect(path) -> bool`` and an
-``open(path) -> ScanFiles``; their docstrings and ``docs/real-scans.md`` say which keys they
-read, how their units and signs become ctpipe's, and what is left unclear.
+Formats are plugins, like stages: every format module (:mod:`ctpipe.io.nikon`, ...) registers
+a ``detect(path) -> bool`` and an ``open(path) -> ScanFiles`` through the
+``ctpipe_register_formats`` hook, and a third-party package adds its own through the ``ctpipe``
+entry-point group (:mod:`ctpipe.hookspecs`). The readers' docstrings and
+``docs/real-scans.md`` say which keys they read, how their units and signs become ctpipe's,
+and what is left unclear.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import functools
 import threading
 from collections.abc import Callable, Mapping, Sequence
@@ -28,7 +33,7 @@ from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
 from ctpipe.io.flatfield import log_transform, mean_frame
 
-__all__ = ["ViewStack", "ViewFiles", "StackReference", "ScanFiles", "open_scan", "register_format", "FORMATS", "check_angles"]
+__all__ = ["ViewStack", "ViewFiles", "StackReference", "ScanFiles", "open_scan", "check_angles"]
 
 
 class ViewStack:
@@ -82,6 +87,16 @@ class ViewStack:
             log_transform(np.zeros((1, *self._shape), np.float32), self._flat, self._dark)
         self._lock = threading.Lock()
         self._source: tuple[str, str] | None = None
+
+    def opened_from(self, format_name: str, path: str | Path) -> "ViewStack":
+        """This stack, marked as the projections of the ``format_name`` scan at ``path``.
+
+        A shallow copy (the views are read through the same function): what :func:`open_scan`
+        returns, so that :meth:`reference` can name the scan for another process.
+        """
+        stack = copy.copy(self)
+        stack._source = (str(format_name), str(Path(path).resolve()))
+        return stack
 
     def reference(self) -> "StackReference | None":
         """What reopens this stack in another process: its format and path; None if not opened from disk."""
@@ -225,11 +240,13 @@ class StackReference:
 
 @functools.lru_cache(maxsize=4)
 def _reopened(format_name: str, path: str, changed_ns: int) -> ViewStack:
-    _load_builtin_formats()
-    if format_name not in FORMATS:
+    from ctpipe.plugins import get_formats
+
+    formats = get_formats()
+    if format_name not in formats:
         raise InputError(f"{path}: format {format_name!r} is not registered in this process (known: "
-                         f"{', '.join(FORMATS)}); register it in a module the workers import")
-    return FORMATS[format_name].open(Path(path)).projections
+                         f"{', '.join(formats.names())}); install the plugin that provides it where the workers run")
+    return formats[format_name].open(Path(path)).projections
 
 
 def check_angles(angles, n_views: int, what: str) -> np.ndarray:
@@ -249,7 +266,7 @@ class ScanFiles:
     Attributes
     ----------
     format : str
-        The name of the format in :data:`FORMATS` that read it.
+        The name of the registered format that read it.
     path : Path
         What was opened (a folder, or the file of a one-file format).
     geometry : Geometry
@@ -324,50 +341,19 @@ class ScanFiles:
         return lines
 
 
-@dataclass(frozen=True)
-class _Format:
-    name: str
-    detect: Callable[[Path], bool]
-    open: Callable[[Path], ScanFiles]
-    description: str
-    corrected_angle_log: Callable[[ScanFiles, np.ndarray], tuple[str, bytes]] | None = None
+def open_scan(path: str | Path, *, blocked: Sequence[str] = ()) -> ScanFiles:
+    """Open the scan at ``path`` in whichever registered format it is.
 
+    The built-in formats are tried first (ctpipe's own folder, then Nikon, Zeiss, Bruker,
+    Waygate, NSI, a TIFF stack with a YAML), then those of third-party plugins.
 
-#: The formats :func:`open_scan` tries, in order: name -> (detect, open, description).
-FORMATS: dict[str, _Format] = {}
-
-
-def register_format(name: str, detect: Callable[[Path], bool], open: Callable[[Path], ScanFiles],
-                    description: str, *,
-                    corrected_angle_log: Callable[[ScanFiles, np.ndarray], tuple[str, bytes]] | None = None) -> None:
-    """Add a format :func:`open_scan` recognises (the built-in ones register on import).
-
-    ``corrected_angle_log(scan, angles_deg)``, for formats whose scanner or reconstruction
-    software reads a per-view angle file, gives that file's name and contents for angles in
-    ctpipe's convention (in the frame of the scan's nominal angles), so corrected angles go back
-    in the scanner's own file format.
-    """
-    FORMATS[name] = _Format(name, detect, open, description, corrected_angle_log)
-
-
-#: The built-in formats in the order they are tried (most specific first), then any others.
-_BUILTIN_ORDER = ("ctpipe", "nikon", "zeiss", "bruker", "waygate", "nsi", "tiff-yaml")
-
-
-def _load_builtin_formats() -> None:
-    # The format modules register themselves; imported here so that open_scan knows them all.
-    import importlib
-
-    for module in ("scan_folder", "nikon", "zeiss", "bruker", "waygate", "nsi", "tiff_stack"):
-        try:
-            importlib.import_module(f"ctpipe.io.{module}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"ctpipe.io.{module}":
-                raise
-
-
-def open_scan(path: str | Path) -> ScanFiles:
-    """Open the scan at ``path`` in whichever supported format it is (see :data:`FORMATS`).
+    Parameters
+    ----------
+    path : str or Path
+        A scan folder, or a file for formats that keep a scan in one.
+    blocked : sequence of str
+        Plugins not to load (``--block-plugin``): a built-in format module such as
+        ``ctpipe.io.nikon`` or a third-party entry-point name.
 
     Raises
     ------
@@ -380,13 +366,12 @@ def open_scan(path: str | Path) -> ScanFiles:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such file or folder")
-    _load_builtin_formats()
-    formats = sorted(FORMATS.values(), key=lambda f: _BUILTIN_ORDER.index(f.name) if f.name in _BUILTIN_ORDER
-                     else len(_BUILTIN_ORDER))
+    from ctpipe.plugins import get_formats
+
+    formats = list(get_formats(blocked=blocked))
     for fmt in formats:
         if fmt.detect(path):
             scan = fmt.open(path)
-            scan.projections._source = (fmt.name, str(path.resolve()))
-            return scan
+            return dataclasses.replace(scan, projections=scan.projections.opened_from(fmt.name, path))
     known = "; ".join(f"{f.name}: {f.description}" for f in formats)
     raise InputError(f"{path}: not a scan in any format ctpipe reads ({known})")

@@ -35,7 +35,8 @@ import numpy as np
 
 from ctpipe.config import check_keys, load_yaml, parse_geometry
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
+from ctpipe.hookspecs import hookimpl
+from ctpipe.io.scans import ScanFiles, ViewStack, check_angles
 
 __all__ = ["open_tiff_stack"]
 
@@ -132,5 +133,7 @@ def open_tiff_stack(folder: str | Path) -> ScanFiles:
                      recorded_angles_deg=recorded, metadata={"yaml": source.name, "files": len(files)})
 
 
-register_format("tiff-yaml", detect, open_tiff_stack,
-                "a folder of TIFFs with one YAML beside them (geometry, angles, values)")
+@hookimpl
+def ctpipe_register_formats(registry) -> None:
+    registry.add_format("tiff-yaml", detect, open_tiff_stack,
+                        "a folder of TIFFs with one YAML beside them (geometry, angles, values)")

@@ -146,7 +146,8 @@ import numpy as np
 
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry, check_geometry
-from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles, register_format
+from ctpipe.hookspecs import hookimpl
+from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack, check_angles
 
 __all__ = ["open_waygate", "write_waygate", "write_waygate_angles"]
 
@@ -747,6 +748,8 @@ def _corrected_angle_log(scan: ScanFiles, angles_deg) -> tuple[str, bytes]:
         return name, write_waygate_angles(Path(tmp) / name, angles).read_bytes()
 
 
-register_format("waygate", detect, open_waygate,
-                "a folder with <name>.pca beside <name>00001.tif ... (GE/Waygate phoenix datos|x)",
-                corrected_angle_log=_corrected_angle_log)
+@hookimpl
+def ctpipe_register_formats(registry) -> None:
+    registry.add_format("waygate", detect, open_waygate,
+                        "a folder with <name>.pca beside <name>00001.tif ... (GE/Waygate phoenix datos|x)",
+                        corrected_angle_log=_corrected_angle_log)

@@ -112,8 +112,9 @@ import numpy as np
 
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
+from ctpipe.hookspecs import hookimpl
 from ctpipe.io._ole import StreamReader, find_entry, write_compound_file
-from ctpipe.io.scans import ScanFiles, ViewStack, check_angles, register_format
+from ctpipe.io.scans import ScanFiles, ViewStack, check_angles
 
 __all__ = ["open_zeiss", "write_zeiss"]
 
@@ -566,4 +567,6 @@ def write_zeiss(folder: str | Path, *, geometry: Geometry, nominal_angles_deg, r
     return atomic_write(folder / name, lambda handle: write_compound_file(handle, streams))
 
 
-register_format("zeiss", detect, open_zeiss, "a Zeiss Xradia .txrm file (or a folder holding one)")
+@hookimpl
+def ctpipe_register_formats(registry) -> None:
+    registry.add_format("zeiss", detect, open_zeiss, "a Zeiss Xradia .txrm file (or a folder holding one)")

@@ -291,6 +291,6 @@ def test_flat_correction_scales_to_the_white_level_as_the_scanner_saves_it():
 
 
 def test_the_module_registers_the_format():
-    from ctpipe.io.scans import FORMATS
+    from ctpipe.plugins import get_formats
 
-    assert FORMATS["bruker"].open is bruker.open_bruker
+    assert get_formats()["bruker"].open is bruker.open_bruker

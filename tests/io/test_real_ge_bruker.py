@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 import tifffile
 
-from ctpipe.io.scans import FORMATS, open_scan
+from ctpipe.io.scans import open_scan
+from ctpipe.plugins import get_formats
 
 ROOT = Path(__file__).resolve().parents[2]
 REAL = Path(os.environ.get("CTPIPE_REAL_METADATA", ROOT.parent / "shared" / "real-metadata"))
@@ -138,7 +139,7 @@ def test_a_real_full_turn_has_its_closing_view_the_protocols_angles_and_as_many_
     np.testing.assert_allclose(scan.recorded_angles_deg, scan.nominal_angles_deg, rtol=0, atol=ROTPOS_ATOL)
     assert scan.angle_log == pca.with_suffix(".pcp")
     # Corrected angles go back with the scanner's rows.
-    write = FORMATS["waygate"].corrected_angle_log
+    write = get_formats()["waygate"].corrected_angle_log
     corrected = scan.recorded_angles_deg + 0.0125
     name, data = write(scan, corrected)
     assert name == pca.with_suffix(".pcp").name

@@ -170,9 +170,9 @@ def test_corrected_angles_are_written_as_a_new_protocol_the_reader_reads(raw_sca
 
 
 def test_corrected_angles_go_back_with_as_many_rows_as_the_scanners_protocol(raw_scan, copy):
-    from ctpipe.io.scans import FORMATS
+    from ctpipe.plugins import get_formats
 
-    write = FORMATS["waygate"].corrected_angle_log
+    write = get_formats()["waygate"].corrected_angle_log
     scanner_rows = (copy / "scan.pcp").read_text().splitlines()[2:]
     opened = open_waygate(copy)  # with its closing view: 121 views, 121 rows
     corrected = np.append(raw_scan.true_deg, raw_scan.true_deg[0] + 359.9) + 0.01
