@@ -9,6 +9,8 @@ A pipeline file::
     matcher: {name: brute-force, ratio: 0.8}
     estimator: {name: ransac-1pt, sampson_threshold: 8.0e-4}
     refiner: least-squares          # a bare name means default parameters
+    # a stage that uses another stage names it the same way (built through the same registry):
+    #   refiner: {name: projection-matching, start: {name: bundle-adjustment, loss_scale_px: 0.7}}
     pairs: {baselines: [1], loop_closure: true}   # view offsets: (i, i + k) for every k; a full
                                     # turn (known from the nominal angles) also pairs across its seam
     preprocess: {static_background: auto}   # detect on views less their per-pixel median
@@ -19,9 +21,10 @@ A pipeline file::
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -29,21 +32,21 @@ import yaml
 
 from ctpipe._checks import short_repr
 from ctpipe.errors import ConfigError, InputError
-from ctpipe.geometry import MAX_DETECTOR_PX, Geometry
+from ctpipe.geometry import FIELDS as GEOMETRY_FIELDS
+from ctpipe.geometry import Geometry
 from ctpipe.registry import StageRegistry
-from ctpipe.stages import ParamSpec, Stage, check_value
+from ctpipe.stages import ParamSpec, Stage, StageSpec, check_value
 
 __all__ = ["load_yaml", "StageSpec", "PipelineConfig", "parse_pipeline", "parse_geometry", "load_geometry", "check_keys",
            "build_stage", "DEFAULT_STAGES"]
 
-#: Stage used for a kind the pipeline file does not mention. The estimator's Sampson threshold
-#: is the paper's real-data one (8e-4, about 2 px at 0.4 mm pitch and 1 m SDD); the stage's own
-#: default (0.01) is the paper's synthetic setting, some 25 px on such a detector. The refiner is
-#: the whole-scan one: pair angles alone drift along a scan (see docs/wholescan.md).
+#: Stage used for a kind the pipeline file does not mention: each stage's own defaults, so that
+#: leaving a kind out and naming its stage bare are the same. The refiner is the whole-scan one:
+#: pair angles alone drift along a scan (see docs/wholescan.md).
 DEFAULT_STAGES = {
     "detector": {"name": "sift"},
     "matcher": {"name": "brute-force", "ratio": 0.8, "mutual": True},
-    "estimator": {"name": "ransac-1pt", "sampson_threshold": 8e-4},
+    "estimator": {"name": "ransac-1pt"},
     "refiner": {"name": "projection-matching"},
 }
 
@@ -197,24 +200,17 @@ def check_keys(mapping: Any, path: str, *, allowed: tuple[str, ...], required: t
     return mapping
 
 
-@dataclass(frozen=True)
-class StageSpec:
-    """A stage chosen by name with explicit parameters (validated against the registry)."""
-
-    kind: str
-    name: str
-    params: Mapping[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict:
-        return {"name": self.name, **dict(self.params)}
-
-
 def _parameter_table(cls: type[Stage]) -> dict[str, ParamSpec]:
     return {spec.name: spec for spec in cls.parameters()}
 
 
 def parse_stage(value: Any, kind: str, registry: StageRegistry, path: str) -> StageSpec:
-    """``value`` is a bare name or a mapping ``{name: ..., <param>: ...}``."""
+    """``value`` is a bare name or a mapping ``{name: ..., <param>: ...}``.
+
+    A parameter that is itself a stage (``param(..., stage=kind)``) is parsed the same way, with
+    its own path (``pipeline.refiner.start.loss_scale_px``), unless it is one of the words its
+    annotation allows (``nominal``).
+    """
     if isinstance(value, str):
         value = {"name": value}
     if not isinstance(value, Mapping):
@@ -233,13 +229,35 @@ def parse_stage(value: Any, kind: str, registry: StageRegistry, path: str) -> St
         if key not in table:
             allowed = ", ".join(table) or "none"
             raise ConfigError(f"{path}.{short_key(key)}: unknown parameter of {kind} {name!r}; allowed: {allowed}")
-        params[key] = check_value(table[key], raw, f"{path}.{key}")
+        spec = table[key]
+        nested = raw.to_dict() if isinstance(raw, StageSpec) else raw
+        if spec.stage is not None and not spec.is_word(nested) and isinstance(nested, (str, Mapping)):
+            params[key] = parse_stage(nested, spec.stage, registry, f"{path}.{key}")
+        else:
+            params[key] = check_value(spec, raw, f"{path}.{key}")
     return StageSpec(kind, name, params)
 
 
-def build_stage(spec: StageSpec, registry: StageRegistry) -> Stage:
-    """Instantiate a validated stage spec."""
-    return registry.get(spec.kind, spec.name).cls(**spec.params)
+def build_stage(spec: StageSpec | Stage, registry: StageRegistry) -> Stage:
+    """Instantiate a validated stage spec, its nested stages first, through ``registry``.
+
+    Given a :class:`~ctpipe.stages.Stage` (one built from Python with a nested stage given by
+    name), returns it with those nested specs validated and built through ``registry``.
+    """
+    if isinstance(spec, Stage):
+        built = {}
+        for param_spec in spec.parameters():
+            value = getattr(spec, param_spec.name)
+            if param_spec.stage is None or param_spec.is_word(value):
+                continue
+            if isinstance(value, StageSpec):
+                value = parse_stage(value.to_dict(), param_spec.stage, registry,
+                                    f"{type(spec).__name__}.{param_spec.name}")
+            built[param_spec.name] = build_stage(value, registry)
+        return dataclasses.replace(spec, **built) if built else spec
+    params = {key: build_stage(value, registry) if isinstance(value, StageSpec) else value
+              for key, value in spec.params.items()}
+    return registry.get(spec.kind, spec.name).cls(**params)
 
 
 @dataclass(frozen=True)
@@ -287,21 +305,13 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
                           static_background=static_background)
 
 
-_GEOMETRY_FIELDS = {
-    "source_to_object_mm": ParamSpec("source_to_object_mm", float, None, "", gt=0),
-    "source_to_detector_mm": ParamSpec("source_to_detector_mm", float, None, "", gt=0),
-    "detector_cols": ParamSpec("detector_cols", int, None, "", ge=1, le=MAX_DETECTOR_PX),
-    "detector_rows": ParamSpec("detector_rows", int, None, "", ge=1, le=MAX_DETECTOR_PX),
-    "pixel_pitch_u_mm": ParamSpec("pixel_pitch_u_mm", float, None, "", gt=0),
-    "pixel_pitch_v_mm": ParamSpec("pixel_pitch_v_mm", float, None, "", gt=0),
-    "u0_px": ParamSpec("u0_px", float | None, None, ""),
-    "v0_px": ParamSpec("v0_px", float | None, None, ""),
-}
+_GEOMETRY_FIELDS = {name: ParamSpec(name, annotation, None, "", **bounds)
+                    for name, (annotation, bounds) in GEOMETRY_FIELDS.items()}
 
 
 def parse_geometry(mapping: Any, path: str = "geometry") -> Geometry:
     """Validate a geometry mapping (keys are :class:`Geometry` fields, units in their names)."""
-    optional = ("u0_px", "v0_px")
+    optional = tuple(f.name for f in dataclasses.fields(Geometry) if f.default is not dataclasses.MISSING)
     check_keys(mapping, path, allowed=tuple(_GEOMETRY_FIELDS),
                required=tuple(k for k in _GEOMETRY_FIELDS if k not in optional))
     values = {key: check_value(_GEOMETRY_FIELDS[key], value, f"{path}.{key}") for key, value in mapping.items()}

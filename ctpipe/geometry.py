@@ -20,16 +20,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from ctpipe._checks import as_integer, as_real, short_repr
 from ctpipe.errors import InputError
 
-__all__ = ["Geometry", "MAX_DETECTOR_PX", "check_geometry"]
+__all__ = ["Geometry", "FIELDS", "MAX_DETECTOR_PX", "check_geometry"]
 
 #: Largest detector side accepted, pixels (flat panels have at most a few thousand).
 MAX_DETECTOR_PX = 65_536
+
+#: Type and bounds of every :class:`Geometry` field, declared once: :class:`Geometry` checks
+#: them, and the YAML reader (:func:`ctpipe.config.parse_geometry`) reports them with their path.
+FIELDS: dict[str, tuple[Any, dict[str, float]]] = {
+    "source_to_object_mm": (float, {"gt": 0}),
+    "source_to_detector_mm": (float, {"gt": 0}),
+    "detector_cols": (int, {"ge": 1, "le": MAX_DETECTOR_PX}),
+    "detector_rows": (int, {"ge": 1, "le": MAX_DETECTOR_PX}),
+    "pixel_pitch_u_mm": (float, {"gt": 0}),
+    "pixel_pitch_v_mm": (float, {"gt": 0}),
+    "u0_px": (float | None, {}),
+    "v0_px": (float | None, {}),
+}
 
 
 @dataclass(frozen=True)
@@ -63,17 +77,19 @@ class Geometry:
     def __post_init__(self) -> None:
         # numpy scalars (np.float32(150), a value read from an array) are numbers too; they are
         # stored as Python floats and ints so that every consumer sees plain values.
-        for name in ("source_to_object_mm", "source_to_detector_mm", "pixel_pitch_u_mm", "pixel_pitch_v_mm"):
-            value = as_real(getattr(self, name))
-            if value is None or not (math.isfinite(value) and value > 0):
-                raise InputError(f"geometry.{name}: must be a finite number > 0, got {short_repr(getattr(self, name))}")
-            object.__setattr__(self, name, value)
-        for name in ("detector_cols", "detector_rows"):
-            value = as_integer(getattr(self, name))
-            if value is None or not 0 < value <= MAX_DETECTOR_PX:
-                raise InputError(f"geometry.{name}: must be an integer >= 1 and <= {MAX_DETECTOR_PX}, "
-                                 f"got {short_repr(getattr(self, name))}")
-            object.__setattr__(self, name, value)
+        for name, (annotation, bounds) in FIELDS.items():
+            if annotation is float:
+                value = as_real(getattr(self, name))
+                if value is None or not (math.isfinite(value) and value > bounds["gt"]):
+                    raise InputError(f"geometry.{name}: must be a finite number > {bounds['gt']}, "
+                                     f"got {short_repr(getattr(self, name))}")
+                object.__setattr__(self, name, value)
+            elif annotation is int:
+                value = as_integer(getattr(self, name))
+                if value is None or not bounds["ge"] <= value <= bounds["le"]:
+                    raise InputError(f"geometry.{name}: must be an integer >= {bounds['ge']} and <= {bounds['le']}, "
+                                     f"got {short_repr(getattr(self, name))}")
+                object.__setattr__(self, name, value)
         if self.source_to_detector_mm <= self.source_to_object_mm:
             raise InputError(
                 "geometry: source_to_detector_mm must exceed source_to_object_mm "

@@ -3,7 +3,15 @@
 A stage is a frozen dataclass: its fields are its parameters, declared with :func:`param`
 (default, one-line doc, bounds). Parameters are validated when the stage is constructed,
 from Python or from YAML, with the same messages. Stages keep no state after ``__init__``;
-they return new results and never modify their inputs.
+they return new results and never modify their inputs. A solver's settings can be declared the
+same way (a :class:`Parameters` dataclass) and a stage can then *be* those settings by
+subclassing them, so every setting is declared once.
+
+A stage that uses another stage (projection matching starts from a refiner's angles) declares
+it with ``param(..., stage="refiner")``: the value is a stage of that kind, written in YAML as
+a top-level stage is (a bare name, or ``{name: ..., <param>: ...}``) and built through the
+same registry (:func:`ctpipe.config.build_stage`), so its parameters are validated with their
+YAML path and a blocked plugin's stage cannot be used.
 
 Detector -> Matcher -> Estimator -> Refiner::
 
@@ -19,7 +27,8 @@ import dataclasses
 import math
 import types
 import typing
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -27,12 +36,39 @@ import numpy as np
 from ctpipe._checks import as_integer, short_repr
 from ctpipe.errors import ConfigError
 
-__all__ = ["param", "ParamSpec", "Stage", "Detector", "Matcher", "Estimator", "Refiner", "STAGE_KINDS", "check_value"]
+__all__ = ["param", "ParamSpec", "Parameters", "Stage", "StageSpec", "Detector", "Matcher", "Estimator", "Refiner",
+           "STAGE_KINDS", "check_value"]
 
 
-def param(default: Any, *, doc: str, ge=None, gt=None, le=None, lt=None) -> Any:
-    """Declare a stage parameter: a dataclass field with a doc line and bounds."""
-    return dataclasses.field(default=default, metadata={"doc": doc, "ge": ge, "gt": gt, "le": le, "lt": lt})
+def param(default: Any, *, doc: str, ge=None, gt=None, le=None, lt=None, stage: str | None = None) -> Any:
+    """Declare a parameter: a dataclass field with a doc line and bounds.
+
+    ``stage`` (a kind, e.g. ``"refiner"``) declares a nested stage: the value is a stage of that
+    kind, or its spec (a registered name, or a mapping ``{name: ..., <param>: ...}``) that
+    :func:`ctpipe.config.build_stage` builds through the registry; the words of a ``Literal`` in
+    the annotation (e.g. ``"nominal"``) are accepted beside it.
+    """
+    return dataclasses.field(default=default, metadata={"doc": doc, "ge": ge, "gt": gt, "le": le, "lt": lt,
+                                                        "stage": stage})
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """A stage chosen by name with explicit parameters, not built yet.
+
+    :func:`ctpipe.config.parse_stage` makes validated ones from YAML; a nested stage given by
+    name from Python is held as one (its parameters unchecked) until
+    :func:`ctpipe.config.build_stage` validates and builds it through a registry.
+    """
+
+    kind: str
+    name: str
+    params: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """``{"name": ..., **params}``, nested specs as mappings too (YAML/JSON friendly)."""
+        return {"name": self.name, **{key: value.to_dict() if isinstance(value, StageSpec) else value
+                                      for key, value in self.params.items()}}
 
 
 @dataclass(frozen=True)
@@ -47,11 +83,26 @@ class ParamSpec:
     gt: float | None = None
     le: float | None = None
     lt: float | None = None
+    #: Kind of a nested stage (``"refiner"``), or None for a plain value.
+    stage: str | None = None
 
     @property
     def allowed(self) -> str:
         """Human description of the accepted values, e.g. ``a number > 0``."""
+        if self.stage is not None:
+            text = f"a {self.stage} (its name, or a mapping with 'name' and its parameters)"
+            return text + (" or one of " + ", ".join(repr(v) for v in self.words) if self.words else "")
         return _describe(self.annotation, self)
+
+    def is_word(self, value: Any) -> bool:
+        """Whether ``value`` is one of :attr:`words` (as written: ``1`` is not ``True``)."""
+        return any(value == word and type(value) is type(word) for word in self.words)
+
+    @property
+    def words(self) -> tuple:
+        """The ``Literal`` values of the annotation (a nested stage's special words, e.g. ``"nominal"``)."""
+        return tuple(v for option in _options(self.annotation) if typing.get_origin(option) is Literal
+                     for v in typing.get_args(option))
 
 
 _TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string", type(None): "null"}
@@ -122,11 +173,29 @@ def _in_bounds(spec: ParamSpec, value) -> bool:
 def check_value(spec: ParamSpec, value: Any, path: str) -> Any:
     """Return ``value`` (floats as float, lists as tuples) or raise :class:`ConfigError`.
 
-    The message names ``path``, the value received and what is allowed.
+    The message names ``path``, the value received and what is allowed. A nested stage
+    (``spec.stage``) is kept as given if it is a stage of that kind, a :class:`StageSpec` of it or
+    one of the annotation's words; a name or a mapping with a ``name`` becomes a :class:`StageSpec`
+    (its parameters are checked when it is built, :func:`ctpipe.config.build_stage`).
     """
+    if spec.stage is not None:
+        return _check_stage(spec, value, path)
     if not any(_matches_type(option, value) for option in _options(spec.annotation)) or not _in_bounds(spec, value):
         raise ConfigError(f"{path}: must be {spec.allowed}, got {short_repr(value)}")
     return _plain(spec.annotation, value)
+
+
+def _check_stage(spec: ParamSpec, value: Any, path: str) -> Any:
+    kind = spec.stage
+    if isinstance(value, STAGE_KINDS[kind]) or isinstance(value, StageSpec) and value.kind == kind:
+        return value
+    if spec.is_word(value):
+        return value
+    if isinstance(value, str):
+        return StageSpec(kind, value, {})
+    if isinstance(value, Mapping) and isinstance(value.get("name"), str):
+        return StageSpec(kind, value["name"], {key: v for key, v in value.items() if key != "name"})
+    raise ConfigError(f"{path}: must be {spec.allowed}, got {short_repr(value)}")
 
 
 def _plain(annotation, value):
@@ -144,10 +213,12 @@ def _plain(annotation, value):
     return value
 
 
-class Stage:
-    """Base of the four stage kinds. Subclasses are frozen dataclasses."""
+class Parameters:
+    """Base of frozen dataclasses whose fields are declared with :func:`param` and checked on construction.
 
-    kind: ClassVar[str] = ""
+    Stages are such dataclasses; so are settings a solver takes (``BundleSettings``), which a
+    stage may subclass to take them over as its own parameters.
+    """
 
     def __post_init__(self) -> None:
         for spec in self.parameters():
@@ -156,26 +227,32 @@ class Stage:
 
     @classmethod
     def parameters(cls) -> tuple[ParamSpec, ...]:
-        """The stage's parameters in declaration order."""
+        """The parameters in declaration order."""
         hints = typing.get_type_hints(cls)
         specs = []
         for f in dataclasses.fields(cls):
             meta = f.metadata
             specs.append(
                 ParamSpec(f.name, hints[f.name], f.default, meta.get("doc", ""),
-                          meta.get("ge"), meta.get("gt"), meta.get("le"), meta.get("lt"))
+                          meta.get("ge"), meta.get("gt"), meta.get("le"), meta.get("lt"), meta.get("stage"))
             )
         return tuple(specs)
+
+    def params(self) -> dict[str, Any]:
+        """Current parameter values, as plain Python values."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+class Stage(Parameters):
+    """Base of the four stage kinds. Subclasses are frozen dataclasses."""
+
+    kind: ClassVar[str] = ""
 
     @classmethod
     def summary(cls) -> str:
         """First line of the class docstring: the stage's one-line description."""
         doc = (cls.__doc__ or "").strip()
         return doc.splitlines()[0].strip() if doc else ""
-
-    def params(self) -> dict[str, Any]:
-        """Current parameter values, as plain Python values."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
 
 class Detector(Stage):
