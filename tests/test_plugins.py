@@ -6,7 +6,8 @@ import pytest
 from ctpipe import hookspecs
 from ctpipe.errors import ConfigError, PluginError
 from ctpipe.hookspecs import hookimpl
-from ctpipe.plugins import BUILTIN_PLUGINS, collect_stages, get_plugin_manager, get_registry
+from ctpipe.plugins import (BUILTIN_FORMAT_PLUGINS, BUILTIN_PLUGINS, BUILTIN_STAGE_PLUGINS, collect_stages,
+                            get_plugin_manager, get_registry)
 from ctpipe.stages import Estimator, param
 from ctpipe.testing import check_stage
 
@@ -76,8 +77,8 @@ def test_a_duplicate_name_is_an_error_naming_both_plugins():
 
 def test_every_hook_has_a_test_and_a_docs_entry():
     hooks = [name for name, _ in inspect.getmembers(hookspecs, inspect.isfunction) if name.startswith("ctpipe_")]
-    assert hooks == ["ctpipe_register_stages"]
-    source = open(__file__).read()
+    assert hooks == ["ctpipe_register_formats", "ctpipe_register_stages"]
+    source = open(__file__).read() + open(__file__.replace("test_plugins.py", "io/test_format_plugins.py")).read()
     docs = open(__file__.replace("tests/test_plugins.py", "docs/plugins.md")).read()
     for hook in hooks:
         assert f"def test_{hook}" in source
@@ -85,9 +86,12 @@ def test_every_hook_has_a_test_and_a_docs_entry():
 
 
 def test_builtins_are_listed_in_one_tuple():
-    assert BUILTIN_PLUGINS == ("ctpipe.builtin.opencv_detectors", "ctpipe.builtin.surf", "ctpipe.builtin.beads",
-                               "ctpipe.builtin.matchers", "ctpipe.builtin.estimators", "ctpipe.builtin.refiners",
-                               "ctpipe.builtin.projection_matching", "ctpipe.builtin.bundle")
+    assert BUILTIN_STAGE_PLUGINS == ("ctpipe.builtin.opencv_detectors", "ctpipe.builtin.surf", "ctpipe.builtin.beads",
+                                     "ctpipe.builtin.matchers", "ctpipe.builtin.estimators", "ctpipe.builtin.refiners",
+                                     "ctpipe.builtin.projection_matching", "ctpipe.builtin.bundle")
+    assert BUILTIN_FORMAT_PLUGINS == ("ctpipe.io.scan_folder", "ctpipe.io.nikon", "ctpipe.io.zeiss", "ctpipe.io.bruker",
+                                      "ctpipe.io.waygate", "ctpipe.io.nsi", "ctpipe.io.tiff_stack")
+    assert BUILTIN_PLUGINS == BUILTIN_STAGE_PLUGINS + BUILTIN_FORMAT_PLUGINS
 
 
 def test_stage_parameters_are_validated_on_construction():
