@@ -93,6 +93,20 @@ def test_modules_import_only_their_own_layer_and_the_layers_below(module):
     assert not upward, f"{module} (layer {own}) imports higher layers: {', '.join(upward)}"
 
 
+def test_no_plugin_imports_another_plugin():
+    # A plugin may be blocked: another that imported it would load it anyway, and a stage that
+    # needs another stage gets it from the registry (a nested stage spec), not by import.
+    # Private adapters (ctpipe.builtin._opencv) are shared infrastructure, not plugins.
+    from ctpipe.plugins import BUILTIN_PLUGINS
+
+    for plugin in BUILTIN_PLUGINS:
+        others = sorted(t for t in _imports(plugin, MODULES[plugin]) if t in BUILTIN_PLUGINS and t != plugin)
+        assert not others, f"plugin {plugin} imports plugins {others}"
+        siblings = sorted(t for t in _imports(plugin, MODULES[plugin]) if t != plugin
+                          and t.startswith("ctpipe.builtin.") and not t.rsplit(".", 1)[1].startswith("_"))
+        assert not siblings, f"plugin {plugin} imports stage modules {siblings}"
+
+
 def test_no_import_cycles_between_modules():
     graph = {module: {t for t in _imports(module, path) if t in MODULES and t != module}
              for module, path in MODULES.items()}
