@@ -4,7 +4,7 @@ The names here are the ones a user needs first::
 
     import ctpipe
 
-    scan = ctpipe.read_scan("my_scan")                      # or ctpipe.simulate(phantom, spec)
+    scan = ctpipe.open_scan("my_scan")    # any format: Nikon, Zeiss, Bruker, Waygate, NSI, ctpipe's
     result = ctpipe.Pipeline.from_config("configs/default.yaml").run(
         scan.projections, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg)
     volume = ctpipe.fdk(scan.projections, scan.geometry, result.angles_deg, ctpipe.VolumeGrid.cube(256, 0.1))
@@ -14,6 +14,9 @@ this level; each area has its folder: :mod:`ctpipe.builtin` (the built-in stages
 :mod:`ctpipe.solve` (whole-scan solving), :mod:`ctpipe.sim` (the simulator), :mod:`ctpipe.recon`
 (volume grids and FDK), :mod:`ctpipe.io` (scan folders and files) and :mod:`ctpipe.evaluate`
 (``ctpipe validate`` and the scores). ``docs/architecture.md`` has the map.
+
+``open_scan`` opens a scan in any format ctpipe reads (reading views on demand);
+``read_scan`` reads ctpipe's own scan folder whole, and ``simulate`` makes one.
 
 The names are imported on first use, so ``import ctpipe`` (and the ``ctpipe`` command's start)
 stays fast.
@@ -41,6 +44,8 @@ _EXPORTS = {
     "InputError": "ctpipe.errors",
     "EstimationError": "ctpipe.errors",
     "PluginError": "ctpipe.errors",
+    "open_scan": "ctpipe.io.scans",
+    "ScanFiles": "ctpipe.io.scans",
     "Scan": "ctpipe.io.scan_folder",
     "read_scan": "ctpipe.io.scan_folder",
     "write_scan": "ctpipe.io.scan_folder",

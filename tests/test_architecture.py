@@ -182,7 +182,8 @@ _INTERNAL = {
 
 
 def test_the_package_exposes_what_a_user_needs_first():
-    for name in ("Pipeline", "Geometry", "read_scan", "simulate", "fdk", "VolumeGrid", "load_phantom", "run_validate"):
+    for name in ("Pipeline", "Geometry", "open_scan", "read_scan", "simulate", "fdk", "VolumeGrid", "load_phantom",
+                 "run_validate"):
         assert name in ctpipe.__all__
         assert getattr(ctpipe, name).__name__ == name
     assert ctpipe.fdk is importlib.import_module("ctpipe.recon.feldkamp").fdk
