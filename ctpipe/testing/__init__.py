@@ -15,9 +15,22 @@ benchmarked against.
 
 Ball phantoms (``ball-bar``, ``bead-cloud-*``): :func:`phantom_spheres` lists their balls and
 :func:`overlapping_spheres` says, view by view, which pairs of balls overlap on the detector.
+
+Vendor scans, written as the scanners leave them, for the readers of :mod:`ctpipe.io` to be
+tested and benchmarked on: :func:`write_nikon` (Nikon / X-Tek, module
+:mod:`ctpipe.testing.nikon`), :func:`write_zeiss` (Zeiss Xradia ``.txrm``,
+:mod:`ctpipe.testing.zeiss`, an OLE compound file written by :func:`write_compound_file` of
+:mod:`ctpipe.testing.ole`), :func:`write_bruker` (Bruker SkyScan, :mod:`ctpipe.testing.bruker`)
+and :func:`write_waygate` (GE / Waygate datos|x, :mod:`ctpipe.testing.waygate`). Each takes a
+geometry, the nominal and recorded angles and raw counts with flats and darks. They are
+imported on first use, so importing ``ctpipe.testing`` imports no scan format. The corrected
+angle logs ``ctpipe estimate`` writes for users stay with their readers
+(``ctpipe.io.nikon.write_nikon_angles``, ``ctpipe.io.waygate.write_waygate_angles``).
 """
 
 from __future__ import annotations
+
+import importlib
 
 import numpy as np
 from scipy import ndimage
@@ -32,7 +45,25 @@ from ctpipe.stages import Detector, Estimator, Matcher, Refiner, Stage
 
 __all__ = ["check_stage", "check_detector", "check_matcher", "check_estimator", "check_refiner", "check_pickles", "textured_image",
            "render_balls", "ELLIPSOIDS", "MARGIN_MM", "project_ellipsoids", "phantom_volume", "relative_rmse",
-           "phantom_spheres", "overlapping_spheres"]
+           "phantom_spheres", "overlapping_spheres",
+           "write_nikon", "write_zeiss", "write_bruker", "write_waygate", "write_compound_file"]
+
+#: The vendor scan writers, name -> the module of ctpipe.testing that defines it (imported on first use).
+_WRITERS = {"write_nikon": "nikon", "write_zeiss": "zeiss", "write_bruker": "bruker", "write_waygate": "waygate",
+            "write_compound_file": "ole"}
+
+
+def __getattr__(name: str):
+    module = _WRITERS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'ctpipe.testing' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"ctpipe.testing.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_WRITERS))
 
 
 def textured_image(shape: tuple[int, int] = (256, 256), seed: int = 0) -> np.ndarray:

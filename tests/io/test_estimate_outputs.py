@@ -7,7 +7,8 @@ import numpy as np
 import yaml
 
 from ctpipe.cli import main
-from ctpipe.io import open_scan, write_nikon
+from ctpipe.io import open_scan
+from ctpipe.testing import write_nikon
 
 from scan_helpers import FAST_PIPELINE
 

@@ -13,6 +13,7 @@ import pytest
 import ctpipe.io.nikon as nikon
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.io.scans import open_scan
+from ctpipe.testing import write_nikon
 
 from scan_helpers import estimate_angles, simulate_raw_scan, write_reference
 
@@ -30,7 +31,7 @@ def scanner_counts(raw, white=WHITE):
 def write(folder, raw, **changes):
     kwargs = dict(geometry=raw.geometry, nominal_angles_deg=raw.nominal_deg, recorded_angles_deg=raw.true_deg,
                   intensities=raw.intensities, flats=raw.flats, darks=raw.darks, white_level=WHITE)
-    return nikon.write_nikon(folder, **{**kwargs, **changes})
+    return write_nikon(folder, **{**kwargs, **changes})
 
 
 def test_a_nikon_scan_reads_back_as_the_scan_the_simulation_acquired(raw_scan, tmp_path, capsys):
@@ -109,9 +110,9 @@ def small_scan(tmp_path_factory, raw_scan):
     """Six views of the shared acquisition, as a Nikon scan (copied by each test that damages it)."""
     views = slice(0, 6)
     folder = tmp_path_factory.mktemp("nikon") / "small"
-    return nikon.write_nikon(folder, geometry=raw_scan.geometry, nominal_angles_deg=raw_scan.nominal_deg[views],
-                             recorded_angles_deg=raw_scan.true_deg[views], intensities=raw_scan.intensities[views],
-                             flats=raw_scan.flats, darks=raw_scan.darks, white_level=WHITE)
+    return write_nikon(folder, geometry=raw_scan.geometry, nominal_angles_deg=raw_scan.nominal_deg[views],
+                       recorded_angles_deg=raw_scan.true_deg[views], intensities=raw_scan.intensities[views],
+                       flats=raw_scan.flats, darks=raw_scan.darks, white_level=WHITE)
 
 
 @pytest.fixture
