@@ -9,8 +9,10 @@ import tifffile
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry
 from ctpipe.io import bruker
-from ctpipe.io.bruker import DEFAULT_REFERENCE_INTENSITY, detect, flat_correct, write_bruker
+from ctpipe.io.bruker import detect
 from ctpipe.io.scans import open_scan
+from ctpipe.testing import write_bruker
+from ctpipe.testing.bruker import DEFAULT_REFERENCE_INTENSITY, flat_correct
 
 from scan_helpers import estimate_angles, write_reference
 
