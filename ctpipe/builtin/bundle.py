@@ -10,38 +10,20 @@ import numpy as np
 
 from ctpipe.data import PairEstimate, ScanObservations, ScanSolution
 from ctpipe.hookspecs import hookimpl
-from ctpipe.model import FailedEstimation
+from ctpipe.model import FailedEstimation, sampson_distance
 from ctpipe.solve.bundle import BundleSettings, solve_bundle
+from ctpipe.solve.pairs import one_to_one
 from ctpipe.stages import Refiner, param
 
 
 @dataclass(frozen=True)
-class BundleAdjustmentRefiner(Refiner):
-    """Track features through the scan and adjust every view angle and a 3-D point per track (reprojection error in pixels)."""
+class BundleAdjustmentRefiner(BundleSettings, Refiner):
+    """Track features through the scan and adjust every view angle and a 3-D point per track (reprojection error in pixels).
 
-    loss: Literal["soft-l1", "huber", "linear"] = param("soft-l1", doc="robust loss of the reprojection error")
-    loss_scale_px: float = param(0.5, doc="reprojection error (px) where the robust loss starts to flatten", gt=0,
-                                  le=1000)
-    min_track_length: int = param(2, doc="drop tracks seen in fewer views", ge=2, le=100_000)
-    outlier_threshold_px: float = param(0.8, doc="drop observations with a larger reprojection error (px)", gt=0,
-                                         le=1000)
-    extension_rounds: int = param(0, doc="rounds of guided track extension, each followed by an adjustment", ge=0,
-                                 le=100)
-    extension_radius_px: float = param(0.8, doc="largest distance (px) from a track's prediction to a keypoint it takes",
-                                       gt=0, le=1000)
-    extension_window_views: int = param(8, doc="views beyond its observations a track is searched in per round", ge=1,
-                                        le=100_000)
-    descriptor_quantile: float = param(
-        0.95, doc="a keypoint joins a track within this quantile of the verified matches' descriptor distances",
-        gt=0, le=1)
-    drop_static: bool = param(True, doc="drop tracks that stay put where a rigid point would move (silhouettes, defects)")
-    static_min_motion_px: float = param(1.0, doc="judge a track static only if a rigid point would move this much (px)",
-                                        gt=0, le=1000)
-    static_fraction: float = param(0.5, doc="static: moving less than this share of a rigid point's motion", gt=0, lt=1)
-    estimate_u0: bool = param(False, doc="also adjust the principal point column (centre of rotation)")
-    estimate_v0: bool = param(False, doc="also adjust the principal point row")
-    estimate_tilt: bool = param(False, doc="also adjust the in-plane detector tilt")
-    max_iterations: int = param(50, doc="Levenberg-Marquardt iterations per adjustment", ge=1, le=10_000)
+    Its parameters are the solver's :class:`~ctpipe.solve.bundle.BundleSettings` (declared
+    there, once), followed by how the start angles and the pairs are chosen.
+    """
+
     start: Literal["pair-graph", "nominal"] = param(
         "pair-graph", doc="start angles: the pair estimates chained on the view graph, or the nominal angles (when "
                           "known; for stages whose errors are tenths of a degree and scans of few points)")
@@ -53,8 +35,6 @@ class BundleAdjustmentRefiner(Refiner):
                   "distance of the nominal step, each point once (null: leave the pair out)", gt=0, le=1)
 
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
-        settings = BundleSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                                     if f.name not in ("start", "max_pair_deviation_deg", "nominal_sampson_threshold")})
         nominal = observations.nominal_angles_deg
         start = None
         if self.start == "nominal" and nominal is not None:
@@ -62,7 +42,7 @@ class BundleAdjustmentRefiner(Refiner):
         if self.max_pair_deviation_deg is not None and nominal is not None:
             observations = _without_deviating_pairs(observations, self.max_pair_deviation_deg,
                                                     self.nominal_sampson_threshold)
-        solution = solve_bundle(observations, settings, start_angles_rad=start)
+        solution = solve_bundle(observations, self, start_angles_rad=start)
         return ScanSolution(angles_rad=solution.angles_rad, pair_estimates=tuple(observations.estimates),
                             info=solution.info)
 
@@ -76,9 +56,6 @@ def _without_deviating_pairs(observations: ScanObservations, limit_deg: float,
     balls near the mid-plane can be mirrored or wrapped while its balls are still the right
     ones. Without it, or with fewer than two such matches, the pair is left out (failed).
     """
-    from ctpipe.builtin.estimators import _one_to_one
-    from ctpipe.model import sampson_distance
-
     nominal = np.asarray(observations.nominal_angles_deg, dtype=np.float64)
     pairs = observations.pairs
     steps = (nominal[pairs[:, 1]] - nominal[pairs[:, 0]] + 180.0) % 360.0 - 180.0
@@ -91,7 +68,7 @@ def _without_deviating_pairs(observations: ScanObservations, limit_deg: float,
         if nominal_threshold is not None:
             q_a, q_b = observations.points_a[k], observations.points_b[k]
             distance = sampson_distance(np.deg2rad(step), q_a, q_b)
-            mask = _one_to_one(distance < nominal_threshold, distance, q_a, q_b)
+            mask = one_to_one(distance < nominal_threshold, distance, q_a, q_b)
             if mask.sum() >= 2:
                 estimates.append(PairEstimate(np.deg2rad(step), mask, float(np.sqrt(np.mean(distance[mask] ** 2)))))
                 continue

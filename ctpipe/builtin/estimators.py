@@ -14,10 +14,10 @@ from typing import Literal
 import numpy as np
 
 from ctpipe.builtin import _opencv
-from ctpipe.data import PairEstimate
 from ctpipe.hookspecs import hookimpl
 from ctpipe.model import (FailedEstimation, angles_from_correspondences, correspondence_terms, fit_angle,
                           sampson_distance)
+from ctpipe.solve.pairs import one_to_one, pair_estimate
 from ctpipe.stages import Estimator, param
 
 _Refit = Literal["sampson", "tls"]
@@ -27,14 +27,6 @@ def _informative(q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
     """Correspondences that constrain the angle at all (not on the principal row, a = b = 0)."""
     a, b = correspondence_terms(q_a, q_b)
     return a * a + b * b > 1e-24
-
-
-def pair_estimate(angle_rad: float, inlier_mask: np.ndarray, q_a: np.ndarray, q_b: np.ndarray) -> PairEstimate:
-    """Package an angle and its inliers with their RMS Sampson residual."""
-    inlier_mask = np.asarray(inlier_mask, dtype=bool)
-    d = sampson_distance(angle_rad, q_a[inlier_mask], q_b[inlier_mask])
-    residual = float(np.sqrt(np.mean(d * d))) if d.size else float("nan")
-    return PairEstimate(angle_rad=float(angle_rad), inlier_mask=inlier_mask, residual=residual)
 
 
 def ransac_iterations(probability: float, outlier_fraction: float, sample_size: int = 1) -> int:
@@ -122,7 +114,7 @@ class Ransac1ptEstimator(Estimator):
             return FailedEstimation("no consensus survived the least-squares refit")
         _, alpha, mask = best
         if self.one_to_one:
-            mask = _one_to_one(mask, sampson_distance(alpha, q_a, q_b), q_a, q_b)
+            mask = one_to_one(mask, sampson_distance(alpha, q_a, q_b), q_a, q_b)
         if self.noise_scale_factor is not None and self.refit != "none":
             alpha, mask = self._tighten(alpha, mask, q_a, q_b)
         if self.refit == "sampson":
@@ -170,26 +162,6 @@ class Ransac1ptEstimator(Estimator):
         if self.scoring == "msac":
             return (float(np.minimum(d * d, self.sampson_threshold ** 2).sum()),)
         return (-int(mask.sum()), float((d[mask] ** 2).sum()))
-
-
-def _one_to_one(mask: np.ndarray, distance: np.ndarray, q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
-    """``mask`` with every point of either view used once: the inlier of smallest distance wins.
-
-    Correspondences of one keypoint share its coordinates, so points are told apart by them.
-    Greedy in order of distance: an inlier is kept while neither of its points is taken.
-    """
-    inliers = np.flatnonzero(mask)
-    _, point_a = np.unique(q_a[inliers], axis=0, return_inverse=True)
-    _, point_b = np.unique(q_b[inliers], axis=0, return_inverse=True)
-    taken_a, taken_b = set(), set()
-    keep = np.zeros_like(mask)
-    for k in np.argsort(distance[inliers], kind="stable"):
-        a, b = int(point_a.ravel()[k]), int(point_b.ravel()[k])
-        if a not in taken_a and b not in taken_b:
-            taken_a.add(a)
-            taken_b.add(b)
-            keep[inliers[k]] = True
-    return keep
 
 
 @dataclass(frozen=True)

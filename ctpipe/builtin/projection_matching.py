@@ -10,25 +10,17 @@ from typing import Literal
 import numpy as np
 
 from ctpipe.data import ScanObservations, ScanSolution
+from ctpipe.errors import ConfigError
 from ctpipe.hookspecs import hookimpl
 from ctpipe.geometry import Geometry
 from ctpipe.recon.feldkamp import FILTERS, bin_detector, binned_geometry
+from ctpipe.solve.graph import solve_view_graph
 from ctpipe.solve.reprojection import consistency_costs, matching_levels, projection_matching
-from ctpipe.stages import Refiner, param
+from ctpipe.stages import Refiner, StageSpec, param
 
 __all__ = ["ProjectionMatchingRefiner"]
 
 Filter = Literal[FILTERS]  # type: ignore[valid-type]
-
-
-def _start_refiner(name: str) -> Refiner:
-    if name == "bundle-adjustment":
-        from ctpipe.builtin.bundle import BundleAdjustmentRefiner
-
-        return BundleAdjustmentRefiner()
-    from ctpipe.builtin.refiners import LeastSquaresRefiner
-
-    return LeastSquaresRefiner(weighting="inliers")
 
 
 def _fill(angles_deg: np.ndarray, nominal_deg: np.ndarray | None) -> tuple[np.ndarray, int]:
@@ -64,8 +56,9 @@ def _binned_views(projections, geometry: Geometry, factor: int) -> tuple[np.ndar
 class ProjectionMatchingRefiner(Refiner):
     """Whole-scan angles: features give the start, projection matching against the scan's own FDK pins every view.
 
-    The start (``least-squares``: the robust view graph with loop closure; or
-    ``bundle-adjustment``; or ``nominal``) has the capture range for slips of degrees; matching
+    The start (``view-graph``: the pair estimates refit and solved robustly on the view graph
+    with loop closure; ``nominal``; or any refiner, e.g. ``{name: bundle-adjustment,
+    loss_scale_px: 0.7}``, built through the registry) has the capture range for slips of degrees; matching
     each view against the reprojection of a reconstruction from all views then removes the drift
     a chain of pairs accumulates (:mod:`ctpipe.solve.reprojection`). With ``select``,
     matching starts from whichever of the start and the nominal angles explains the projections
@@ -75,8 +68,12 @@ class ProjectionMatchingRefiner(Refiner):
     Needs the projections (``ScanObservations.projections``); without them it returns the start.
     """
 
-    start: Literal["least-squares", "bundle-adjustment", "nominal"] = param(
-        "least-squares", doc="where matching starts: a refiner's angles, or the nominal ones")
+    start: Refiner | StageSpec | Literal["view-graph", "nominal"] = param(
+        "view-graph", stage="refiner",
+        doc="where matching starts: 'view-graph' (the pair estimates refit on their inliers and solved robustly on the "
+            "view graph, weighted by inliers: least-squares with weighting: inliers), 'nominal' (the nominal angles; "
+            "without them the view graph), or a refiner's angles, named like a pipeline's refiner (a bare name takes "
+            "its defaults)")
     level_px: tuple[int, ...] = param((128, 256), doc="detector size (pixels a side) each level is binned to, coarse "
                                       "to fine", ge=16, le=8192)
     binning: tuple[int, ...] | None = param(None, doc="explicit binning factor of each level (null: from level_px)",
@@ -93,8 +90,6 @@ class ProjectionMatchingRefiner(Refiner):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        from ctpipe.errors import ConfigError
-
         n_levels = len(self.level_px if self.binning is None else self.binning)
         if n_levels != len(self.iterations):
             raise ConfigError(f"ProjectionMatchingRefiner.iterations: must give one count per level "
@@ -105,13 +100,20 @@ class ProjectionMatchingRefiner(Refiner):
 
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
         nominal = observations.nominal_angles_deg
-        if self.start == "nominal" and nominal is not None:
+        start = self.start
+        if isinstance(start, StageSpec):
+            raise ConfigError(f"ProjectionMatchingRefiner.start: refiner {start.name!r} is only named, not built; build "
+                              "this stage through a registry (ctpipe.config.build_stage, Pipeline.from_config) or pass "
+                              "a refiner stage")
+        if start == "nominal" and nominal is not None:
             start_solution = ScanSolution(np.deg2rad(nominal - nominal[0]), observations.estimates,
                                           {"refiner": "nominal"})
+        elif isinstance(start, str):
+            start_solution = solve_view_graph(observations, weighting="inliers")
         else:
-            start_solution = _start_refiner("least-squares" if self.start == "nominal" else self.start).refine(
-                observations, rng=rng)
-        info = {"start": self.start, "start_info": dict(start_solution.info)}
+            start_solution = start.refine(observations, rng=rng)
+        info = {"start": start if isinstance(start, str) else type(start).__name__,
+                "start_info": dict(start_solution.info)}
         start_deg, n_filled = _fill(np.rad2deg(start_solution.angles_rad), nominal)
         info["views_filled"] = n_filled
         projections = observations.projections

@@ -3,7 +3,9 @@
 Pair estimates tie two views each; the functions here turn all of a scan's evidence into one
 consistent set of per-view angles. :mod:`~ctpipe.solve.graph` holds the view graph (which pairs
 to estimate, loop closure on full turns, unwrapping pair angles against the nominal ones) and
-solves it, plainly or with a robust loss; :mod:`~ctpipe.solve.tracks` and
+solves it, plainly or with a robust loss (:mod:`~ctpipe.solve.losses`, the one definition of the
+robust losses every solver uses); :mod:`~ctpipe.solve.pairs` packages pair estimates;
+:mod:`~ctpipe.solve.tracks` and
 :mod:`~ctpipe.solve.bundle` follow features over the scan and adjust every view angle and a 3-D
 point per track, through the camera model of :mod:`~ctpipe.solve.camera`;
 :mod:`~ctpipe.solve.reprojection` matches every view against the reprojection of the scan's own
@@ -14,15 +16,18 @@ figures; the refiner stages that call these are in :mod:`ctpipe.builtin`.
 
 from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bundle_adjust, solve_bundle
 from ctpipe.solve.camera import pixels_to_rays, project_points
-from ctpipe.solve.graph import (LOSSES, PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
-                                turn_pairs, unwrap_pair_angles_deg, view_pairs)
+from ctpipe.solve.graph import (PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
+                                solve_view_graph, turn_pairs, unwrap_pair_angles_deg, view_pairs)
+from ctpipe.solve.losses import LOSSES, check_loss, robust_loss, robust_weight
+from ctpipe.solve.pairs import one_to_one, pair_estimate
 from ctpipe.solve.reprojection import (ProjectionMatchingResult, consistency_costs, matching_levels,
                                        projection_matching)
 from ctpipe.solve.simulated import SyntheticScan, synthetic_scan
 from ctpipe.solve.tracks import Tracks, build_tracks, extend_tracks, static_tracks, triangulate_tracks
 
 __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pairs", "chain_pair_angles", "solve_pair_graph",
-           "PairGraphSolution", "LOSSES", "Tracks", "build_tracks", "extend_tracks", "static_tracks",
+           "PairGraphSolution", "solve_view_graph", "LOSSES", "check_loss", "robust_loss", "robust_weight", "pair_estimate",
+           "one_to_one", "Tracks", "build_tracks", "extend_tracks", "static_tracks",
            "triangulate_tracks", "bundle_adjust", "solve_bundle", "BundleResult", "BundleSettings", "BundleSolution",
            "projection_matching", "consistency_costs", "matching_levels", "ProjectionMatchingResult",
            "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan"]

@@ -37,46 +37,14 @@ import scipy.sparse.linalg  # noqa: F401  (sp.linalg)
 from ctpipe.data import ScanObservations
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
+from ctpipe.stages import Parameters, param
 from ctpipe.solve.camera import _project, projection_jacobians
 from ctpipe.solve.graph import chain_pair_angles, covers_full_turn, unwrap_pair_angles_deg
+from ctpipe.solve.losses import check_loss, robust_loss
 from ctpipe.solve.tracks import (Tracks, build_tracks, extend_tracks, static_tracks, triangulate_tracks,
                                  verified_match_distances)
 
-__all__ = ["BundleResult", "BundleSettings", "BundleSolution", "bundle_adjust", "robust_loss", "solve_bundle",
-           "pair_graph_angles"]
-
-LOSSES = ("soft-l1", "huber", "linear")
-
-
-def robust_loss(squared_px2: np.ndarray, loss: str, scale_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Robust cost ``rho`` and its derivative ``rho'`` of squared residual norms.
-
-    ``z = |r|^2 / scale^2``; ``soft-l1``: ``rho = 2 scale^2 (sqrt(1 + z) - 1)``, ``huber``:
-    ``scale^2 z`` below 1 and ``scale^2 (2 sqrt(z) - 1)`` above, ``linear``: ``|r|^2``. Both
-    equal ``|r|^2`` for small residuals.
-
-    Parameters
-    ----------
-    squared_px2 : ndarray of shape (N,)
-        ``|r|^2`` in pixels squared.
-
-    Returns
-    -------
-    rho : ndarray of shape (N,), pixels squared
-    weight : ndarray of shape (N,)
-        ``d rho / d |r|^2``, the weight of each observation in the Gauss-Newton step.
-    """
-    if loss == "linear":
-        return squared_px2, np.ones_like(squared_px2)
-    z = squared_px2 / scale_px**2
-    if loss == "soft-l1":
-        root = np.sqrt(1.0 + z)
-        return 2.0 * scale_px**2 * (root - 1.0), 1.0 / root
-    if loss == "huber":
-        root = np.sqrt(np.maximum(z, 1.0))
-        return np.where(z <= 1.0, squared_px2, scale_px**2 * (2.0 * root - 1.0)), 1.0 / root
-    raise InputError(f"loss: {loss!r} is not supported. Try one of {', '.join(LOSSES)}")
-
+__all__ = ["BundleResult", "BundleSettings", "BundleSolution", "bundle_adjust", "solve_bundle", "pair_graph_angles"]
 
 @dataclass(frozen=True, eq=False)
 class BundleResult:
@@ -312,8 +280,7 @@ def bundle_adjust(tracks: Tracks, angles_rad, points_mm, geometry: Geometry, *, 
         raise InputError("points_mm: must be finite, got NaN or infinite values")
     if not (loss_scale_px > 0):
         raise InputError(f"loss_scale_px: must be > 0, got {loss_scale_px!r}")
-    if loss not in LOSSES:
-        raise InputError(f"loss: {loss!r} is not supported. Try one of {', '.join(LOSSES)}")
+    check_loss(loss)
     fixed = np.asarray(fixed_views, dtype=np.int64).reshape(-1)
     if fixed.size and (fixed.min() < 0 or fixed.max() >= tracks.n_views):
         raise InputError(f"fixed_views: must index views 0..{tracks.n_views - 1}, got {fixed.tolist()}")
@@ -379,66 +346,37 @@ def bundle_adjust(tracks: Tracks, angles_rad, points_mm, geometry: Geometry, *, 
 
 
 @dataclass(frozen=True)
-class BundleSettings:
-    """How :func:`solve_bundle` builds tracks and adjusts them (the refiner's parameters).
+class BundleSettings(Parameters):
+    """How :func:`solve_bundle` builds tracks and adjusts them: declared once, with bounds.
 
-    Attributes
-    ----------
-    loss : {"soft-l1", "huber", "linear"}
-    loss_scale_px : float
-        Reprojection error (pixels) where the robust loss starts to flatten.
-    min_track_length : int
-        Tracks seen in fewer views are dropped (>= 2).
-    outlier_threshold_px : float
-        After each adjustment, observations with a larger reprojection error are dropped.
-    extension_rounds : int
-        Rounds of guided track extension, each followed by an adjustment.
-    extension_radius_px : float
-        Largest distance between a track's predicted position and a keypoint it takes.
-    extension_window_views : int
-        How many views beyond its observations a track is searched in, per round.
-    descriptor_quantile : float
-        A keypoint joins a track when its descriptor is no farther from the track's than this
-        quantile of the verified matches' descriptor distances.
-    drop_static : bool
-        Drop tracks that stay put where a rigid point would move (:func:`static_tracks`).
-    static_min_motion_px, static_fraction : float
-        See :func:`ctpipe.solve.tracks.static_tracks`.
-    estimate_u0, estimate_v0, estimate_tilt : bool
-        Also adjust the principal point column (centre of rotation), row, in-plane tilt.
-    max_iterations : int
-        Levenberg-Marquardt iterations per adjustment.
+    The ``bundle-adjustment`` refiner (:mod:`ctpipe.builtin.bundle`) subclasses these, so they
+    are its parameters too, validated the same way from Python and YAML. Static tracks:
+    :func:`ctpipe.solve.tracks.static_tracks`.
     """
 
-    loss: Literal["soft-l1", "huber", "linear"] = "soft-l1"
-    loss_scale_px: float = 0.5
-    min_track_length: int = 2
-    outlier_threshold_px: float = 0.8
-    extension_rounds: int = 0
-    extension_radius_px: float = 0.8
-    extension_window_views: int = 8
-    descriptor_quantile: float = 0.95
-    drop_static: bool = True
-    static_min_motion_px: float = 1.0
-    static_fraction: float = 0.5
-    estimate_u0: bool = False
-    estimate_v0: bool = False
-    estimate_tilt: bool = False
-    max_iterations: int = 50
-
-    def __post_init__(self) -> None:
-        if self.loss not in LOSSES:
-            raise InputError(f"BundleSettings.loss: {self.loss!r} is not supported. Try one of {', '.join(LOSSES)}")
-        for name in ("loss_scale_px", "outlier_threshold_px", "extension_radius_px", "static_min_motion_px"):
-            if not (getattr(self, name) > 0):
-                raise InputError(f"BundleSettings.{name}: must be > 0, got {getattr(self, name)!r}")
-        if not (0 < self.descriptor_quantile <= 1) or not (0 < self.static_fraction < 1):
-            raise InputError(f"BundleSettings: descriptor_quantile must be in (0, 1] and static_fraction in (0, 1), got "
-                             f"{self.descriptor_quantile!r} and {self.static_fraction!r}")
-        for name, low in (("min_track_length", 2), ("extension_rounds", 0), ("extension_window_views", 1),
-                          ("max_iterations", 1)):
-            if not (isinstance(getattr(self, name), (int, np.integer)) and getattr(self, name) >= low):
-                raise InputError(f"BundleSettings.{name}: must be an integer >= {low}, got {getattr(self, name)!r}")
+    loss: Literal["soft-l1", "huber", "linear"] = param("soft-l1", doc="robust loss of the reprojection error")
+    loss_scale_px: float = param(0.5, doc="reprojection error (px) where the robust loss starts to flatten", gt=0,
+                                  le=1000)
+    min_track_length: int = param(2, doc="drop tracks seen in fewer views", ge=2, le=100_000)
+    outlier_threshold_px: float = param(0.8, doc="drop observations with a larger reprojection error (px)", gt=0,
+                                         le=1000)
+    extension_rounds: int = param(0, doc="rounds of guided track extension, each followed by an adjustment", ge=0,
+                                 le=100)
+    extension_radius_px: float = param(0.8, doc="largest distance (px) from a track's prediction to a keypoint it takes",
+                                       gt=0, le=1000)
+    extension_window_views: int = param(8, doc="views beyond its observations a track is searched in per round", ge=1,
+                                        le=100_000)
+    descriptor_quantile: float = param(
+        0.95, doc="a keypoint joins a track within this quantile of the verified matches' descriptor distances",
+        gt=0, le=1)
+    drop_static: bool = param(True, doc="drop tracks that stay put where a rigid point would move (silhouettes, defects)")
+    static_min_motion_px: float = param(1.0, doc="judge a track static only if a rigid point would move this much (px)",
+                                        gt=0, le=1000)
+    static_fraction: float = param(0.5, doc="static: moving less than this share of a rigid point's motion", gt=0, lt=1)
+    estimate_u0: bool = param(False, doc="also adjust the principal point column (centre of rotation)")
+    estimate_v0: bool = param(False, doc="also adjust the principal point row")
+    estimate_tilt: bool = param(False, doc="also adjust the in-plane detector tilt")
+    max_iterations: int = param(50, doc="Levenberg-Marquardt iterations per adjustment", ge=1, le=10_000)
 
 
 @dataclass(frozen=True, eq=False)

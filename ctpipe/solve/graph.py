@@ -23,13 +23,14 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
+from ctpipe.data import PairEstimate, ScanObservations, ScanSolution
 from ctpipe.errors import InputError
+from ctpipe.model import FailedEstimation, fit_angle
+from ctpipe.solve.losses import Loss, check_loss, robust_weight
+from ctpipe.solve.pairs import pair_estimate
 
 __all__ = ["covers_full_turn", "turn_pairs", "view_pairs", "unwrap_pair_angles_deg", "chain_pair_angles", "solve_pair_graph",
-           "PairGraphSolution", "LOSSES"]
-
-#: Robust losses of :func:`solve_pair_graph`, as in ``scipy.optimize.least_squares``.
-LOSSES = ("linear", "soft-l1", "huber", "cauchy")
+           "PairGraphSolution", "solve_view_graph"]
 
 
 def covers_full_turn(nominal_angles_deg) -> bool:
@@ -146,15 +147,8 @@ class PairGraphSolution:
 
 
 def _robust_weights(residuals: np.ndarray, loss: str, scale: float) -> np.ndarray:
-    """IRLS weights ``rho'(z)`` with ``z = (r / scale)^2``: the losses of ``scipy.optimize.least_squares``."""
-    z = (residuals / scale) ** 2
-    if loss == "linear":
-        return np.ones_like(z)
-    if loss == "soft-l1":
-        return 1.0 / np.sqrt(1.0 + z)
-    if loss == "huber":
-        return np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1.0)))
-    return 1.0 / (1.0 + z)  # cauchy
+    """IRLS weights ``rho'(z)`` with ``z = (r / scale)^2`` (:mod:`ctpipe.solve.losses`)."""
+    return robust_weight((residuals / scale) ** 2, loss)
 
 
 def _check_graph(n_views, pairs, angles, weights):
@@ -176,8 +170,19 @@ def _check_graph(n_views, pairs, angles, weights):
     return pairs.astype(np.int64), angles, w
 
 
+@dataclass(frozen=True, eq=False)
+class _GraphSolve:
+    """What :func:`_solve` found, in the unit of the pair angles it was given."""
+
+    angles: np.ndarray
+    residuals: np.ndarray
+    robust_weights: np.ndarray
+    n_iterations: int
+    converged: bool
+
+
 def _solve(n_views: int, pairs: np.ndarray, angles: np.ndarray, w: np.ndarray, loss: str, scale: float,
-           max_iterations: int, tolerance: float, pinned: np.ndarray | None = None) -> PairGraphSolution:
+           max_iterations: int, tolerance: float, pinned: np.ndarray | None = None) -> _GraphSolve:
     """Gauge ``theta[0] = 0``; angles in any unit, ``scale`` and ``tolerance`` in the same unit."""
     theta = np.full(n_views, np.nan)
     theta[0] = 0.0
@@ -185,13 +190,13 @@ def _solve(n_views: int, pairs: np.ndarray, angles: np.ndarray, w: np.ndarray, l
     robust = np.zeros(len(pairs))
     usable = np.isfinite(angles) & (w > 0) & (pairs[:, 0] != pairs[:, 1])
     if not usable.any():
-        return PairGraphSolution(theta, residuals, robust, 0, True)
+        return _GraphSolve(theta, residuals, robust, 0, True)
     used = pairs[usable]
     graph = sp.coo_matrix((np.ones(len(used)), (used[:, 0], used[:, 1])), shape=(n_views, n_views))
     _, labels = connected_components(graph, directed=False)
     component = np.flatnonzero(labels == labels[0])
     if component.size == 1:
-        return PairGraphSolution(theta, residuals, robust, 0, True)
+        return _GraphSolve(theta, residuals, robust, 0, True)
     position = np.full(n_views, -1)
     position[component] = np.arange(component.size)
     inside = usable & (position[pairs[:, 0]] >= 0) & (position[pairs[:, 1]] >= 0)
@@ -223,7 +228,7 @@ def _solve(n_views: int, pairs: np.ndarray, angles: np.ndarray, w: np.ndarray, l
     theta[component] = x
     residuals[inside] = x[j] - x[i] - alpha
     robust[inside] = np.where(pin, 1.0, _robust_weights(residuals[inside], loss, scale))
-    return PairGraphSolution(theta, residuals, robust, iterations, converged)
+    return _GraphSolve(theta, residuals, robust, iterations, converged)
 
 
 def chain_pair_angles(n_views: int, pairs, angles_rad, weights=None) -> np.ndarray:
@@ -247,7 +252,7 @@ def chain_pair_angles(n_views: int, pairs, angles_rad, weights=None) -> np.ndarr
     ndarray of shape (n_views,), radians
     """
     pairs, angles, w = _check_graph(n_views, pairs, angles_rad, weights)
-    return _solve(int(n_views), pairs, angles, w, "linear", 1.0, 0, 0.0).angles_deg
+    return _solve(int(n_views), pairs, angles, w, "linear", 1.0, 0, 0.0).angles
 
 
 #: How much more a pinned pair weighs than the heaviest other pair: enough to hold it to ~1e-6 of
@@ -299,8 +304,7 @@ def solve_pair_graph(n_views: int, pairs, pair_angles_deg, weights=None, *,
         Views not connected to view 0 get NaN. Without any conflicting pair (a chain, or
         noise-free pairs) the answer is the exact least-squares one.
     """
-    if loss not in LOSSES:
-        raise InputError(f"loss: {loss!r} is not supported. Try one of {LOSSES}")
+    check_loss(loss)
     if not (isinstance(scale_deg, (int, float)) and np.isfinite(scale_deg) and scale_deg > 0):
         raise InputError(f"scale_deg: must be a finite number > 0, got {scale_deg!r}")
     if not isinstance(max_iterations, (int, np.integer)) or max_iterations < 0:
@@ -309,5 +313,58 @@ def solve_pair_graph(n_views: int, pairs, pair_angles_deg, weights=None, *,
     pin = np.zeros(len(pairs), bool) if pinned is None else np.asarray(pinned, dtype=bool).reshape(-1)
     if pin.size != len(pairs):
         raise InputError(f"pinned: must be {len(pairs)} booleans, one per pair, got {pin.size}")
-    return _solve(int(n_views), pairs, angles, w, loss, float(scale_deg), int(max_iterations), float(tolerance_deg),
-                  pin)
+    found = _solve(int(n_views), pairs, angles, w, loss, float(scale_deg), int(max_iterations), float(tolerance_deg),
+                   pin)
+    return PairGraphSolution(found.angles, found.residuals, found.robust_weights, found.n_iterations, found.converged)
+
+
+def solve_view_graph(observations: ScanObservations, *, objective: Literal["sampson", "tls"] = "sampson",
+                     weighting: Literal["uniform", "inliers"] = "uniform", loss: Loss = "soft-l1",
+                     scale_deg: float = 0.1) -> ScanSolution:
+    """Per-view angles of a scan: every pair refit on its inliers, then the view graph solved robustly.
+
+    Each pair estimate is refit on its inlier correspondences (:func:`ctpipe.model.fit_angle`
+    with ``objective``), its angle unwrapped against the nominal ones
+    (:func:`unwrap_pair_angles_deg`), and all pairs solved at once (:func:`solve_pair_graph`),
+    weighted equally or by their inlier count; pairs of views one turn apart (:func:`turn_pairs`)
+    are pinned. What the ``least-squares`` refiner does, and projection matching's default start.
+
+    Returns
+    -------
+    ScanSolution
+        The refit pair estimates, and in ``info`` the loss, iterations, pairs used and
+        down-weighted, the median pair residual, views left without an angle and pinned pairs.
+    """
+    refined: list[PairEstimate | FailedEstimation] = []
+    for q_a, q_b, estimate in zip(observations.points_a, observations.points_b, observations.estimates):
+        if not estimate:
+            refined.append(estimate)
+            continue
+        mask = estimate.inlier_mask
+        alpha = fit_angle(q_a[mask], q_b[mask], objective=objective)
+        refined.append(alpha if isinstance(alpha, FailedEstimation) else pair_estimate(alpha, mask, q_a, q_b))
+    angles_deg = unwrap_pair_angles_deg(observations.pairs, np.rad2deg([e.angle_rad if e else np.nan for e in refined]),
+                                        observations.nominal_angles_deg)
+    weights = np.array([e.n_inliers if e else 0 for e in refined], dtype=np.float64)
+    pinned = _turn_pair_mask(observations)
+    graph = solve_pair_graph(observations.n_views, observations.pairs, angles_deg,
+                             weights if weighting == "inliers" else None, loss=loss, scale_deg=scale_deg, pinned=pinned)
+    used = graph.robust_weights > 0
+    info = {"loss": loss, "scale_deg": scale_deg, "iterations": graph.n_iterations,
+            "converged": graph.converged, "pairs_used": int(used.sum()),
+            "pairs_down_weighted": int(np.count_nonzero(graph.robust_weights[used] < 0.5)),
+            "median_abs_residual_deg": float(np.median(np.abs(graph.residuals_deg[used]))) if used.any() else None,
+            "views_without_angle": int(np.count_nonzero(np.isnan(graph.angles_deg))),
+            "pinned_turn_pairs": int(np.count_nonzero(pinned & np.isfinite(angles_deg)))}
+    return ScanSolution(angles_rad=np.deg2rad(graph.angles_deg), pair_estimates=tuple(refined), info=info)
+
+
+def _turn_pair_mask(observations: ScanObservations) -> np.ndarray:
+    """Which of the observed pairs join views one turn apart (:func:`turn_pairs`)."""
+    pinned = np.zeros(len(observations.pairs), bool)
+    if observations.nominal_angles_deg is None:
+        return pinned
+    turns = {tuple(pair) for pair in turn_pairs(observations.nominal_angles_deg).tolist()}
+    if turns:
+        pinned[:] = [tuple(pair) in turns for pair in observations.pairs.tolist()]
+    return pinned
