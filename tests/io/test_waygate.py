@@ -10,7 +10,8 @@ import ctpipe.io.waygate  # noqa: F401 (registers the format)
 from ctpipe.cli import main
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.io.scans import open_scan
-from ctpipe.io.waygate import detect, open_waygate, write_waygate, write_waygate_angles
+from ctpipe.io.waygate import detect, open_waygate, write_waygate_angles
+from ctpipe.testing import write_waygate
 
 from scan_helpers import estimate_angles, write_reference
 
