@@ -29,7 +29,8 @@ import time
 
 import numpy as np
 
-from ctpipe.builtin.beads import BeadDetector, _Window
+from ctpipe.builtin.beads import BeadDetector
+from ctpipe.features._disc_model import _Window
 from ctpipe.testing import render_balls
 
 SHAPE = (512, 512)

@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ctpipe.builtin import beads
 from ctpipe.builtin.beads import BeadDetector
 from ctpipe.cli import main
 from ctpipe.config import build_stage, parse_stage
 from ctpipe.errors import ConfigError
+from ctpipe.features import render_ball_model
 from ctpipe.plugins import get_registry
 from ctpipe.testing import check_detector, render_balls
 
@@ -57,7 +57,7 @@ def test_the_fit_recovers_its_own_model_exactly():
     """Noise-free balls drawn with the detector's own model: centres to float32's resolution."""
     centres, radii = grid_of_balls((256, 256), 14, 4, seed=1)
     balls = np.column_stack([centres, radii, np.ones(len(centres)), np.full(len(centres), 0.7)])
-    features = BeadDetector().detect(beads._render(balls, (256, 256)))
+    features = BeadDetector().detect(render_ball_model(balls, (256, 256)))
     error, index = matched(features, centres)
     assert len(features) == len(centres) and error.max() < 5e-5
     np.testing.assert_allclose(features.response[index], 1.0, atol=1e-3)

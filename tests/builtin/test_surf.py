@@ -8,10 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ctpipe.builtin.surf import SurfDetector, integral_image, surf
+from ctpipe.builtin.surf import SurfDetector, surf
 from ctpipe.config import build_stage, parse_stage
 from ctpipe.errors import InputError
 from ctpipe.evaluate.scoring import keypoint_agreement
+from ctpipe.features import integral_image
 from ctpipe.geometry import Geometry
 from ctpipe.images import to_uint8
 from ctpipe.model import rotation_matrix
