@@ -99,12 +99,12 @@ class ProjectionMatchingRefiner(Refiner):
                               f"({self.band_high_px:g}), got {self.band_low_px:g}")
 
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
-        nominal = observations.nominal_angles_deg
         start = self.start
         if isinstance(start, StageSpec):
             raise ConfigError(f"ProjectionMatchingRefiner.start: refiner {start.name!r} is only named, not built; build "
                               "this stage through a registry (ctpipe.config.build_stage, Pipeline.from_config) or pass "
                               "a refiner stage")
+        nominal = observations.nominal_angles_deg
         if start == "nominal" and nominal is not None:
             start_solution = ScanSolution(np.deg2rad(nominal - nominal[0]), observations.estimates,
                                           {"refiner": "nominal"})
