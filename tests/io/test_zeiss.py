@@ -9,9 +9,10 @@ import olefile
 import pytest
 
 from ctpipe.errors import InputError
-from ctpipe.io._ole import StreamReader, write_compound_file
+from ctpipe.io._ole import StreamReader
 from ctpipe.io.scans import open_scan
-from ctpipe.io.zeiss import detect, open_zeiss, write_zeiss
+from ctpipe.io.zeiss import detect, open_zeiss
+from ctpipe.testing import write_compound_file, write_zeiss
 
 from scan_helpers import estimate_angles, simulate_raw_scan, write_reference
 
