@@ -8,7 +8,7 @@ A pipeline file::
     detector: {name: sift, n_features: 4000}
     matcher: {name: brute-force, ratio: 0.8}
     estimator: {name: ransac-1pt, sampson_threshold: 8.0e-4}
-    refiner: least-squares          # a bare name means default parameters
+    refiner: least-squares          # a bare name means the stage's default parameters
     # a stage that uses another stage names it the same way (built through the same registry):
     #   refiner: {name: projection-matching, start: {name: bundle-adjustment, loss_scale_px: 0.7}}
     pairs: {baselines: [1], loop_closure: true}   # view offsets: (i, i + k) for every k; a full
@@ -40,9 +40,11 @@ from ctpipe.stages import ParamSpec, Stage, StageSpec, check_value
 __all__ = ["load_yaml", "StageSpec", "PipelineConfig", "parse_pipeline", "parse_geometry", "load_geometry", "check_keys",
            "build_stage", "DEFAULT_STAGES"]
 
-#: Stage used for a kind the pipeline file does not mention: each stage's own defaults, so that
-#: leaving a kind out and naming its stage bare are the same. The refiner is the whole-scan one:
-#: pair angles alone drift along a scan (see docs/wholescan.md).
+#: Stage used for a kind the pipeline file does not mention. The estimator and refiner are named
+#: bare, so leaving them out and naming them bare are the same (ransac-1pt's own Sampson
+#: threshold is the real-data 8e-4). The matcher adds the mutual check to brute-force's
+#: defaults. The refiner is the whole-scan one: pair angles alone drift along a scan (see
+#: docs/wholescan.md).
 DEFAULT_STAGES = {
     "detector": {"name": "sift"},
     "matcher": {"name": "brute-force", "ratio": 0.8, "mutual": True},
