@@ -52,7 +52,9 @@ def _radii(r_min: float, r_max: float) -> np.ndarray:
 def _log_stack(f: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """``-s^2 LoG_s * f`` (float32, (scales, rows, cols)) at ``s = 0.602 r`` for each of ``radii``.
 
-    Computed by FFT with symmetric padding of 4 s.
+    Computed by FFT with symmetric padding of 4 s. Not ``ndimage.gaussian_laplace``: on a 512^2
+    image and 8 radii it took 326 ms against 115 ms here (its kernels grow with s, the FFT's
+    cost does not), and its truncated kernels move the response by 0.8 % of its peak.
     """
     sigmas = _SIGMA_PER_RADIUS * np.asarray(radii, dtype=np.float64)
     pad = int(math.ceil(4.0 * sigmas[-1]))
@@ -131,7 +133,8 @@ def _scale_space_candidates(f: np.ndarray, r_min: float, r_max: float, min_heigh
 def _peaks_kernel(stack, threshold, allowed, peaks):  # pragma: no cover - numba
     """``peaks[k, i, j]``: ``stack[k, i, j]`` is above ``threshold``, on an ``allowed`` plane, and no
     smaller than any of its 26 neighbours (edges clamped), as ``maximum_filter(size=3,
-    mode="nearest")`` would say, but looking only at the few points above the threshold."""
+    mode="nearest")`` would say, but looking only at the few points above the threshold (the
+    same peaks in 14 ms instead of 84 ms on an 8 x 512^2 stack)."""
     planes, rows, cols = stack.shape
     for i in prange(rows):
         for k in range(planes):
@@ -265,7 +268,7 @@ def _across(t: np.ndarray, candidates: np.ndarray) -> np.ndarray:
 
 def _bilinear(image: np.ndarray, y: np.ndarray, x: np.ndarray, plane: np.ndarray | None = None) -> np.ndarray:
     """``image`` (2-D, or 3-D with ``plane`` the plane of each point) at fractional ``(y, x)``,
-    clamped to the image."""
+    clamped to the image: ``ndimage.map_coordinates`` of order 1."""
     coords = [y, x] if plane is None else [plane, y, x]
     return ndimage.map_coordinates(image, np.asarray(coords, dtype=np.float64), order=1, mode="nearest")
 
@@ -276,6 +279,11 @@ def _curvatures(stack, k, y, x):
     Roundness is the ratio of the smaller to the larger principal curvature (1: a round peak, as
     a ball gives; near 0: a ridge, as a disc edge or two overlapping balls give): SIFT's edge
     test. Returns (roundness, axis_x, axis_y), the axis a unit vector.
+
+    Three-point differences at the maxima only. ``skimage.feature.hessian_matrix`` works on
+    whole planes (``ndimage.correlate`` with these stencils too): 87 ms (56 ms for dxx alone)
+    against 0.2 ms here for 29 maxima of an 8 x 512^2 stack, and not bit-identical (skimage's
+    ``np.gradient`` of ``np.gradient`` differences over 2 px: roundness off by up to 0.004).
     """
     ym, yp = np.maximum(y - 1, 0), np.minimum(y + 1, stack.shape[1] - 1)
     xm, xp = np.maximum(x - 1, 0), np.minimum(x + 1, stack.shape[2] - 1)
