@@ -11,10 +11,26 @@ numerics belong here, its stage there.
 
 from __future__ import annotations
 
-from ctpipe.features.balls import despike, find_balls, noise_sigma, render_ball_model
-from ctpipe.features.surf import compute_surf, fast_hessian, integral_image, surf_descriptors
+import importlib
 
-__all__ = [
-    "compute_surf", "fast_hessian", "integral_image", "surf_descriptors",
-    "find_balls", "noise_sigma", "despike", "render_ball_model",
-]
+#: Public name -> the module of this package that defines it. Imported on first use, so that the
+#: SURF detector does not load the ball finder's scipy modules (0.6 s) and the other way round.
+_EXPORTS = {
+    "compute_surf": "surf", "fast_hessian": "surf", "integral_image": "surf", "surf_descriptors": "surf",
+    "find_balls": "balls", "noise_sigma": "balls", "despike": "balls", "render_ball_model": "balls",
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'ctpipe.features' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"ctpipe.features.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))
