@@ -97,35 +97,37 @@ def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, execu
     from ctpipe.io.arrays import read_projections
     from ctpipe.io.outputs import write_files
 
-    truth = nominal = scan = None
+    scan = None
     if not source.exists():
         raise InputError(f"{source}: no such file or scan folder")
     if source.is_dir() or source.suffix.lower() not in (".npy", ".tif", ".tiff"):
         from ctpipe.io.scans import open_scan
 
-        scan = open_scan(source)
-        projections, geometry, truth = scan.projections, scan.geometry, scan.true_angles_deg
-        nominal = scan.nominal_angles_deg
+        scan = open_scan(source, blocked=tuple(args.block_plugin))
         if args.geometry:
             raise InputError(f"{source} is a {scan.format} scan with its own geometry; drop --geometry")
         if progress and not args.json:
             print("\n".join(scan.describe()), flush=True)
+        inputs, n_views = (scan,), scan.n_views
     else:
         if not args.geometry:
             raise InputError(f"{source}: a projection file needs --geometry GEOMETRY.yaml (or give a scan folder)")
         geometry = load_geometry(args.geometry)
         projections = read_projections(source)
-    with _progress(len(projections), "views", quiet=args.json or not progress) as advance:
-        result = pipeline.run(projections, geometry, nominal_angles_deg=nominal, progress=advance, executor=executor)
-    report, columns = _estimate_report(config, geometry, result, scan, nominal, truth)
-    files = _estimate_files(Path(out), report, columns, geometry, result, scan) if out is not None else {}
+        inputs, n_views = (projections, geometry), len(projections)
+    with _progress(n_views, "views", quiet=args.json or not progress) as advance:
+        result = pipeline.run(*inputs, progress=advance, executor=executor)
+    if scan is not None and scan.true_angles_deg is not None:
+        from ctpipe.evaluate.scoring import score_against_truth
+
+        result = score_against_truth(result)
+    report = result.report()
+    files = _estimate_files(Path(out), report, result) if out is not None else {}
     if files:
         write_files(files)
-    summary = _estimate_summary(report, result, scan, source, sorted(path.name for path in files),
-                                described=scan is not None and progress and not args.json)
-    failed = [s for s in result.pair_status if s != "ok"]
-    warning = f"warning: {len(failed)} pairs failed, e.g. {failed[0]}" if failed else None
-    return report, summary, warning
+    summary = result.summary(source=source, written=sorted(path.name for path in files),
+                             described=scan is not None and progress and not args.json)
+    return report, summary, result.failed_pairs_warning()
 
 
 def _estimate_batch(args, config, pipeline, sources: list[Path], outs: dict, executor) -> int:
@@ -238,164 +240,35 @@ def _batch_outputs(sources: list[Path], out: str | None) -> dict[Path, Path | No
     return {source: Path(out) / name for source, name in names.items()}
 
 
-def _difference_table(estimated: np.ndarray, reference: np.ndarray) -> dict:
-    """Estimated minus reference after their median offset: RMS, max and where."""
-    difference = estimated - reference
-    finite = np.isfinite(difference)
-    if not finite.any():
-        return {"views": 0}
-    difference = difference - float(np.median(difference[finite]))
-    worst = int(np.nanargmax(np.abs(difference)))
-    return {"views": int(finite.sum()), "rms_deg": float(np.sqrt(np.mean(difference[finite] ** 2))),
-            "max_deg": float(abs(difference[worst])), "worst_view": worst}
-
-
-def _turn_check(result, nominal: np.ndarray) -> dict:
-    """Whether the pair angles, measured from the images alone, turn the way the nominal angles do.
-
-    A reader whose angle sign is wrong for a scanner gives nominal steps of one sign and pair
-    angles of the other; that shows here before it spoils anything downstream.
-    """
-    pairs, angles = result.pairs, result.pair_angles_deg
-    steps = nominal[pairs[:, 1]] - nominal[pairs[:, 0]]
-    steps = (steps + 180.0) % 360.0 - 180.0
-    usable = np.isfinite(angles) & (np.abs(steps) > 1e-6)
-    if not usable.any():
-        return {"pairs": 0}
-    agree = float(np.mean(np.sign(angles[usable]) == np.sign(steps[usable])))
-    return {"pairs": int(usable.sum()), "agree_fraction": agree, "median_pair_deg": float(np.median(angles[usable])),
-            "median_nominal_step_deg": float(np.median(steps[usable]))}
-
-
-def _estimate_report(config, geometry, result, scan, nominal, truth) -> tuple[dict, dict]:
-    """The report ``--json`` prints and result.json holds, and the per-view columns of angles.csv."""
-    from ctpipe.io.corrected import scanner_frame_deg
-
-    estimated = scanner_frame_deg(result.angles_deg, nominal)
-    report = {"pipeline": config.to_dict(), "geometry": geometry.to_dict(), **result.to_dict(),
-              "estimated_deg": estimated}
-    columns = {"angle_deg": estimated, "n_keypoints": result.n_keypoints}
-    if scan is not None:
-        report["scan"] = {"format": scan.format, "path": str(scan.path), "notes": list(scan.notes),
-                          "angle_log": None if scan.angle_log is None else str(scan.angle_log)}
-    if nominal is not None:
-        report["nominal_deg"] = nominal
-        report["against_nominal"] = _difference_table(estimated, nominal)
-        report["turn_check"] = _turn_check(result, nominal)
-        columns["nominal_deg"] = nominal
-        columns["estimated_minus_nominal_deg"] = estimated - nominal
-    recorded = None if scan is None else scan.recorded_angles_deg
-    if scan is not None and scan.closing_view:
-        # The closing view is view 0's pose one turn on: how far it turned, measured from the images.
-        report["closing_view"] = {"view": scan.n_views - 1, "nominal_turn_deg": float(nominal[-1] - nominal[0]),
-                                  "estimated_turn_deg": float(result.angles_deg[-1] - result.angles_deg[0]),
-                                  "recorded_turn_deg": None if recorded is None else float(recorded[-1] - recorded[0])}
-    if recorded is not None:
-        report["recorded_deg"] = recorded
-        report["against_recorded"] = _difference_table(estimated, recorded)
-        columns["recorded_deg"] = recorded
-        columns["estimated_minus_recorded_deg"] = estimated - recorded
-    if truth is not None:
-        from ctpipe.evaluate.scoring import error_table, pair_errors_deg, view_errors_deg
-
-        errors = view_errors_deg(result.angles_deg, truth)
-        report["angle_errors"] = {
-            "views": error_table(errors),
-            "pairs": error_table(pair_errors_deg(result.pairs, result.pair_angles_deg, truth)),
-        }
-        columns["true_deg"] = truth
-        columns["error_deg"] = errors
-    return report, columns
-
-
-def _estimate_files(out: Path, report: dict, columns: dict, geometry, result, scan) -> dict:
+def _estimate_files(out: Path, report: dict, result) -> dict:
     """What ``ctpipe estimate --out`` writes, as {path: writer} for one atomic write_files call."""
-    import dataclasses
-
-    from ctpipe.evaluate.report import angle_errors_png
-    from ctpipe.io.corrected import CONE_VECTOR_COLUMNS, cone_vectors
+    from ctpipe.evaluate.report import estimate_angles_png
+    from ctpipe.io.corrected import CONE_VECTOR_COLUMNS
     from ctpipe.io.outputs import csv_bytes, json_bytes
 
-    info = result.refiner_info
-    corrected = dataclasses.replace(geometry, **{k: float(info[k]) for k in ("u0_px", "v0_px") if k in info})
-    vectors = cone_vectors(corrected, report["estimated_deg"], tilt_deg=float(info.get("tilt_deg", 0.0)))
+    columns = result.angle_columns()
     blobs = {
         "angles.csv": csv_bytes(["view", *columns], [[v, *row] for v, row in enumerate(zip(*columns.values()))]),
         "result.json": json_bytes(report),
-        "geometry_vectors.csv": csv_bytes(["view", *CONE_VECTOR_COLUMNS], [[v, *row] for v, row in enumerate(vectors)]),
+        "geometry_vectors.csv": csv_bytes(["view", *CONE_VECTOR_COLUMNS],
+                                          [[v, *row] for v, row in enumerate(result.cone_vectors())]),
     }
-    curves = {name.replace("_", " "): columns[name] for name in ("estimated_minus_nominal_deg",
-                                                                  "estimated_minus_recorded_deg") if name in columns}
-    if "error_deg" in columns:
-        curves["estimated minus true"] = columns["error_deg"]
-    if curves:
-        title = f"{scan.format} scan {scan.path.name}" if scan is not None else ""
-        blobs["angles.png"] = angle_errors_png({k[:-4] if k.endswith(" deg") else k: v for k, v in curves.items()},
-                                               title, ylabel="difference (deg), median offset removed")
+    picture = estimate_angles_png(result)
+    if picture is not None:
+        blobs["angles.png"] = picture
+    scan = result.scan
     writer = None if scan is None else _angle_log_writer(scan.format)
     if writer is not None:
-        name, blob = writer(scan, report["estimated_deg"])
+        name, blob = writer(scan, result.estimated_deg)
         blobs[name] = blob
     return {out / name: (lambda blob: lambda handle: handle.write(blob))(blob) for name, blob in blobs.items()}
 
 
 def _angle_log_writer(format_name: str):
-    from ctpipe.io.scans import FORMATS
+    from ctpipe.plugins import get_formats
 
-    fmt = FORMATS.get(format_name)
+    fmt = get_formats().get(format_name)
     return None if fmt is None else fmt.corrected_angle_log
-
-
-def _estimate_summary(report: dict, result, scan, source: Path, written: list[str], *, described: bool = False) -> str:
-    """One screen: what was read (unless ``described`` before the run), how the estimate went,
-    how far it is from the nominal and logged angles."""
-    g = report["geometry"]
-    lines = []
-    if scan is not None and not described:
-        lines += scan.describe()
-    elif scan is None:
-        lines.append(f"projections {source}: {len(result.angles_deg)} views of {g['detector_rows']} x "
-                     f"{g['detector_cols']} px, SOD {g['source_to_object_mm']:g} mm, SDD {g['source_to_detector_mm']:g} mm")
-    stages = report["pipeline"]
-    lines.append("pipeline: " + " -> ".join(stages[k]["name"] for k in ("detector", "matcher", "estimator", "refiner")))
-    failed = sum(s != "ok" for s in result.pair_status)
-    lines.append(f"pairs: {len(result.pairs) - failed}/{len(result.pairs)} estimated, median "
-                 f"{np.median(result.n_inliers):.0f} inliers of {np.median(result.n_matches):.0f} matches; "
-                 f"{int(np.isfinite(result.angles_deg).sum())}/{len(result.angles_deg)} views have an angle")
-    matching = result.refiner_info.get("matching")
-    if isinstance(matching, dict):
-        lines.append(f"refiner: projection matching from the {matching.get('from')} angles, kept the "
-                     f"{result.refiner_info.get('chosen', 'matched')} ones")
-    for key, label in (("against_nominal", "nominal angles"), ("against_recorded", "scanner's angle log")):
-        table = report.get(key)
-        if table and table.get("views"):
-            lines.append(f"estimated minus {label}: RMS {table['rms_deg']:.4f} deg, max {table['max_deg']:.4f} deg "
-                         f"(view {table['worst_view']}), median offset removed")
-    closing = report.get("closing_view")
-    if closing:
-        logged = "" if closing["recorded_turn_deg"] is None else f", logged {closing['recorded_turn_deg']:.4f}"
-        lines.append(f"closing view {closing['view']}: {closing['estimated_turn_deg']:.4f} deg after view 0, measured "
-                     f"from the images (nominal {closing['nominal_turn_deg']:.4f}{logged})")
-    if "angle_errors" in report:
-        table = report["angle_errors"]["views"]
-        lines.append(f"against the true angles: RMS {table['rms_deg']:.4f} deg, MAE {table['mae_deg']:.4f} deg, "
-                     f"max {table['max_deg']:.4f} deg ({table['estimated']}/{table['total']} views)")
-    turn = report.get("turn_check", {})
-    if turn.get("pairs") and turn["agree_fraction"] < 0.5:
-        lines.append(f"warning: the images turn the other way from the nominal angles ({100 * (1 - turn['agree_fraction']):.0f} % "
-                     f"of pairs; median pair angle {turn['median_pair_deg']:+.3f} deg against a nominal step of "
-                     f"{turn['median_nominal_step_deg']:+.3f} deg): the angle sign read from this scan's files is "
-                     "probably reversed for this scanner (docs/real-scans.md)")
-    info = result.refiner_info
-    if any(k in info for k in ("u0_px", "tilt_deg")):
-        lines.append(f"geometry: u0 {info.get('u0_px', g['u0_px']):.3f} px (was {g['u0_px']:.3f}), v0 "
-                     f"{info.get('v0_px', g['v0_px']):.3f} px, detector tilt {info.get('tilt_deg', 0.0):.4f} deg")
-    estimated = report["estimated_deg"]
-    lines.append(f"estimated angles: {estimated[0]:.4f} .. {estimated[-1]:.4f} deg "
-                 f"(in the nominal angles' frame{'' if 'nominal_deg' in report else ': relative to view 0'})")
-    if written:
-        lines.append("written: " + ", ".join(written))
-    return "\n".join(lines)
 
 
 def _cmd_detect(args) -> int:

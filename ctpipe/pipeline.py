@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -18,27 +18,199 @@ from ctpipe.errors import EstimationError, InputError
 from ctpipe.execution import Executor, ThreadExecutor
 from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
-from ctpipe.io.scans import StackReference, ViewStack
+from ctpipe.io.corrected import cone_vectors, scanner_frame_deg
+from ctpipe.io.scans import ScanFiles, StackReference, ViewStack
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
 from ctpipe.solve.graph import view_pairs
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner
 
-__all__ = ["Pipeline", "ScanResult", "consecutive_pairs"]
+__all__ = ["Pipeline", "ScanResult", "RefinedGeometry", "TurnCheck", "RefinerChoice", "ClosingView", "AngleErrors",
+           "difference_table"]
 
 #: Most memory the static background's median may take: 90 views of 512^2, 32 of 2,048^2.
 _BACKGROUND_BYTES = 512 * 2**20
 
 
-def consecutive_pairs(n_views: int, baselines: tuple[int, ...] = (1,)) -> np.ndarray:
-    """View pairs ``(i, i + k)`` for every baseline ``k``, shape (P, 2)."""
-    pairs = [(i, i + k) for k in baselines for i in range(n_views - k)]
-    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+#: What a refiner may estimate of the geometry, by the key it reports it under in its info.
+REFINABLE_GEOMETRY = ("u0_px", "v0_px", "tilt_deg")
+
+
+@dataclass(frozen=True)
+class RefinedGeometry:
+    """The geometry a run ends with: the input one, with what the refiner estimated put in.
+
+    Attributes
+    ----------
+    geometry : Geometry
+        The input geometry with the principal point (``u0_px``: the centre of rotation's
+        column; ``v0_px``) the refiner estimated, where it estimated it.
+    tilt_deg : float
+        In-plane detector tilt the refiner estimated, degrees; 0 when it estimated none.
+    refined : tuple of str
+        Which of ``"u0_px"``, ``"v0_px"``, ``"tilt_deg"`` the refiner estimated (bundle
+        adjustment with ``estimate_u0``, ``estimate_v0`` or ``estimate_tilt``); empty when
+        ``geometry`` is the input geometry as it was.
+    """
+
+    geometry: Geometry
+    tilt_deg: float = 0.0
+    refined: tuple[str, ...] = ()
+
+    @classmethod
+    def from_info(cls, geometry: Geometry, info: Mapping[str, Any]) -> "RefinedGeometry":
+        """The geometry ``info`` (a refiner's :attr:`~ctpipe.data.ScanSolution.info`) reports refined."""
+        corrected = dataclasses.replace(geometry, **{k: float(info[k]) for k in ("u0_px", "v0_px") if k in info})
+        return cls(corrected, float(info.get("tilt_deg", 0.0)), tuple(k for k in REFINABLE_GEOMETRY if k in info))
+
+
+@dataclass(frozen=True)
+class TurnCheck:
+    """Whether the pair angles, measured from the images alone, turn the way the nominal angles do.
+
+    A reader whose angle sign is wrong for a scanner gives nominal steps of one sign and pair
+    angles of the other; that shows here before it spoils anything downstream.
+
+    Attributes
+    ----------
+    pairs : int
+        Pairs with an angle and a nominal step of more than 1e-6 deg; 0 when none (the other
+        fields are then None).
+    agree_fraction : float or None
+        Share of those pairs whose angle has the sign of its nominal step.
+    median_pair_deg : float or None
+        Median angle of those pairs.
+    median_nominal_step_deg : float or None
+        Median nominal step of those pairs, wrapped to [-180, 180).
+    """
+
+    pairs: int
+    agree_fraction: float | None = None
+    median_pair_deg: float | None = None
+    median_nominal_step_deg: float | None = None
+
+    @classmethod
+    def compute(cls, pairs: np.ndarray, pair_angles_deg: np.ndarray, nominal_angles_deg: np.ndarray) -> "TurnCheck":
+        """The check of ``pair_angles_deg`` (NaN: failed) against the nominal steps of ``pairs``."""
+        nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
+        steps = nominal[pairs[:, 1]] - nominal[pairs[:, 0]]
+        steps = (steps + 180.0) % 360.0 - 180.0
+        usable = np.isfinite(pair_angles_deg) & (np.abs(steps) > 1e-6)
+        if not usable.any():
+            return cls(pairs=0)
+        return cls(pairs=int(usable.sum()),
+                   agree_fraction=float(np.mean(np.sign(pair_angles_deg[usable]) == np.sign(steps[usable]))),
+                   median_pair_deg=float(np.median(pair_angles_deg[usable])),
+                   median_nominal_step_deg=float(np.median(steps[usable])))
+
+    @property
+    def reversed(self) -> bool:
+        """The images turn the other way from the nominal angles (most pairs disagree in sign)."""
+        return bool(self.pairs) and self.agree_fraction < 0.5
+
+    def to_dict(self) -> dict[str, Any]:
+        """``{"pairs": 0}``, or every field."""
+        if not self.pairs:
+            return {"pairs": 0}
+        return {"pairs": self.pairs, "agree_fraction": self.agree_fraction, "median_pair_deg": self.median_pair_deg,
+                "median_nominal_step_deg": self.median_nominal_step_deg}
+
+
+@dataclass(frozen=True)
+class RefinerChoice:
+    """What a whole-scan refiner chose between, as it reported it (projection matching's gate).
+
+    Attributes
+    ----------
+    start : str or None
+        Where the refiner started from (projection matching: ``least-squares``,
+        ``bundle-adjustment`` or ``nominal``); None when it does not say.
+    matched : bool
+        Whether projection matching ran.
+    matched_from : str or None
+        Which candidate matching started from: ``start`` or ``nominal``, the one that explained
+        the projections better.
+    skipped : str or None
+        Why matching did not run (too few views, no projections, too small a detector).
+    chosen : str or None
+        The candidate whose angles were returned: ``matched``, ``start`` or ``nominal``.
+    consistency_cost : dict of str to float
+        Each candidate's reconstruct-and-reproject residual
+        (:func:`ctpipe.solve.reprojection.consistency_costs`), the lowest chosen; empty when the
+        candidates were not compared.
+    """
+
+    start: str | None = None
+    matched: bool = False
+    matched_from: str | None = None
+    skipped: str | None = None
+    chosen: str | None = None
+    consistency_cost: Mapping[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def from_info(cls, info: Mapping[str, Any]) -> "RefinerChoice":
+        """The choice a refiner's :attr:`~ctpipe.data.ScanSolution.info` reports."""
+        matching = info.get("matching")
+        matched = isinstance(matching, Mapping)
+        return cls(start=info.get("start"), matched=matched, matched_from=matching.get("from") if matched else None,
+                   skipped=matching if isinstance(matching, str) else None, chosen=info.get("chosen"),
+                   consistency_cost=dict(info.get("consistency_cost") or {}))
+
+
+@dataclass(frozen=True)
+class ClosingView:
+    """How far a scan's closing view turned from view 0 (see :attr:`ctpipe.io.scans.ScanFiles.closing_view`).
+
+    The closing view is view 0's pose one turn on, so its angle measured from the images says
+    how far the whole scan turned.
+
+    Attributes
+    ----------
+    view : int
+        Its index, the last view.
+    nominal_turn_deg : float
+        Its nominal angle minus view 0's.
+    estimated_turn_deg : float
+        Its estimated angle minus view 0's, measured from the images.
+    recorded_turn_deg : float or None
+        The same from the scanner's angle log; None without a log.
+    """
+
+    view: int
+    nominal_turn_deg: float
+    estimated_turn_deg: float
+    recorded_turn_deg: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True, eq=False)
+class AngleErrors:
+    """Errors of a run against known true angles (a simulation), as
+    :func:`ctpipe.evaluate.scoring.score_against_truth` finds them.
+
+    Attributes
+    ----------
+    true_angles_deg : ndarray of shape (V,)
+    view_errors_deg : ndarray of shape (V,)
+        Each view's error after the common offset; NaN where a view has no angle.
+    views, pairs : dict
+        :func:`ctpipe.evaluate.scoring.error_table` of the views' and the pairs' errors.
+    """
+
+    true_angles_deg: np.ndarray
+    view_errors_deg: np.ndarray
+    views: Mapping[str, float | int]
+    pairs: Mapping[str, float | int]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"views": dict(self.views), "pairs": dict(self.pairs)}
 
 
 @dataclass(frozen=True, eq=False)
 class ScanResult:
-    """What a pipeline run returns.
+    """What a pipeline run returns: the angles, the geometry it ends with, and its report.
 
     Attributes
     ----------
@@ -57,9 +229,30 @@ class ScanResult:
     n_keypoints : ndarray of shape (V,), int64
     timings_s : dict
     refiner_info : dict
-        What the refiner reported (see :attr:`ctpipe.data.ScanSolution.info`).
+        What the refiner reported, as it reported it (see :attr:`ctpipe.data.ScanSolution.info`);
+        :attr:`refined_geometry` and :attr:`refiner_choice` hold what of it a user acts on.
     static_background_removed : bool
         Whether features were detected on the views less the scan's static part.
+    geometry : Geometry or None
+        The geometry the run was given.
+    refined_geometry : RefinedGeometry or None
+        The geometry with the principal point and detector tilt the refiner estimated, where it
+        estimated them (else ``geometry`` as it was).
+    refiner_choice : RefinerChoice
+        What the refiner chose between (projection matching: the start, the candidate it
+        matched from, the one it kept and their consistency costs).
+    nominal_angles_deg : ndarray of shape (V,) or None
+        The nominal angles the run was given.
+    turn_check : TurnCheck or None
+        Whether the images turn the way the nominal angles do; None without nominal angles.
+    closing_view : ClosingView or None
+        The turn measured to the scan's closing view, when the run was given a scan that has one.
+    scan : ctpipe.io.scans.ScanFiles or None
+        The scan the run was given (format, path, notes, the scanner's angle log), if any.
+    pipeline : ctpipe.config.PipelineConfig or None
+        The configuration of the pipeline that ran, when it was built from one.
+    angle_errors : AngleErrors or None
+        Errors against the true angles, filled by :func:`ctpipe.evaluate.scoring.score_against_truth`.
     """
 
     pairs: np.ndarray
@@ -74,8 +267,28 @@ class ScanResult:
     timings_s: dict[str, float]
     refiner_info: dict[str, Any] = field(default_factory=dict)
     static_background_removed: bool = False
+    geometry: Geometry | None = None
+    refined_geometry: RefinedGeometry | None = None
+    refiner_choice: RefinerChoice = field(default_factory=RefinerChoice)
+    nominal_angles_deg: np.ndarray | None = None
+    turn_check: TurnCheck | None = None
+    closing_view: ClosingView | None = None
+    scan: ScanFiles | None = None
+    pipeline: PipelineConfig | None = None
+    angle_errors: AngleErrors | None = None
+
+    @property
+    def estimated_deg(self) -> np.ndarray:
+        """:attr:`angles_deg` in the nominal angles' frame (their median offset), or as they are without them."""
+        return scanner_frame_deg(self.angles_deg, self.nominal_angles_deg)
+
+    @property
+    def recorded_angles_deg(self) -> np.ndarray | None:
+        """The angles the scanner logged per view (from :attr:`scan`), or None."""
+        return None if self.scan is None else self.scan.recorded_angles_deg
 
     def to_dict(self) -> dict[str, Any]:
+        """The run itself: angles, keypoints, every pair, timings, what the refiner reported."""
         return {
             "angles_deg": self.angles_deg,
             "n_keypoints": self.n_keypoints,
@@ -89,12 +302,163 @@ class ScanResult:
             "static_background_removed": self.static_background_removed,
         }
 
+    def report(self) -> dict[str, Any]:
+        """What ``ctpipe estimate`` writes to result.json (and prints with ``--json``).
+
+        The pipeline and geometry, :meth:`to_dict`, the angles in the nominal frame
+        (``estimated_deg``), then as known: the scan, the nominal angles with the estimate's
+        difference from them and the :attr:`turn_check`, the :attr:`closing_view`, the
+        scanner's logged angles and the difference from them, the :attr:`angle_errors`.
+        Values are plain Python and numpy arrays (:func:`ctpipe.io.outputs.to_jsonable` makes
+        it JSON).
+        """
+        estimated = self.estimated_deg
+        report = {"pipeline": None if self.pipeline is None else self.pipeline.to_dict(),
+                  "geometry": None if self.geometry is None else self.geometry.to_dict(), **self.to_dict(),
+                  "estimated_deg": estimated}
+        scan = self.scan
+        if scan is not None:
+            report["scan"] = {"format": scan.format, "path": str(scan.path), "notes": list(scan.notes),
+                              "angle_log": None if scan.angle_log is None else str(scan.angle_log)}
+        nominal = self.nominal_angles_deg
+        if nominal is not None:
+            report["nominal_deg"] = nominal
+            report["against_nominal"] = difference_table(estimated, nominal)
+            report["turn_check"] = self.turn_check.to_dict()
+        if self.closing_view is not None:
+            report["closing_view"] = self.closing_view.to_dict()
+        recorded = self.recorded_angles_deg
+        if recorded is not None:
+            report["recorded_deg"] = recorded
+            report["against_recorded"] = difference_table(estimated, recorded)
+        if self.angle_errors is not None:
+            report["angle_errors"] = self.angle_errors.to_dict()
+        return report
+
+    def angle_columns(self) -> dict[str, np.ndarray]:
+        """The per-view columns of angles.csv after its ``view`` column, by name."""
+        estimated = self.estimated_deg
+        columns = {"angle_deg": estimated, "n_keypoints": self.n_keypoints}
+        nominal = self.nominal_angles_deg
+        if nominal is not None:
+            columns["nominal_deg"] = nominal
+            columns["estimated_minus_nominal_deg"] = estimated - nominal
+        recorded = self.recorded_angles_deg
+        if recorded is not None:
+            columns["recorded_deg"] = recorded
+            columns["estimated_minus_recorded_deg"] = estimated - recorded
+        if self.angle_errors is not None:
+            columns["true_deg"] = self.angle_errors.true_angles_deg
+            columns["error_deg"] = self.angle_errors.view_errors_deg
+        return columns
+
+    def cone_vectors(self) -> np.ndarray:
+        """ASTRA ``cone_vec`` rows of every view (:func:`ctpipe.io.corrected.cone_vectors`), shape (V, 12).
+
+        With the :attr:`refined_geometry` and :attr:`estimated_deg`: what geometry_vectors.csv holds.
+        """
+        refined = self.refined_geometry
+        return cone_vectors(refined.geometry, self.estimated_deg, tilt_deg=refined.tilt_deg)
+
+    def failed_pairs_warning(self) -> str | None:
+        """One line saying how many pairs failed and why the first did, or None when none failed."""
+        failed = [s for s in self.pair_status if s != "ok"]
+        return f"warning: {len(failed)} pairs failed, e.g. {failed[0]}" if failed else None
+
+    def summary(self, *, source: str | Path | None = None, written: Sequence[str] = (),
+                described: bool = False) -> str:
+        """One screen: what was read, how the estimate went, how far it is from the nominal and logged angles.
+
+        What ``ctpipe estimate`` prints.
+
+        Parameters
+        ----------
+        source : str or Path, optional
+            The projection file, named in the first line when the run was given no scan.
+        written : sequence of str
+            Names of the files written, listed last.
+        described : bool
+            The scan was described (:meth:`ctpipe.io.scans.ScanFiles.describe`) before the run:
+            do not repeat it.
+        """
+        g = self.geometry
+        lines = []
+        if self.scan is not None and not described:
+            lines += self.scan.describe()
+        elif self.scan is None:
+            lines.append(f"projections{'' if source is None else f' {source}'}: {len(self.angles_deg)} views of "
+                         f"{g.detector_rows} x {g.detector_cols} px, SOD {g.source_to_object_mm:g} mm, "
+                         f"SDD {g.source_to_detector_mm:g} mm")
+        if self.pipeline is not None:
+            stages = self.pipeline.to_dict()
+            lines.append("pipeline: " + " -> ".join(stages[k]["name"] for k in ("detector", "matcher", "estimator",
+                                                                                  "refiner")))
+        failed = sum(s != "ok" for s in self.pair_status)
+        lines.append(f"pairs: {len(self.pairs) - failed}/{len(self.pairs)} estimated, median "
+                     f"{np.median(self.n_inliers):.0f} inliers of {np.median(self.n_matches):.0f} matches; "
+                     f"{int(np.isfinite(self.angles_deg).sum())}/{len(self.angles_deg)} views have an angle")
+        choice = self.refiner_choice
+        if choice.matched:
+            lines.append(f"refiner: projection matching from the {choice.matched_from} angles, kept the "
+                         f"{'matched' if choice.chosen is None else choice.chosen} ones")
+        estimated = self.estimated_deg
+        for reference, label in ((self.nominal_angles_deg, "nominal angles"),
+                                 (self.recorded_angles_deg, "scanner's angle log")):
+            table = None if reference is None else difference_table(estimated, reference)
+            if table and table.get("views"):
+                lines.append(f"estimated minus {label}: RMS {table['rms_deg']:.4f} deg, max {table['max_deg']:.4f} deg "
+                             f"(view {table['worst_view']}), median offset removed")
+        closing = self.closing_view
+        if closing is not None:
+            logged = "" if closing.recorded_turn_deg is None else f", logged {closing.recorded_turn_deg:.4f}"
+            lines.append(f"closing view {closing.view}: {closing.estimated_turn_deg:.4f} deg after view 0, measured "
+                         f"from the images (nominal {closing.nominal_turn_deg:.4f}{logged})")
+        if self.angle_errors is not None:
+            table = self.angle_errors.views
+            lines.append(f"against the true angles: RMS {table['rms_deg']:.4f} deg, MAE {table['mae_deg']:.4f} deg, "
+                         f"max {table['max_deg']:.4f} deg ({table['estimated']}/{table['total']} views)")
+        turn = self.turn_check
+        if turn is not None and turn.reversed:
+            lines.append(f"warning: the images turn the other way from the nominal angles ({100 * (1 - turn.agree_fraction):.0f} % "
+                         f"of pairs; median pair angle {turn.median_pair_deg:+.3f} deg against a nominal step of "
+                         f"{turn.median_nominal_step_deg:+.3f} deg): the angle sign read from this scan's files is "
+                         "probably reversed for this scanner (docs/real-scans.md)")
+        refined = self.refined_geometry
+        if refined is not None and any(k in refined.refined for k in ("u0_px", "tilt_deg")):
+            lines.append(f"geometry: u0 {refined.geometry.u0_px:.3f} px (was {g.u0_px:.3f}), v0 "
+                         f"{refined.geometry.v0_px:.3f} px, detector tilt {refined.tilt_deg:.4f} deg")
+        lines.append(f"estimated angles: {estimated[0]:.4f} .. {estimated[-1]:.4f} deg "
+                     f"(in the nominal angles' frame{'' if self.nominal_angles_deg is not None else ': relative to view 0'})")
+        if written:
+            lines.append("written: " + ", ".join(written))
+        return "\n".join(lines)
+
+
+def difference_table(estimated_deg: np.ndarray, reference_deg: np.ndarray) -> dict[str, Any]:
+    """Estimated minus reference angles after their median offset: how many views, RMS, max and where.
+
+    Returns
+    -------
+    dict
+        ``{"views": 0}`` when no view has both; else ``views``, ``rms_deg``, ``max_deg`` and
+        ``worst_view``.
+    """
+    difference = estimated_deg - reference_deg
+    finite = np.isfinite(difference)
+    if not finite.any():
+        return {"views": 0}
+    difference = difference - float(np.median(difference[finite]))
+    worst = int(np.nanargmax(np.abs(difference)))
+    return {"views": int(finite.sum()), "rms_deg": float(np.sqrt(np.mean(difference[finite] ** 2))),
+            "max_deg": float(abs(difference[worst])), "worst_view": worst}
+
 
 @dataclass(frozen=True)
 class Pipeline:
     """Detector -> matcher -> estimator -> refiner over a whole scan.
 
-    Build one from stage objects, or with :meth:`from_config` from a YAML file or mapping.
+    Build one from stage objects, or with :meth:`from_config` from a YAML file or mapping
+    (which keeps the configuration in ``config``, for the report of each run).
     """
 
     detector: Detector
@@ -105,6 +469,7 @@ class Pipeline:
     seed: int | None = 0
     loop_closure: bool = True
     static_background: str = "auto"
+    config: PipelineConfig | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         for name, kind in (("detector", Detector), ("matcher", Matcher), ("estimator", Estimator), ("refiner", Refiner)):
@@ -126,31 +491,25 @@ class Pipeline:
             config = parse_pipeline(config, registry)
         return cls(*(build_stage(getattr(config, kind), registry) for kind in ("detector", "matcher", "estimator", "refiner")),
                    baselines=config.baselines, seed=config.seed, loop_closure=config.loop_closure,
-                   static_background=config.static_background)
+                   static_background=config.static_background, config=config)
 
-    def detect(self, projections: np.ndarray, *, background: np.ndarray | None = None,
-               progress: Callable[[int], None] | None = None, executor: Executor | None = None) -> tuple[Features, ...]:
-        """Features of every view, on ``view - background`` if given (one task per view, see :meth:`run`)."""
-        with _executor(executor) as run_on:
-            source = run_on.scatter(_shippable(projections))
-            tasks = [run_on.submit(_detect_view, self.detector, source, background, index, name="detect")
-                     for index in range(len(projections))]
-            return tuple(run_on.gather(tasks, progress=progress))
-
-    def run(self, projections: np.ndarray, geometry: Geometry, *, nominal_angles_deg=None,
-            pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None,
+    def run(self, projections: np.ndarray | ViewStack | ScanFiles, geometry: Geometry | None = None, *,
+            nominal_angles_deg=None, pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None,
             executor: Executor | None = None) -> ScanResult:
         """Estimate the angle of every view of a scan: :meth:`observe`, then :meth:`refine`.
 
         Parameters
         ----------
-        projections : ndarray of shape (V, rows, cols), or ViewStack
+        projections : ndarray of shape (V, rows, cols), ViewStack, or ScanFiles
             uint8 or float images (float: e.g. ``-log`` line integrals); no NaN. A
             :class:`ctpipe.io.scans.ViewStack` (what :func:`ctpipe.io.open_scan` gives) is read
-            one view at a time and never held whole.
+            one view at a time and never held whole. A whole scan opened with
+            :func:`ctpipe.io.open_scan` gives its projections, geometry and nominal angles, and
+            the result's report also holds its format, notes, logged angles and closing view.
         geometry : Geometry or mapping
             Must match the projections' (rows, cols). A mapping of the :class:`Geometry`
             fields is validated as a geometry YAML is (:func:`ctpipe.config.parse_geometry`).
+            Not with a scan, which has its own.
         nominal_angles_deg : array_like of shape (V,), optional
             The commanded angles. They tell a full turn (whose seam is then paired too, see
             :func:`ctpipe.solve.view_pairs`) and give whole-scan refiners their start.
@@ -166,6 +525,15 @@ class Pipeline:
             read a scan opened from disk themselves. Every pair has its own seed, so the
             angles are the same bit for bit wherever they run.
 
+        Returns
+        -------
+        ScanResult
+            The angles; the geometry with what the refiner estimated of it
+            (:attr:`~ScanResult.refined_geometry`); what the refiner chose; with nominal angles,
+            whether the images turn their way (:attr:`~ScanResult.turn_check`); with a scan
+            that has one, the turn measured to its closing view; and the report
+            (:meth:`~ScanResult.report`, :meth:`~ScanResult.summary`).
+
         Raises
         ------
         InputError
@@ -173,9 +541,20 @@ class Pipeline:
         EstimationError
             When not a single pair could be estimated.
         """
+        scan = None
+        if isinstance(projections, ScanFiles):
+            scan = projections
+            for name, value in (("geometry", geometry), ("nominal_angles_deg", nominal_angles_deg)):
+                if value is not None:
+                    raise InputError(f"{name}: a scan ({scan.format} scan {scan.path}) brings its own; give the "
+                                     f"scan alone, or its projections with the {name} to use")
+            projections, geometry, nominal_angles_deg = scan.projections, scan.geometry, scan.nominal_angles_deg
+        elif geometry is None:
+            raise InputError("geometry: missing; projections need the geometry they were taken with (or give a scan "
+                             "opened with ctpipe.io.open_scan, which has its own)")
         with _executor(executor) as run_on:
             observations, placed = self._observe(projections, geometry, nominal_angles_deg, pairs, progress, run_on)
-            return self._refine(observations, run_on, placed)
+            return self._refine(observations, run_on, placed, scan)
 
     def observe(self, projections: np.ndarray, geometry: Geometry, *, nominal_angles_deg=None,
                 pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None,
@@ -247,7 +626,8 @@ class Pipeline:
         """
         return self._refine(observations, executor, None)
 
-    def _refine(self, observations: ScanObservations, executor: Executor | None, placed: "_Placed | None") -> ScanResult:
+    def _refine(self, observations: ScanObservations, executor: Executor | None, placed: "_Placed | None",
+                scan: ScanFiles | None = None) -> ScanResult:
         timings = dict(observations.timings_s)
         start = time.perf_counter()
         # The refiner's generator is the last of len(pairs) + 1 children, as it always was.
@@ -273,19 +653,38 @@ class Pipeline:
             raise EstimationError(
                 f"no view pair could be estimated (first pair: {refined[0]}); keypoints per view: {counts}"
                 f"{', ...' if observations.n_views > 6 else ''}")
+        pair_angles_deg = np.array([np.rad2deg(e.angle_rad) if e else np.nan for e in refined])
+        angles_deg = np.rad2deg(solution.angles_rad)
+        info = dict(solution.info)
+        nominal = observations.nominal_angles_deg
+        closing = None
+        if scan is not None and scan.closing_view:
+            # The closing view is view 0's pose one turn on: how far it turned, measured from the images.
+            recorded = scan.recorded_angles_deg
+            closing = ClosingView(view=scan.n_views - 1, nominal_turn_deg=float(nominal[-1] - nominal[0]),
+                                  estimated_turn_deg=float(angles_deg[-1] - angles_deg[0]),
+                                  recorded_turn_deg=None if recorded is None else float(recorded[-1] - recorded[0]))
         return ScanResult(
             pairs=observations.pairs,
-            pair_angles_deg=np.array([np.rad2deg(e.angle_rad) if e else np.nan for e in refined]),
+            pair_angles_deg=pair_angles_deg,
             pair_inlier_masks=tuple(e.inlier_mask if e else np.zeros(len(m), bool) for e, m in zip(refined, matches)),
             n_matches=np.array([len(m) for m in matches], dtype=np.int64),
             n_inliers=np.array([e.n_inliers if e else 0 for e in refined], dtype=np.int64),
             residuals=np.array([e.residual if e else np.nan for e in refined]),
             pair_status=tuple("ok" if e else str(e) for e in refined),
-            angles_deg=np.rad2deg(solution.angles_rad),
+            angles_deg=angles_deg,
             n_keypoints=np.array([len(f) for f in features], dtype=np.int64),
             timings_s=timings,
-            refiner_info=dict(solution.info),
+            refiner_info=info,
             static_background_removed=observations.static_background_removed,
+            geometry=observations.geometry,
+            refined_geometry=RefinedGeometry.from_info(observations.geometry, info),
+            refiner_choice=RefinerChoice.from_info(info),
+            nominal_angles_deg=nominal,
+            turn_check=None if nominal is None else TurnCheck.compute(observations.pairs, pair_angles_deg, nominal),
+            closing_view=closing,
+            scan=scan,
+            pipeline=self.config,
         )
 
     def _background_views(self, projections, nominal: np.ndarray | None) -> np.ndarray | None:

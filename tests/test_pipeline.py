@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from ctpipe.errors import EstimationError, InputError
-from ctpipe.pipeline import Pipeline, consecutive_pairs
+from ctpipe.pipeline import Pipeline
+from ctpipe.solve import view_pairs
 
 
 def test_pipeline_recovers_view_angles_of_a_rendered_bead_scan(bead_scan):
@@ -59,7 +60,7 @@ def test_blank_projections_say_no_pair_could_be_estimated(bead_scan):
 
 
 def test_consecutive_pairs():
-    assert consecutive_pairs(4, (1, 2)).tolist() == [[0, 1], [1, 2], [2, 3], [0, 2], [1, 3]]
+    assert view_pairs(4, (1, 2)).tolist() == [[0, 1], [1, 2], [2, 3], [0, 2], [1, 3]]
 
 
 def test_the_readme_python_example_runs(tmp_path, monkeypatch):

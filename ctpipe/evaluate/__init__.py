@@ -11,9 +11,10 @@ defaults are ``validate.yaml`` and ``synthetic.yaml`` in this folder.
 
 from ctpipe.evaluate.experiments import (STUDIES, SyntheticReport, SyntheticSettings, load_synthetic_settings,
                                          run_synthetic)
-from ctpipe.evaluate.report import angle_errors_png, keypoints_png, slices_png, synthetic_table, write_synthetic_outputs
+from ctpipe.evaluate.report import (angle_errors_png, estimate_angles_png, keypoints_png, slices_png, synthetic_table,
+                                    write_synthetic_outputs)
 from ctpipe.evaluate.scoring import (align_offset, error_table, keypoint_agreement, pair_errors_deg, recovery,
-                                     support_mask, view_errors_deg, volume_metrics)
+                                     score_against_truth, support_mask, view_errors_deg, volume_metrics)
 from ctpipe.evaluate.synthetic import Cylinder, cylinder_points, make_correspondences
 from ctpipe.evaluate.validate import (ValidateReport, ValidateSettings, check_experiment, estimate_problems,
                                       load_validate_settings, pair_chained_deg, parse_validate, run_validate,
@@ -22,6 +23,7 @@ from ctpipe.evaluate.validate import (ValidateReport, ValidateSettings, check_ex
 __all__ = ["run_validate", "load_validate_settings", "parse_validate", "check_experiment", "ValidateSettings",
            "ValidateReport", "write_validate_outputs", "estimate_problems", "pair_chained_deg", "run_synthetic",
            "load_synthetic_settings", "SyntheticSettings", "SyntheticReport", "STUDIES", "error_table",
-           "view_errors_deg", "pair_errors_deg", "align_offset", "support_mask", "volume_metrics", "recovery",
-           "keypoint_agreement", "synthetic_table", "write_synthetic_outputs", "slices_png", "angle_errors_png",
-           "keypoints_png", "Cylinder", "cylinder_points", "make_correspondences"]
+           "view_errors_deg", "pair_errors_deg", "score_against_truth", "align_offset", "support_mask", "volume_metrics",
+           "recovery", "keypoint_agreement", "synthetic_table", "write_synthetic_outputs", "slices_png",
+           "angle_errors_png", "estimate_angles_png", "keypoints_png", "Cylinder", "cylinder_points",
+           "make_correspondences"]

@@ -9,8 +9,10 @@ import numpy as np
 
 from ctpipe.evaluate.experiments import SyntheticReport
 from ctpipe.io.outputs import atomic_write, write_csv, write_json
+from ctpipe.pipeline import ScanResult
 
-__all__ = ["synthetic_table", "write_synthetic_outputs", "slices_png", "angle_errors_png", "keypoints_png"]
+__all__ = ["synthetic_table", "write_synthetic_outputs", "slices_png", "angle_errors_png", "estimate_angles_png",
+           "keypoints_png"]
 
 _TITLES = {
     "angle": "rotation sweep, 30 inliers + 70 re-paired outliers, sigma 1e-4",
@@ -177,6 +179,26 @@ def angle_errors_png(view_errors_deg: dict[str, np.ndarray], title: str = "", *,
         ax.set_title(title, fontsize=9)
     fig.tight_layout()
     return _figure_png(fig)
+
+
+def estimate_angles_png(result: ScanResult) -> bytes | None:
+    """The angles.png of ``ctpipe estimate``: the estimate minus each reference angle set it has, per view.
+
+    One line each for the nominal angles, the scanner's logged angles and the true angles
+    (:func:`ctpipe.evaluate.scoring.score_against_truth`), as far as ``result`` knows them, each
+    after its median offset; None when it knows none.
+    """
+    columns = result.angle_columns()
+    curves = {name.replace("_", " "): columns[name] for name in ("estimated_minus_nominal_deg",
+                                                                  "estimated_minus_recorded_deg") if name in columns}
+    if "error_deg" in columns:
+        curves["estimated minus true"] = columns["error_deg"]
+    if not curves:
+        return None
+    scan = result.scan
+    title = f"{scan.format} scan {scan.path.name}" if scan is not None else ""
+    return angle_errors_png({k[:-4] if k.endswith(" deg") else k: v for k, v in curves.items()}, title,
+                            ylabel="difference (deg), median offset removed")
 
 
 # --- ctpipe detect ---------------------------------------------------------------------------

@@ -32,13 +32,15 @@ relative tolerance, and for the matched pairs the angle difference and descripto
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
 from ctpipe.errors import InputError
+from ctpipe.pipeline import AngleErrors, ScanResult
 
-__all__ = ["error_table", "view_errors_deg", "pair_errors_deg", "align_offset", "support_mask",
+__all__ = ["error_table", "view_errors_deg", "pair_errors_deg", "score_against_truth", "align_offset", "support_mask",
            "volume_metrics", "recovery", "keypoint_agreement"]
 
 
@@ -99,6 +101,40 @@ def pair_errors_deg(pairs, pair_angles_deg, true_angles_deg) -> np.ndarray:
     truth = np.asarray(true_angles_deg, dtype=np.float64)
     error = np.asarray(pair_angles_deg, dtype=np.float64) - (truth[pairs[:, 1]] - truth[pairs[:, 0]])
     return np.mod(error + 180.0, 360.0) - 180.0
+
+
+def score_against_truth(result: ScanResult, true_angles_deg=None) -> ScanResult:
+    """``result`` with its :attr:`~ctpipe.pipeline.ScanResult.angle_errors` against the true angles.
+
+    Parameters
+    ----------
+    result : ScanResult
+        What :meth:`ctpipe.pipeline.Pipeline.run` returned.
+    true_angles_deg : array_like of shape (V,), optional
+        The true angles; default those of the scan the run was given (a simulation's).
+
+    Returns
+    -------
+    ScanResult
+        The same result with ``angle_errors``: each view's error after the common offset
+        (:func:`view_errors_deg`) and the :func:`error_table` of the views and of the pairs
+        (:func:`pair_errors_deg`); its report and summary then say them.
+
+    Raises
+    ------
+    InputError
+        No true angles given or known, or not one per view.
+    """
+    truth = true_angles_deg
+    if truth is None and result.scan is not None:
+        truth = result.scan.true_angles_deg
+    if truth is None:
+        raise InputError("true_angles_deg: not given, and the result's scan has none (only simulations know them)")
+    truth = np.asarray(truth, dtype=np.float64)
+    errors = view_errors_deg(result.angles_deg, truth)
+    return dataclasses.replace(result, angle_errors=AngleErrors(
+        true_angles_deg=truth, view_errors_deg=errors, views=error_table(errors),
+        pairs=error_table(pair_errors_deg(result.pairs, result.pair_angles_deg, truth))))
 
 
 def align_offset(angles_deg, reference_deg, fallback_deg=None) -> tuple[np.ndarray, int]:
