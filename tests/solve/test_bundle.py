@@ -234,3 +234,17 @@ def test_pairs_far_from_their_nominal_step_are_left_out_of_the_tracks():
         observations, rng=np.random.default_rng(0))
     assert not solution.pair_estimates[5] and "from the nominal step" in str(solution.pair_estimates[5])
     assert sum(not e for e in solution.pair_estimates) == sum(not e for e in observations.estimates) + 1
+
+
+def test_the_bundle_refiners_parameters_are_the_solvers_settings_declared_once():
+    from ctpipe.builtin.bundle import BundleAdjustmentRefiner
+    from ctpipe.errors import ConfigError
+    from ctpipe.solve.bundle import BundleSettings
+
+    settings = [spec.name for spec in BundleSettings.parameters()]
+    refiner = [spec.name for spec in BundleAdjustmentRefiner.parameters()]
+    assert refiner[:len(settings)] == settings and len(settings) == 15
+    assert BundleAdjustmentRefiner.parameters()[:15] == BundleSettings.parameters()
+    assert isinstance(BundleAdjustmentRefiner(), BundleSettings)
+    with pytest.raises(ConfigError, match=r"^BundleSettings.loss_scale_px: must be a number > 0 and <= 1000, got 0$"):
+        BundleSettings(loss_scale_px=0)
