@@ -21,7 +21,7 @@ from ctpipe.evaluate.experiments import load_synthetic_settings
 from ctpipe.evaluate.synthetic import make_correspondences
 
 ESTIMATORS = {
-    "ransac-1pt (paper threshold 0.01)": Ransac1ptEstimator(),
+    "ransac-1pt (paper threshold 0.01)": Ransac1ptEstimator(sampson_threshold=0.01),
     "ransac-1pt-best (all, msac, 5e-4)": Ransac1ptEstimator(hypotheses="all", scoring="msac",
                                                             sampson_threshold=5e-4, noise_scale_factor=None),
     "opencv-5pt (ransac)": OpenCV5ptEstimator(),

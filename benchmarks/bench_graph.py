@@ -14,7 +14,8 @@ import time
 
 import numpy as np
 
-from ctpipe.solve.graph import LOSSES, solve_pair_graph, unwrap_pair_angles_deg, view_pairs
+from ctpipe.solve.graph import solve_pair_graph, unwrap_pair_angles_deg, view_pairs
+from ctpipe.solve.losses import LOSSES
 
 
 def main() -> None:
