@@ -40,9 +40,9 @@ __all__ = [
     "essential_matrix",
     "correspondence_terms",
     "angles_from_correspondences",
-    "epipolar_residuals",
     "sampson_distance",
     "fit_angle",
+    "wrap_deg",
 ]
 
 
@@ -100,17 +100,6 @@ def angles_from_correspondences(q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
 def _half_angle(alpha_rad):
     alpha = np.asarray(alpha_rad, dtype=np.float64)
     return np.cos(alpha / 2.0), np.sin(alpha / 2.0)
-
-
-def epipolar_residuals(alpha_rad, q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
-    """Algebraic residual ``q'^T E(alpha) q`` (normalised ``E``).
-
-    ``alpha_rad`` may be a scalar or an array of shape (H, 1) to evaluate H hypotheses at
-    once; the result broadcasts to (N,) or (H, N).
-    """
-    a, b = correspondence_terms(q_a, q_b)
-    half_c, half_s = _half_angle(alpha_rad)
-    return half_c * a - half_s * b
 
 
 def sampson_distance(alpha_rad, q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
@@ -238,3 +227,12 @@ class CircularMotion:
     @property
     def essential_matrix(self) -> np.ndarray:
         return essential_matrix(self.angle_rad)
+
+
+def wrap_deg(angle_deg):
+    """``angle_deg`` wrapped to [-180, 180): the signed turn between two views either way round.
+
+    A pair across the seam of a full turn (view 359 to view 0) turns by one step, not by
+    -359 deg; an estimate 359.9 deg from the truth is 0.1 deg off.
+    """
+    return np.mod(np.asarray(angle_deg, dtype=np.float64) + 180.0, 360.0) - 180.0

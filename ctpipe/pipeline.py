@@ -20,6 +20,7 @@ from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
 from ctpipe.io.corrected import cone_vectors, scanner_frame_deg
 from ctpipe.io.scans import ScanFiles, StackReference, ViewStack
+from ctpipe.model import wrap_deg
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
 from ctpipe.solve.graph import view_pairs
@@ -93,8 +94,7 @@ class TurnCheck:
     def compute(cls, pairs: np.ndarray, pair_angles_deg: np.ndarray, nominal_angles_deg: np.ndarray) -> "TurnCheck":
         """The check of ``pair_angles_deg`` (NaN: failed) against the nominal steps of ``pairs``."""
         nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
-        steps = nominal[pairs[:, 1]] - nominal[pairs[:, 0]]
-        steps = (steps + 180.0) % 360.0 - 180.0
+        steps = wrap_deg(nominal[pairs[:, 1]] - nominal[pairs[:, 0]])
         usable = np.isfinite(pair_angles_deg) & (np.abs(steps) > 1e-6)
         if not usable.any():
             return cls(pairs=0)

@@ -131,3 +131,11 @@ def test_model_protocol_residuals():
     model = CircularMotion.from_estimate(q_a, q_b)
     assert model.angle_deg == pytest.approx(-7.0, abs=1e-9)
     assert np.all(model.residuals(q_a, q_b) < 1e-12)
+
+
+def test_wrap_deg_gives_the_signed_turn_either_way_round_the_seam():
+    from ctpipe.model import wrap_deg
+
+    np.testing.assert_allclose(wrap_deg([359.0, -359.0, 180.0, -180.0, 0.5, 720.25]),
+                               [-1.0, 1.0, -180.0, -180.0, 0.5, 0.25])
+    assert wrap_deg(-0.1) == pytest.approx(-0.1)

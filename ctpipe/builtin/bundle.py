@@ -10,7 +10,7 @@ import numpy as np
 
 from ctpipe.data import PairEstimate, ScanObservations, ScanSolution
 from ctpipe.hookspecs import hookimpl
-from ctpipe.model import FailedEstimation, sampson_distance
+from ctpipe.model import FailedEstimation, sampson_distance, wrap_deg
 from ctpipe.solve.bundle import BundleSettings, solve_bundle
 from ctpipe.solve.pairs import one_to_one
 from ctpipe.stages import Refiner, param
@@ -58,10 +58,10 @@ def _without_deviating_pairs(observations: ScanObservations, limit_deg: float,
     """
     nominal = np.asarray(observations.nominal_angles_deg, dtype=np.float64)
     pairs = observations.pairs
-    steps = (nominal[pairs[:, 1]] - nominal[pairs[:, 0]] + 180.0) % 360.0 - 180.0
+    steps = wrap_deg(nominal[pairs[:, 1]] - nominal[pairs[:, 0]])
     estimates = []
     for k, (estimate, step) in enumerate(zip(observations.estimates, steps)):
-        if not estimate or abs((estimate.angle_deg - step + 180.0) % 360.0 - 180.0) <= limit_deg:
+        if not estimate or abs(wrap_deg(estimate.angle_deg - step)) <= limit_deg:
             estimates.append(estimate)
             continue
         reason = f"{estimate.angle_deg:.2f} deg is more than {limit_deg:g} deg from the nominal step {step:.2f}"

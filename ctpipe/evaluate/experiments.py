@@ -27,6 +27,7 @@ import numpy as np
 from ctpipe.config import StageSpec, build_stage, check_keys, load_yaml, parse_stage
 from ctpipe.errors import ConfigError
 from ctpipe.evaluate.synthetic import Cylinder, make_correspondences
+from ctpipe.model import wrap_deg
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
 from ctpipe.stages import ParamSpec, check_value
@@ -161,7 +162,7 @@ def _init_worker(settings: SyntheticSettings, blocked: tuple[str, ...]) -> None:
 
 
 def _angle_error_deg(estimate_rad: float, truth_rad: float) -> float:
-    return abs((np.rad2deg(estimate_rad - truth_rad) + 180.0) % 360.0 - 180.0)
+    return float(abs(wrap_deg(np.rad2deg(estimate_rad - truth_rad))))
 
 
 def _run_block(study: str, value_index: int, reps: range, seed: int) -> tuple[str, int, np.ndarray, np.ndarray]:

@@ -38,6 +38,7 @@ import math
 import numpy as np
 
 from ctpipe.errors import InputError
+from ctpipe.model import wrap_deg
 from ctpipe.pipeline import AngleErrors, ScanResult
 
 __all__ = ["error_table", "view_errors_deg", "pair_errors_deg", "score_against_truth", "align_offset", "support_mask",
@@ -100,7 +101,7 @@ def pair_errors_deg(pairs, pair_angles_deg, true_angles_deg) -> np.ndarray:
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     truth = np.asarray(true_angles_deg, dtype=np.float64)
     error = np.asarray(pair_angles_deg, dtype=np.float64) - (truth[pairs[:, 1]] - truth[pairs[:, 0]])
-    return np.mod(error + 180.0, 360.0) - 180.0
+    return wrap_deg(error)
 
 
 def score_against_truth(result: ScanResult, true_angles_deg=None) -> ScanResult:
@@ -266,8 +267,7 @@ def keypoint_agreement(reference, features, *, radius_px: float = 0.5, size_rtol
     back = _nearest_compatible(xy, size, ref_xy, ref_size, radius_px, size_rtol, reference_is_from=False)
     hit = found >= 0
     if hit.any():
-        diff = np.abs((np.asarray(features.angle_deg, np.float64)[found[hit]] - np.asarray(reference["angle"])[hit]
-                       + 180.0) % 360.0 - 180.0)
+        diff = np.abs(wrap_deg(np.asarray(features.angle_deg, np.float64)[found[hit]] - np.asarray(reference["angle"])[hit]))
         a = np.asarray(features.descriptors, np.float64)[found[hit]]
         b = np.asarray(reference["descriptors"], np.float64)[hit]
         cosine = np.sum(a * b, axis=1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-30)
