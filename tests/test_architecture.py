@@ -162,12 +162,11 @@ _INTERNAL = {
     "ctpipe.sim.phantoms": {"OBJECT_KINDS", "rotation_from_deg"},
     "ctpipe.sim.jitter": {"JitterModel", "GaussianJitter", "RandomWalkJitter", "PeriodicJitter", "JumpJitter"},
     "ctpipe.sim.simulator": {"check_simulation_fits"},
-    "ctpipe.solve.bundle": {"robust_loss", "pair_graph_angles"},
+    "ctpipe.solve.bundle": {"pair_graph_angles"},
     "ctpipe.solve.tracks": {"descriptor_distances", "verified_match_distances"},
     "ctpipe.solve.camera": {"projection_jacobians"},
     "ctpipe.solve.reprojection": {"reconstruction_grid", "tangential_derivative", "band_pass", "as_line_integrals"},
     "ctpipe.evaluate.synthetic": {"project", "PIXEL_NORMALISED"},
-    "ctpipe.builtin.refiners": {"chain_pair_angles"},
     "ctpipe.builtin.surf": {"surf"},
     # ctpipe.io: the CLI's output plumbing, the calibration-frame helpers, the corrected angle
     # logs (written through each format's corrected_angle_log), the scan folder's constants
