@@ -30,7 +30,7 @@ from typing import Any, Literal
 
 import yaml
 
-from ctpipe._checks import short_repr
+from ctpipe._shared.checks import short_repr
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import FIELDS as GEOMETRY_FIELDS
 from ctpipe.geometry import Geometry

@@ -6,7 +6,7 @@ bug and keeps its traceback.
 
 from __future__ import annotations
 
-__all__ = ["CtpipeError", "ConfigError", "InputError", "PluginError", "EstimationError"]
+__all__ = ["CtpipeError", "ConfigError", "InputError", "ResourceError", "PluginError", "EstimationError"]
 
 
 class CtpipeError(Exception):
@@ -19,6 +19,10 @@ class ConfigError(CtpipeError, ValueError):
 
 class InputError(CtpipeError, ValueError):
     """An input array, file or geometry is not usable."""
+
+
+class ResourceError(InputError):
+    """A request needs more memory than the machine has available."""
 
 
 class PluginError(CtpipeError):

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ctpipe._checks import as_integer, as_real, short_repr
+from ctpipe._shared.checks import as_integer, as_real, short_repr
 from ctpipe.errors import InputError
 
 __all__ = ["Geometry", "FIELDS", "MAX_DETECTOR_PX", "check_geometry"]

@@ -11,7 +11,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ctpipe._checks import short_repr
+from ctpipe._shared.checks import short_repr
 from ctpipe.config import PipelineConfig, build_stage, load_yaml, parse_geometry, parse_pipeline
 from ctpipe.data import Features, ScanObservations, ScanSolution
 from ctpipe.errors import EstimationError, InputError

@@ -33,7 +33,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from ctpipe._checks import as_integer, short_repr
+from ctpipe._shared.checks import as_integer, short_repr
 from ctpipe.errors import ConfigError
 
 __all__ = ["param", "ParamSpec", "Parameters", "Stage", "StageSpec", "Detector", "Matcher", "Estimator", "Refiner",

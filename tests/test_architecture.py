@@ -25,7 +25,7 @@ PACKAGE = Path(ctpipe.__file__).parent
 
 LAYERS = (
     # foundation: no ctpipe imports beyond this group
-    "ctpipe._version", "ctpipe.errors", "ctpipe._checks", "ctpipe._jit", "ctpipe.resources", "ctpipe.model", "ctpipe.geometry",
+    "ctpipe._version", "ctpipe.errors", "ctpipe._shared", "ctpipe.model", "ctpipe.geometry",
     "ctpipe.images",
     # the framework's contracts: data passed between stages, stages, registry, hooks, configuration
     "ctpipe.data", "ctpipe.stages", "ctpipe.registry", "ctpipe.hookspecs", "ctpipe.config",

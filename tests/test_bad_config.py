@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-from ctpipe._checks import short_repr
+from ctpipe._shared.checks import short_repr
 from ctpipe.cli import _key_value
 from ctpipe.config import load_geometry, load_yaml, parse_geometry, parse_pipeline
 from ctpipe.errors import ConfigError, CtpipeError, InputError

@@ -15,11 +15,11 @@ import pytest
 import tifffile
 import yaml
 
-from ctpipe.errors import ConfigError, InputError
+from ctpipe._shared.resources import check_fits, format_bytes
+from ctpipe.errors import ConfigError, InputError, ResourceError
 from ctpipe.geometry import Geometry
 from ctpipe.io.arrays import read_image, read_projections
 from ctpipe.io.scan_folder import read_scan, write_scan
-from ctpipe.resources import ResourceError, check_fits, format_bytes
 from ctpipe.sim.scan_spec import parse_scan_spec
 
 GEOMETRY = Geometry(source_to_object_mm=190.0, source_to_detector_mm=390.0, detector_cols=12, detector_rows=10,
@@ -36,7 +36,7 @@ def big(rows: int, cols: int) -> dict:
 @pytest.fixture
 def one_gigabyte(monkeypatch):
     """Make the machine look small, so the API tests do not depend on its memory."""
-    monkeypatch.setattr("ctpipe.resources.available_bytes", lambda: 10**9)
+    monkeypatch.setattr("ctpipe._shared.resources.available_bytes", lambda: 10**9)
 
 
 def run_cli(*args, cwd, timeout=60):

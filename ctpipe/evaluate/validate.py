@@ -53,12 +53,12 @@ from typing import Any
 
 import numpy as np
 
+from ctpipe._shared.resources import FLOAT32, check_fits, memory_guard
 from ctpipe.config import PipelineConfig, check_keys, load_yaml, parse_pipeline
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.recon.feldkamp import bin_detector, binned_geometry
 from ctpipe.recon.volume import VolumeGrid
 from ctpipe.registry import StageRegistry
-from ctpipe.resources import FLOAT32, check_fits, memory_guard
 from ctpipe.stages import ParamSpec, check_value
 
 __all__ = ["ValidateSettings", "load_validate_settings", "parse_validate", "check_experiment", "run_validate",
@@ -170,7 +170,7 @@ def check_experiment(settings: ValidateSettings, *, path: str = "experiment") ->
     ------
     ConfigError
         One line naming the YAML path, the value and what is allowed.
-    ctpipe.resources.ResourceError
+    ctpipe._shared.resources.ResourceError
         The run needs more memory than is available (the message names the sizes and what to lower).
     """
     from ctpipe.evaluate.scoring import support_mask
@@ -416,7 +416,7 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
     ------
     ConfigError
         Settings the simulation or FDK would refuse (:func:`check_experiment`).
-    ctpipe.resources.ResourceError
+    ctpipe._shared.resources.ResourceError
         The run cannot fit in the memory available: refused before the first projection.
     """
     check_experiment(settings)

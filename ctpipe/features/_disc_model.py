@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from ctpipe._jit import FASTMATH
+from ctpipe._shared.jit import FASTMATH
 
 # Cells the disc is sampled on in the model, px (exactly integrated, so only the shape's fidelity
 # depends on it, not the centre's symmetry).

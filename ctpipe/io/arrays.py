@@ -71,7 +71,7 @@ def read_array(path: str | Path, *, kind: str | None = None) -> np.ndarray:
         One line naming the file and what is wrong with it: missing, empty, not the format its
         name says (text named ``.npy``, say), truncated or damaged, holding Python objects
         (``.npy`` is always loaded with ``allow_pickle=False``), or pages of different shapes.
-    ctpipe.resources.ResourceError
+    ctpipe._shared.resources.ResourceError
         The array would not fit in the memory available.
     """
     path = Path(path)
@@ -91,7 +91,7 @@ def read_array(path: str | Path, *, kind: str | None = None) -> np.ndarray:
     if not head.startswith(magics):
         looks = "; it looks like text" if _is_text(head) else ""
         raise InputError(f"{path}: is not a {label} file (it does not start with the {label} signature{looks})")
-    from ctpipe.resources import memory_guard
+    from ctpipe._shared.resources import memory_guard
 
     try:
         with _quiet_libraries(), memory_guard(f"reading {path}"):
@@ -111,7 +111,7 @@ def read_array(path: str | Path, *, kind: str | None = None) -> np.ndarray:
 
 
 def _read_npy(path: Path) -> np.ndarray:
-    from ctpipe.resources import check_fits
+    from ctpipe._shared.resources import check_fits
 
     from numpy.lib import format as npy_format
 
@@ -135,7 +135,7 @@ def _read_npy(path: Path) -> np.ndarray:
 def _read_tiff(path: Path) -> np.ndarray:
     import tifffile
 
-    from ctpipe.resources import check_fits
+    from ctpipe._shared.resources import check_fits
 
     with tifffile.TiffFile(path) as tif:
         pages = list(tif.pages)

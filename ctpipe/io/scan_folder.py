@@ -148,7 +148,7 @@ def _file_names(value: Any, path: str, folder: Path, allowed: tuple[str, ...] = 
 
 def _read_frames(folder: Path, names: list[str], shape: tuple[int, int], what: str) -> np.ndarray:
     from ctpipe.io.arrays import read_array
-    from ctpipe.resources import check_fits
+    from ctpipe._shared.resources import check_fits
 
     frames = None
     for i, name in enumerate(names):
@@ -231,7 +231,7 @@ def read_scan(folder: str | Path) -> Scan:
     geometry, values, flats, darks = parsed["geometry"], parsed["values"], parsed["flats"], parsed["darks"]
     raw = _read_frames(folder, parsed["names"], geometry.shape, "projection")
     if values == "intensities":
-        from ctpipe.resources import FLOAT32, check_fits
+        from ctpipe._shared.resources import FLOAT32, check_fits
 
         check_fits(f"the -log of {raw.shape[0]} views of {raw.shape[1]} x {raw.shape[2]}", raw[:1].size * len(raw) * FLOAT32)
         try:

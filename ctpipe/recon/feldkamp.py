@@ -37,12 +37,12 @@ import numpy as np
 from numba import njit, prange
 from scipy import fft as sp_fft
 
-from ctpipe._checks import as_angles_deg
-from ctpipe._jit import FASTMATH
+from ctpipe._shared.checks import as_angles_deg
+from ctpipe._shared.jit import FASTMATH
+from ctpipe._shared.resources import check_fits, memory_guard
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
-from ctpipe.resources import check_fits, memory_guard
 
 __all__ = ["FILTERS", "fdk", "view_weights", "parker_weights", "ramp_filter", "covers_full_circle",
            "short_scan_minimum_deg", "bin_detector", "binned_geometry"]
@@ -409,7 +409,7 @@ def fdk(
     InputError
         Projections not 3-D float, not of shape (V, rows, cols), or not finite; angles not 1-D
         finite; an unknown filter; a short scan shorter than 180 deg plus the fan angle.
-    ctpipe.resources.ResourceError
+    ctpipe._shared.resources.ResourceError
         The volume cannot fit in the memory available (checked before it is allocated).
     """
     proj, angles = _validate(projections, geometry, angles_deg, grid, filter, short_scan, progress)

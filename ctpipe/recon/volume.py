@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ctpipe._checks import as_integer, as_real, short_repr
+from ctpipe._shared.checks import as_integer, as_real, short_repr
 from ctpipe.errors import InputError
 
 __all__ = ["VolumeGrid"]

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from ctpipe._jit import FASTMATH
+from ctpipe._shared.jit import FASTMATH
 from ctpipe.errors import InputError
 from ctpipe.recon.volume import VolumeGrid
 

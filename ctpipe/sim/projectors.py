@@ -37,12 +37,12 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from ctpipe._checks import as_angles_deg
-from ctpipe._jit import FASTMATH
+from ctpipe._shared.checks import as_angles_deg
+from ctpipe._shared.jit import FASTMATH
+from ctpipe._shared.resources import check_fits
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
-from ctpipe.resources import check_fits
 from ctpipe.sim.primitives import Primitives, local_maps, unit_interval
 
 __all__ = ["project_analytic", "VoxelProjector"]

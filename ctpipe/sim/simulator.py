@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ctpipe._shared.resources import FLOAT32, check_fits, memory_guard
 from ctpipe.geometry import Geometry
 from ctpipe.recon.volume import VolumeGrid
-from ctpipe.resources import FLOAT32, check_fits, memory_guard
 
 __all__ = ["SimulatedScan", "project_phantom", "simulate", "simulation_bytes", "check_simulation_fits",
            "voxelise_phantom", "write_simulated_scan"]
@@ -85,7 +85,7 @@ def simulation_bytes(spec, *, scans: int = 1) -> int:
 
 
 def check_simulation_fits(spec, *, scans: int = 1, hint: str | None = None) -> None:
-    """Raise :class:`ctpipe.resources.ResourceError` when :func:`simulate` of ``spec`` cannot fit in memory."""
+    """Raise :class:`ctpipe._shared.resources.ResourceError` when :func:`simulate` of ``spec`` cannot fit in memory."""
     geometry = spec.geometry
     frames = "" if spec.noise is None else \
         f" with {spec.noise.flat_frames} flat and {spec.noise.dark_frames} dark frames"
@@ -110,7 +110,7 @@ def simulate(phantom, spec, *, rng: np.random.Generator, jitter: bool = True,
 
     Raises
     ------
-    ctpipe.resources.ResourceError
+    ctpipe._shared.resources.ResourceError
         The scan cannot fit in the memory available (checked before anything is allocated).
     """
     check_simulation_fits(spec, hint="use fewer views, a smaller detector or fewer flat/dark frames")

@@ -205,7 +205,7 @@ print(hashlib.sha256(volume.tobytes()).hexdigest())
 
 def test_fdk_compiled_here_and_loaded_from_numba_cache_agree_bit_for_bit(tmp_path):
     """A Dask worker loads the kernels from numba's cache while the client compiled them: the
-    two must compute the same bits (``fastmath=True``'s ``nsz`` broke this; see ctpipe._jit)."""
+    two must compute the same bits (``fastmath=True``'s ``nsz`` broke this; see ctpipe._shared.jit)."""
     import os
     import subprocess
     import sys

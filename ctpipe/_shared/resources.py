@@ -12,9 +12,9 @@ import os
 from contextlib import contextmanager
 from pathlib import Path
 
-from ctpipe.errors import InputError
+from ctpipe.errors import ResourceError
 
-__all__ = ["ResourceError", "available_bytes", "format_bytes", "check_fits", "memory_guard", "FLOAT32"]
+__all__ = ["available_bytes", "format_bytes", "check_fits", "memory_guard", "FLOAT32"]
 
 #: Bytes of one float32 value, the dtype of every stack ctpipe computes.
 FLOAT32 = 4
@@ -22,10 +22,6 @@ FLOAT32 = 4
 # Without any way to ask the system (neither /proc/meminfo nor sysconf), assume a modest
 # workstation: refusing a 20 GB request there is better than a minutes-long MemoryError.
 _FALLBACK_BYTES = 8 * 1024**3
-
-
-class ResourceError(InputError):
-    """A request needs more memory than the machine has available."""
 
 
 def available_bytes() -> int:
