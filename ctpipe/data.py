@@ -202,8 +202,16 @@ class ScanSolution:
         The (refined) per-pair answers.
     info : dict
         What the refiner wants a user to see (counts, costs, iterations): plain JSON values.
+    u0_px, v0_px : float or None
+        The detector's principal point (``u0_px``: the centre of rotation's column) where the
+        refiner estimated it; None where it kept the input geometry's.
+    tilt_deg : float or None
+        The detector's in-plane tilt, degrees, where the refiner estimated it; None otherwise.
     """
 
     angles_rad: np.ndarray
     pair_estimates: tuple[PairEstimate | FailedEstimation, ...]
     info: dict[str, Any] = field(default_factory=dict)
+    u0_px: float | None = None
+    v0_px: float | None = None
+    tilt_deg: float | None = None

@@ -59,10 +59,13 @@ class RefinedGeometry:
     refined: tuple[str, ...] = ()
 
     @classmethod
-    def from_info(cls, geometry: Geometry, info: Mapping[str, Any]) -> "RefinedGeometry":
-        """The geometry ``info`` (a refiner's :attr:`~ctpipe.data.ScanSolution.info`) reports refined."""
-        corrected = dataclasses.replace(geometry, **{k: float(info[k]) for k in ("u0_px", "v0_px") if k in info})
-        return cls(corrected, float(info.get("tilt_deg", 0.0)), tuple(k for k in REFINABLE_GEOMETRY if k in info))
+    def from_solution(cls, geometry: Geometry, solution: ScanSolution) -> "RefinedGeometry":
+        """The geometry a refiner's solution estimated (its typed ``u0_px``, ``v0_px``, ``tilt_deg``)."""
+        refined = tuple(k for k in REFINABLE_GEOMETRY if getattr(solution, k) is not None)
+        corrected = dataclasses.replace(geometry, **{k: float(getattr(solution, k)) for k in ("u0_px", "v0_px")
+                                                     if k in refined})
+        tilt = solution.tilt_deg
+        return cls(corrected, 0.0 if tilt is None else float(tilt), refined)
 
 
 @dataclass(frozen=True)
@@ -678,7 +681,7 @@ class Pipeline:
             refiner_info=info,
             static_background_removed=observations.static_background_removed,
             geometry=observations.geometry,
-            refined_geometry=RefinedGeometry.from_info(observations.geometry, info),
+            refined_geometry=RefinedGeometry.from_solution(observations.geometry, solution),
             refiner_choice=RefinerChoice.from_info(info),
             nominal_angles_deg=nominal,
             turn_check=None if nominal is None else TurnCheck.compute(observations.pairs, pair_angles_deg, nominal),

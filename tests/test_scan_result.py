@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 
+from ctpipe.data import ScanSolution
 from ctpipe.errors import InputError
 from ctpipe.evaluate.scoring import score_against_truth
 from ctpipe.geometry import Geometry
@@ -145,13 +146,14 @@ def test_projection_matching_says_what_it_chose(scan_and_result):
             in result.summary())
 
 
-def test_refiner_info_is_read_in_one_place():
+def test_refined_geometry_is_typed_on_the_solution_and_refiner_info_is_read_in_one_place():
     geometry = Geometry(source_to_object_mm=100.0, source_to_detector_mm=200.0, detector_cols=64, detector_rows=32,
                         pixel_pitch_u_mm=0.5, pixel_pitch_v_mm=0.5)
-    refined = RefinedGeometry.from_info(geometry, {"u0_px": 30.25, "tilt_deg": 0.5, "iterations": 3})
+    solution = ScanSolution(np.zeros(2), (), {"iterations": 3}, u0_px=30.25, tilt_deg=0.5)
+    refined = RefinedGeometry.from_solution(geometry, solution)
     assert refined.geometry.u0_px == 30.25 and refined.geometry.v0_px == geometry.v0_px
     assert refined.tilt_deg == 0.5 and refined.refined == ("u0_px", "tilt_deg")
-    assert RefinedGeometry.from_info(geometry, {}) == RefinedGeometry(geometry)
+    assert RefinedGeometry.from_solution(geometry, ScanSolution(np.zeros(2), ())) == RefinedGeometry(geometry)
     skipped = RefinerChoice.from_info({"start": "nominal", "matching": "skipped: 8 views are too few"})
     assert not skipped.matched and skipped.skipped.startswith("skipped") and skipped.chosen is None
     assert TurnCheck.compute(np.array([[0, 1]]), np.array([np.nan]), np.array([0.0, 1.0])) == TurnCheck(0)

@@ -43,8 +43,12 @@ class BundleAdjustmentRefiner(BundleSettings, Refiner):
             observations = _without_deviating_pairs(observations, self.max_pair_deviation_deg,
                                                     self.nominal_sampson_threshold)
         solution = solve_bundle(observations, self, start_angles_rad=start)
+        detector = {}
+        if self.estimate_u0 or self.estimate_v0 or self.estimate_tilt:
+            detector = {"u0_px": float(solution.geometry.u0_px), "v0_px": float(solution.geometry.v0_px),
+                        "tilt_deg": float(np.rad2deg(solution.tilt_rad))}
         return ScanSolution(angles_rad=solution.angles_rad, pair_estimates=tuple(observations.estimates),
-                            info=solution.info)
+                            info=solution.info, **detector)
 
 
 def _without_deviating_pairs(observations: ScanObservations, limit_deg: float,
