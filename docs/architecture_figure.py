@@ -14,7 +14,7 @@ from pathlib import Path
 
 #: Data boxes: key -> (title, what it is in code, (x, y) centre in figure units).
 DATA = {
-    "files": ("scan on disk", "Nikon, Zeiss, SkyScan, Waygate, ...", (2.0, 20.4)),
+    "files": ("scan on disk", "Nikon, Zeiss, SkyScan, Waygate, NSI", (2.0, 20.4)),
     "phantom": ("phantom + scan spec", "phantoms/*.yaml, jitter, noise", (8.4, 20.4)),
     "projections": ("projections", "ndarray (V, rows, cols) + Geometry", (5.2, 17.9)),
     "features": ("features", "data.Features, one per view", (5.2, 15.4)),
@@ -22,25 +22,25 @@ DATA = {
     "pairs": ("pair estimates", "data.PairEstimate -> ScanObservations", (5.2, 10.4)),
     "tracks": ("feature tracks", "solve.tracks.Tracks", (1.6, 7.9)),
     "solution": ("whole-scan solution", "data.ScanSolution", (5.2, 5.4)),
-    "angles": ("angles", "ScanResult.angles_deg, one per view", (5.2, 2.9)),
+    "angles": ("result", "ScanResult: angles, geometry, report", (5.2, 2.9)),
     "volume": ("volume", "ndarray on a recon.volume.VolumeGrid", (5.2, 0.4)),
     "scores": ("scores", "angle RMS, PSNR, recovery", (5.2, -2.1)),
 }
 
 #: Arrows: (from, to, owning modules, how it runs). Modules are checked by the tests.
 ARROWS = (
-    ("files", "projections", ("ctpipe.io.scans", "ctpipe.io.nikon", "ctpipe.io.flatfield"),
-     "open_scan: read view by view, corrected"),
+    ("files", "projections", ("ctpipe.io.scans", "ctpipe.plugins", "ctpipe.io.nikon", "ctpipe.io.flatfield"),
+     "open_scan: format plugins, views read on demand"),
     ("phantom", "projections", ("ctpipe.sim.simulator", "ctpipe.sim.projectors"), "simulate with known jitter"),
-    ("projections", "features", ("ctpipe.builtin.surf", "ctpipe.builtin.opencv_detectors"),
-     "detector stage, per view (Pipeline.detect)"),
+    ("projections", "features", ("ctpipe.builtin.surf", "ctpipe.features.surf", "ctpipe.builtin.opencv_detectors"),
+     "detector stage, per view"),
     ("features", "matches", ("ctpipe.builtin.matchers", "ctpipe.solve.graph"), "matcher stage, per pair of view_pairs"),
     ("matches", "pairs", ("ctpipe.builtin.estimators", "ctpipe.model"), "estimator stage: 1-point RANSAC"),
     ("pairs", "tracks", ("ctpipe.solve.tracks",), "chain matches over views"),
     ("tracks", "solution", ("ctpipe.solve.bundle",), "bundle adjustment"),
     ("pairs", "solution", ("ctpipe.solve.graph",), "robust view graph"),
     ("projections", "solution", ("ctpipe.solve.reprojection",), "projection matching"),
-    ("solution", "angles", ("ctpipe.pipeline", "ctpipe.builtin.refiners"), "refiner stage (Pipeline.refine)"),
+    ("solution", "angles", ("ctpipe.pipeline", "ctpipe.builtin.refiners"), "refiner stage; Pipeline.run's ScanResult"),
     ("angles", "volume", ("ctpipe.recon.feldkamp", "ctpipe.io.corrected"), "FDK, or your reconstructor"),
     ("volume", "scores", ("ctpipe.evaluate.scoring", "ctpipe.evaluate.validate"), "ctpipe validate"),
 )
