@@ -42,14 +42,18 @@ def _registry(args):
 
 
 def _cmd_plugins(args) -> int:
+    from ctpipe.plugins import get_formats
+
     registry = _registry(args)
     stages = [info.to_dict() for info in registry]
+    formats = [info.to_dict() for info in get_formats(blocked=tuple(args.block_plugin))]
     if args.json:
-        print(json.dumps({"stages": stages}, indent=2))
+        print(json.dumps({"stages": stages, "formats": formats}, indent=2))
         return 0
-    width = max(len(s["name"]) for s in stages)
-    plugin_width = max(len(s["plugin"]) for s in stages)
-    for s in stages:
+    rows = stages + formats
+    width = max(len(s["name"]) for s in rows)
+    plugin_width = max(len(s["plugin"]) for s in rows)
+    for s in rows:
         print(f"{s['kind']:<9}  {s['name']:<{width}}  {s['plugin']:<{plugin_width}}  {s['description']}")
     return 0
 
@@ -452,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="do not load this plugin (entry-point name or built-in module); repeatable")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    p = sub.add_parser("plugins", help="list the registered stages")
+    p = sub.add_parser("plugins", help="list the registered stages and scan formats")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(run=_cmd_plugins)
 

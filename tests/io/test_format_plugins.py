@@ -146,3 +146,17 @@ def test_blocked_plugin_modules_are_never_imported():
     ''')
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "['ctpipe', 'zeiss', 'bruker', 'waygate', 'nsi', 'tiff-yaml'] [] False"
+
+
+def test_ctpipe_plugins_lists_the_formats_with_their_plugins(npz_scan, capsys):
+    import json
+
+    from ctpipe.cli import main
+
+    assert main(["plugins"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert any(line.split()[:3] == ["format", "npz-scan", "ctpipe_npz_scan"] for line in lines)
+    assert any(line.split()[:3] == ["format", "nikon", "ctpipe.io.nikon"] for line in lines)
+    assert main(["--block-plugin", "ctpipe_npz_scan", "plugins", "--json"]) == 0
+    formats = json.loads(capsys.readouterr().out)["formats"]
+    assert [f["name"] for f in formats] == ["ctpipe", "nikon", "zeiss", "bruker", "waygate", "nsi", "tiff-yaml"]
