@@ -74,7 +74,14 @@ def get_plugin_manager(*, blocked: Iterable[str] = (), entry_points: bool = True
         pm.set_blocked(name)
     for module_name in builtins:
         if not pm.is_blocked(module_name):
-            pm.register(importlib.import_module(module_name), name=module_name)
+            try:
+                module = importlib.import_module(module_name)
+            except ImportError as exc:
+                # A dependency broken in this environment (an OpenCV wheel that fails to load):
+                # one line, and the way to run without the plugin that needs it.
+                raise PluginError(f"plugin {module_name!r} failed to load: {type(exc).__name__}: {exc}; repair the "
+                                  f"installation, or run without it with --block-plugin {module_name}") from None
+            pm.register(module, name=module_name)
     if entry_points:
         _load_entry_points(pm)
     pm.check_pending()

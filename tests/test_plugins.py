@@ -130,3 +130,22 @@ def test_a_plugin_that_fails_to_import_is_named_in_one_line(monkeypatch, capsys)
     assert main(["plugins"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("ctpipe: error: plugin 'broken'")
+
+
+def test_a_broken_opencv_is_one_line_and_blocking_its_plugins_keeps_it_out():
+    import subprocess
+    import sys
+
+    run = ("import sys; sys.modules['cv2'] = None; from ctpipe.cli import main; code = main({argv!r}); "
+           "print(code, 'cv2' in sys.modules and sys.modules['cv2'] is not None)")
+    broken = subprocess.run([sys.executable, "-c", run.format(argv=["plugins"])], capture_output=True, text=True)
+    assert broken.stdout.split() == ["2", "False"]
+    assert broken.stderr.count("\n") == 1
+    assert broken.stderr.startswith("ctpipe: error: plugin 'ctpipe.builtin.opencv_detectors' failed to load: "
+                                    "ModuleNotFoundError")
+    assert "--block-plugin ctpipe.builtin.opencv_detectors" in broken.stderr
+    argv = ["--block-plugin", "ctpipe.builtin.opencv_detectors", "--block-plugin", "ctpipe.builtin.matchers", "plugins"]
+    kept_out = subprocess.run([sys.executable, "-c", run.format(argv=argv)], capture_output=True, text=True)
+    assert kept_out.stdout.splitlines()[-1] == "0 False"
+    names = {line.split()[1] for line in kept_out.stdout.splitlines()[:-1]}
+    assert {"ransac-1pt", "surf", "beads", "projection-matching"} <= names and "sift" not in names

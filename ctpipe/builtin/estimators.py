@@ -13,7 +13,6 @@ from typing import Literal
 
 import numpy as np
 
-from ctpipe.builtin import _opencv
 from ctpipe.hookspecs import hookimpl
 from ctpipe.model import (FailedEstimation, angles_from_correspondences, correspondence_terms, fit_angle,
                           sampson_distance)
@@ -214,6 +213,8 @@ class OpenCV5ptEstimator(Estimator):
     def estimate(self, q_a: np.ndarray, q_b: np.ndarray, *, rng: np.random.Generator):
         if len(q_a) < 5:
             return FailedEstimation(f"the 5-point method needs at least 5 correspondences, got {len(q_a)}")
+        from ctpipe.builtin import _opencv  # only this estimator needs OpenCV
+
         pose = _opencv.essential_pose(q_a, q_b, method=self.method, probability=self.probability,
                                       threshold=self.threshold, max_iters=self.max_iters,
                                       seed=int(rng.integers(2**31 - 1)))
