@@ -12,7 +12,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ctpipe._shared.checks import short_repr
-from ctpipe.config import PipelineConfig, build_stage, load_yaml, parse_geometry, parse_pipeline
+from ctpipe.config import PipelineConfig, StageSpec, build_stage, load_yaml, parse_geometry, parse_pipeline
 from ctpipe.data import Features, ScanObservations, ScanSolution
 from ctpipe.errors import EstimationError, InputError
 from ctpipe.execution import Executor, ThreadExecutor
@@ -482,6 +482,15 @@ class Pipeline:
                                  f"Pipeline.from_config), got {type(stage).__name__} {short_repr(stage)}")
         if self.static_background not in ("auto", "on", "off"):
             raise InputError(f"static_background: must be one of 'auto', 'on', 'off', got {self.static_background!r}")
+        # A stage built in Python may name a nested stage (ProjectionMatchingRefiner(start=
+        # "bundle-adjustment")): build it through the registry here, as from_config does.
+        registry = None
+        for name in ("detector", "matcher", "estimator", "refiner"):
+            stage = getattr(self, name)
+            if any(spec.stage is not None and isinstance(getattr(stage, spec.name), StageSpec)
+                   for spec in stage.parameters()):
+                registry = registry or get_registry()
+                object.__setattr__(self, name, build_stage(stage, registry))
 
     @classmethod
     def from_config(cls, config: PipelineConfig | Mapping | str | Path | None = None, *,

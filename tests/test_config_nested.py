@@ -115,3 +115,15 @@ def test_ransac_1pt_named_bare_is_the_default_estimator():
     default = build_stage(parse("{}\n").estimator, REGISTRY)
     assert bare == default == Ransac1ptEstimator()
     assert default.sampson_threshold == 8e-4
+
+
+def test_a_pipeline_built_in_python_builds_a_nested_stage_given_by_name():
+    from ctpipe.builtin import (BruteForceMatcher, BundleAdjustmentRefiner, ProjectionMatchingRefiner,
+                                Ransac1ptEstimator, SiftDetector)
+    from ctpipe.pipeline import Pipeline
+
+    pipeline = Pipeline(SiftDetector(), BruteForceMatcher(), Ransac1ptEstimator(),
+                        ProjectionMatchingRefiner(start={"name": "bundle-adjustment", "loss_scale_px": 0.7}))
+    assert pipeline.refiner.start == BundleAdjustmentRefiner(loss_scale_px=0.7)
+    assert Pipeline(SiftDetector(), BruteForceMatcher(), Ransac1ptEstimator(),
+                    ProjectionMatchingRefiner()).refiner.start == "view-graph"
