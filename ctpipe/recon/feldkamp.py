@@ -37,15 +37,15 @@ import numpy as np
 from numba import njit, prange
 from scipy import fft as sp_fft
 
-from ctpipe._shared.checks import as_angles_deg
+from ctpipe._shared.checks import as_angles_deg, short_repr
 from ctpipe._shared.jit import FASTMATH
 from ctpipe._shared.resources import check_fits, memory_guard
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
 
-__all__ = ["FILTERS", "fdk", "view_weights", "parker_weights", "ramp_filter", "covers_full_circle",
-           "short_scan_minimum_deg", "bin_detector", "binned_geometry"]
+__all__ = ["FILTERS", "TRUNCATION", "fdk", "is_truncated", "view_weights", "parker_weights", "ramp_filter",
+           "covers_full_circle", "short_scan_minimum_deg", "bin_detector", "binned_geometry"]
 
 #: Apodisation windows of the ramp filter, from sharpest to smoothest.
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
@@ -351,11 +351,61 @@ def _to_volume_layout(acc):
     return out
 
 
+#: Ways :func:`fdk` fills a detector row beyond its ends before the ramp filter.
+TRUNCATION = ("auto", "zero", "extend")
+#: ``truncation="auto"`` extends rows when the median view's edge columns carry more than this
+#: share of the scan's (99th-percentile) line integral: the object is wider than the detector.
+TRUNCATED_EDGE_FRACTION = 0.02
+#: Edge columns averaged for the value a row is extended from (one column is too noisy).
+_EDGE_COLUMNS = 3
+
+
+def is_truncated(projections: np.ndarray) -> bool:
+    """Whether the object reaches past the detector's left or right edge (a region-of-interest scan).
+
+    Compares, view by view, the mean line integral of the outermost columns with the scan's
+    99th percentile; the median view decides, so a few views that graze an edge do not.
+    """
+    proj = np.asarray(projections)
+    step = max(1, len(proj) // 64)
+    sample = np.abs(proj[::step].astype(np.float32))
+    peak = float(np.percentile(sample, 99))
+    if not np.isfinite(peak) or peak <= 0:
+        return False
+    edges = np.maximum(sample[:, :, :_EDGE_COLUMNS].mean(axis=(1, 2)), sample[:, :, -_EDGE_COLUMNS:].mean(axis=(1, 2)))
+    return bool(np.median(edges) > TRUNCATED_EDGE_FRACTION * peak)
+
+
+def _extended_rows(weighted: np.ndarray, n_pad: int) -> np.ndarray:
+    """Rows of ``weighted`` in ``n_pad`` samples, each end continued by a cos^2 roll-off to zero.
+
+    Zero padding cuts a truncated row off at the detector edge, and the ramp filter turns that
+    step into a bright rim and a cupped interior; continuing the row from its edge values
+    (averaged over a few columns) smoothly to zero over half the padding on either side (the
+    left half wraps round, as the padding is circular) keeps the step out of the filter.
+    """
+    n_cols = weighted.shape[-1]
+    n_tail = n_pad - n_cols
+    right_len = n_tail // 2
+    left_len = n_tail - right_len
+    out = np.zeros((*weighted.shape[:-1], n_pad), dtype=np.float32)
+    out[..., :n_cols] = weighted
+    right = weighted[..., -_EDGE_COLUMNS:].mean(axis=-1, keepdims=True)
+    left = weighted[..., :_EDGE_COLUMNS].mean(axis=-1, keepdims=True)
+    fall = np.cos(0.5 * np.pi * (np.arange(right_len) + 0.5) / right_len) ** 2
+    rise = np.cos(0.5 * np.pi * (np.arange(left_len)[::-1] + 0.5) / left_len) ** 2
+    out[..., n_cols:n_cols + right_len] = right * fall.astype(np.float32)
+    out[..., n_cols + right_len:] = left * rise.astype(np.float32)
+    return out
+
+
 def _filter_views(views: np.ndarray, pre_weight: np.ndarray, n_pad: int, response: np.ndarray,
-                  scale: float) -> np.ndarray:
+                  scale: float, extend: bool = False) -> np.ndarray:
     """Weighted, ramp-filtered views, transposed and zero-padded: (V, cols + 2, rows + 2) float32."""
     n_views, n_rows, n_cols = views.shape
     weighted = views.astype(np.float32) * pre_weight
+    if extend:
+        weighted = _extended_rows(weighted, n_pad)
     spectrum = sp_fft.rfft(weighted, n=n_pad, axis=-1, workers=-1)
     spectrum *= (response * scale).astype(np.float32)
     filtered = sp_fft.irfft(spectrum, n=n_pad, axis=-1, workers=-1)[..., :n_cols]
@@ -372,6 +422,7 @@ def fdk(
     *,
     filter: str = "hann",
     short_scan: bool | None = None,
+    truncation: str = "auto",
     progress: Callable[[int], object] | None = None,
 ) -> np.ndarray:
     """Reconstruct a volume from cone-beam projections taken at arbitrary turntable angles.
@@ -396,6 +447,13 @@ def fdk(
         circular gap wider than five typical steps is a short scan, and must span at least 180 deg
         plus the fan angle.
         ``False`` on a short range reconstructs it as a limited-angle scan without Parker weights.
+    truncation : {"auto", "zero", "extend"}
+        What the ramp filter sees beyond the detector's left and right edges. ``"zero"``: zeros,
+        right when the object fits in the field of view. ``"extend"``: each row continued from
+        its edge values by a smooth roll-off to zero, for region-of-interest scans (an object
+        wider than the field of view, the rule in micro-CT), where zeros leave a bright rim and a
+        cupped interior. ``"auto"`` extends when :func:`is_truncated` finds the object reaching
+        an edge, so scans that fit are reconstructed exactly as with ``"zero"``.
     progress : callable, optional
         Called as ``progress(n)`` after every ``n`` views backprojected (e.g. ``tqdm.update``).
 
@@ -413,10 +471,13 @@ def fdk(
         The volume cannot fit in the memory available (checked before it is allocated).
     """
     proj, angles = _validate(projections, geometry, angles_deg, grid, filter, short_scan, progress)
+    if truncation not in TRUNCATION:
+        raise InputError(f"truncation: must be one of {', '.join(TRUNCATION)}, got {short_repr(truncation)}")
     what, n_bytes = _fdk_size(grid, geometry, len(angles))
     check_fits(what, n_bytes, hint="use a smaller grid")
     with memory_guard(what, n_bytes, hint="use a smaller grid"):
-        return _fdk(proj, angles, geometry, grid, filter, short_scan, progress)
+        extend = truncation == "extend" or (truncation == "auto" and is_truncated(proj))
+        return _fdk(proj, angles, geometry, grid, filter, short_scan, progress, extend)
 
 
 def _fdk_size(grid: VolumeGrid, geometry: Geometry, n_views: int) -> tuple[str, int]:
@@ -427,7 +488,8 @@ def _fdk_size(grid: VolumeGrid, geometry: Geometry, n_views: int) -> tuple[str, 
     return f"reconstructing a {grid.n_x} x {grid.n_y} x {grid.n_z} volume with FDK", n_bytes
 
 
-def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_scan, progress) -> np.ndarray:
+def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_scan, progress,
+         extend: bool = False) -> np.ndarray:
     theta = np.deg2rad(angles)
     intervals, redundancy = _scan_weights(theta, geometry, short_scan)
 
@@ -452,7 +514,7 @@ def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_
         pre = cosine[None, :, :]
         if redundancy is not None:
             pre = pre * redundancy[part, None, :].astype(np.float32)
-        filtered = _filter_views(proj[part], pre, n_pad, response, scale)
+        filtered = _filter_views(proj[part], pre, n_pad, response, scale, extend)
         _backproject(acc, filtered, np.cos(theta[part]), np.sin(theta[part]), intervals[part],
                      xs, zs, float(ys[0]), grid.voxel_size_mm, sod, sdd / pu, sdd / pv,
                      geometry.u0_px + 1.0, geometry.v0_px + 1.0)

@@ -215,3 +215,32 @@ def test_fdk_compiled_here_and_loaded_from_numba_cache_agree_bit_for_bit(tmp_pat
                                        check=True).stdout.split()[-1] for _ in range(2))
     assert any((tmp_path / "numba-cache").rglob("*.nbi")), "the first run wrote no cache"
     assert compiled == loaded
+
+
+def test_a_region_of_interest_scan_is_extended_and_reconstructs_inside_its_field_of_view(truth):
+    # 64 columns: a field of view of radius 8 mm at the axis, the phantom 14 mm wide.
+    from ctpipe.recon.feldkamp import is_truncated
+
+    narrow = Geometry(source_to_object_mm=200.0, source_to_detector_mm=400.0, detector_cols=64, detector_rows=160,
+                      pixel_pitch_u_mm=0.5, pixel_pitch_v_mm=0.5)
+    angles = np.arange(240) * 1.5
+    projections = project_ellipsoids(narrow, angles)
+    assert is_truncated(projections)
+    volume, mask = truth
+    x, z = GRID.axis_mm("x"), GRID.axis_mm("z")
+    inside = mask & (np.hypot(x[None, None, :], z[None, :, None]) < 0.8 * 16.0 * 200.0 / 400.0)
+    zero = relative_rmse(fdk(projections, narrow, angles, GRID, truncation="zero"), volume, inside)
+    extended = fdk(projections, narrow, angles, GRID, truncation="extend")
+    assert relative_rmse(extended, volume, inside) <= 0.12 < 0.25 <= zero   # measured 0.093 and 0.296
+    np.testing.assert_array_equal(fdk(projections, narrow, angles, GRID), extended)
+
+
+def test_a_scan_that_fits_its_field_of_view_is_not_extended(full_scan):
+    from ctpipe.recon.feldkamp import is_truncated
+
+    projections, angles = full_scan
+    assert not is_truncated(projections)
+    np.testing.assert_array_equal(fdk(projections, GEOMETRY, angles, GRID),
+                                  fdk(projections, GEOMETRY, angles, GRID, truncation="zero"))
+    with pytest.raises(InputError, match="truncation: must be one of auto, zero, extend, got 'mirror'"):
+        fdk(projections, GEOMETRY, angles, GRID, truncation="mirror")
