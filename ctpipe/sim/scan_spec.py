@@ -6,10 +6,13 @@
     noise: {photons_per_pixel: 100000, flat_frames: 8, dark_frames: 4, dark_counts: 100}
                                                      # ctpipe.sim.acquisition; null: exact line integrals
     projector: {kind: analytic, supersample: 2, blur_px: 0.5}   # analytic or voxel
+    detector: {scatter_fraction: 0.05, psf_sigma_px: 0.8, dead_pixels: 20, gain_drift_sigma: 0.005}
+                                                     # ctpipe.sim.detector; null: an ideal detector
     seed: 0
 
 ``geometry`` and ``angles`` are required; ``jitter`` defaults to none, ``noise`` to null,
-``projector`` to ``{kind: analytic, supersample: 1, blur_px: 0}``, ``seed`` to 0.
+``projector`` to ``{kind: analytic, supersample: 1, blur_px: 0}``, ``seed`` to 0, ``detector`` to
+null (no artefacts).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 from ctpipe.config import check_keys, load_yaml, parse_geometry
 from ctpipe.geometry import Geometry
 from ctpipe.sim.acquisition import NoiseModel, parse_noise
+from ctpipe.sim.detector import DetectorModel, parse_detector
 from ctpipe.sim.jitter import Jitter, nominal_angles_deg, parse_jitter
 from ctpipe.stages import ParamSpec, check_value
 
@@ -67,6 +71,7 @@ class ScanSpec:
     noise: NoiseModel | None = None
     projector: ProjectorSpec = field(default_factory=ProjectorSpec)
     seed: int = 0
+    detector: DetectorModel | None = None
 
     @property
     def n_views(self) -> int:
@@ -80,7 +85,7 @@ class ScanSpec:
         """The mapping that parses back to this spec."""
         return {"geometry": self.geometry.to_dict(), "angles": self.angles.to_dict(), "jitter": self.jitter.to_dict(),
                 "noise": None if self.noise is None else self.noise.to_dict(), "projector": self.projector.to_dict(),
-                "seed": self.seed}
+                "seed": self.seed, **({} if self.detector is None else {"detector": self.detector.to_dict()})}
 
 
 _ANGLE_FIELDS = {"n_views": ParamSpec("n_views", int, None, "", ge=1, le=100_000),
@@ -99,7 +104,7 @@ def _fields(value: Any, path: str, table: dict[str, ParamSpec], required: tuple[
 
 def parse_scan_spec(mapping: Any, path: str = "scan") -> ScanSpec:
     """Validate a scan spec mapping; errors name the YAML path, the value and what is allowed."""
-    check_keys(mapping, path, allowed=("geometry", "angles", "jitter", "noise", "projector", "seed"),
+    check_keys(mapping, path, allowed=("geometry", "angles", "jitter", "noise", "projector", "seed", "detector"),
                required=("geometry", "angles"))
     geometry = parse_geometry(mapping["geometry"], f"{path}.geometry")
     angles = AngleSpec(**_fields(mapping["angles"], f"{path}.angles", _ANGLE_FIELDS, required=("n_views",)))
@@ -107,7 +112,9 @@ def parse_scan_spec(mapping: Any, path: str = "scan") -> ScanSpec:
     noise = parse_noise(mapping.get("noise"), f"{path}.noise")
     projector = ProjectorSpec(**_fields(mapping.get("projector") or {}, f"{path}.projector", _PROJECTOR_FIELDS))
     seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
-    return ScanSpec(geometry, angles, jitter, noise, projector, seed)
+    detector = parse_detector(mapping.get("detector"), f"{path}.detector",
+                              (geometry.detector_rows, geometry.detector_cols))
+    return ScanSpec(geometry, angles, jitter, noise, projector, seed, detector=detector)
 
 
 def load_scan_spec(path: str | Path) -> ScanSpec:

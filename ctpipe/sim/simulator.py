@@ -127,9 +127,19 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
     truth = nominal + spec.jitter.sample(nominal, rng) if jitter else nominal.copy()
     line_integrals = project_phantom(phantom, spec.geometry, truth, supersample=spec.projector.supersample,
                                      blur_px=spec.projector.blur_px, progress=progress)
+    detector = spec.detector
     if spec.noise is None:
+        if detector is not None:  # artefacts act on intensities: exp(-p) with I0 = 1, flat-corrected back
+            from ctpipe.sim.detector import detected_line_integrals
+
+            detected_line_integrals(line_integrals, detector, rng, out=line_integrals)
         return SimulatedScan(line_integrals, nominal, truth, spec.geometry)
-    intensities, flats, darks = acquire(line_integrals, spec.noise, rng)
+    if detector is not None:
+        from ctpipe.sim.detector import record
+
+        intensities, flats, darks = record(line_integrals, spec.noise, detector, rng)
+    else:
+        intensities, flats, darks = acquire(line_integrals, spec.noise, rng)
     return SimulatedScan(log_transform(intensities, flats, darks), nominal, truth, spec.geometry, intensities, flats,
                          darks)
 
