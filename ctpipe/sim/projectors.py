@@ -73,12 +73,17 @@ def _check_int(name: str, value, low: int) -> int:
 # --------------------------------------------------------------------------- analytic projector
 
 @njit(parallel=True, fastmath=False, cache=True)
-def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density, sod, sdd, pu, pv, u0, v0, ss):
+def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density, sod, sdd, pu, pv, u0_v, v0_v,
+                        cos_tilt, sin_tilt, ss):
     """Add the line integrals of every primitive to ``out`` (V, rows, cols), one view per thread.
 
     corners : (N, 8, 3) object-frame corners of each primitive's oriented box; their perspective
     images bound the pixels the primitive can cover (a convex set in front of the source maps
     into the convex hull of its corners' images).
+    u0_v, v0_v : (V,) principal point of every view (pixels).
+    cos_tilt, sin_tilt : the detector's in-plane rotation; pixel offsets ``(a pu, b pv)`` from the
+    principal point sit at camera ``(ct a pu - st b pv, st a pu + ct b pv)``. With ``(1, 0)`` every
+    product is exact, so an untilted detector gives the numbers of the plain mapping.
     """
     n_views, n_rows, n_cols = out.shape
     n_prim = kind.shape[0]
@@ -86,6 +91,8 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
     for v in prange(n_views):
         c = cos_t[v]
         s = sin_t[v]
+        u0 = u0_v[v]
+        v0 = v0_v[v]
         # Source S = -R^T (0, 0, SOD) in the object frame.
         src0 = -s * sod
         src2 = -c * sod
@@ -103,8 +110,10 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
                 if depth <= 1e-9 * sod:
                     behind = True
                     break
-                uu = u0 + (c * x - s * z) / depth * sdd / pu
-                vv = v0 + y / depth * sdd / pv
+                xd = (c * x - s * z) / depth * sdd
+                yd = y / depth * sdd
+                uu = u0 + (cos_tilt * xd + sin_tilt * yd) / pu
+                vv = v0 + (cos_tilt * yd - sin_tilt * xd) / pv
                 col_lo = min(col_lo, uu)
                 col_hi = max(col_hi, uu)
                 row_lo = min(row_lo, vv)
@@ -147,9 +156,11 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
                 for col in range(c0, c1 + 1):
                     total = 0.0
                     for jv in range(ss):
-                        dy = (r + (jv + 0.5) / ss - 0.5 - v0) * pv
+                        bv = (r + (jv + 0.5) / ss - 0.5 - v0) * pv
                         for ju in range(ss):
-                            dx = (col + (ju + 0.5) / ss - 0.5 - u0) * pu
+                            au = (col + (ju + 0.5) / ss - 0.5 - u0) * pu
+                            dx = cos_tilt * au - sin_tilt * bv
+                            dy = sin_tilt * au + cos_tilt * bv
                             b0 = ax0 * dx + ay0 * dy + az0
                             b1 = ax1 * dx + ay1 * dy + az1
                             b2 = ax2 * dx + ay2 * dy + az2
@@ -164,7 +175,8 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
 
 
 def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, supersample: int = 1,
-                     blur_px: float = 0.0, progress: Callable[[int], object] | None = None) -> np.ndarray:
+                     blur_px: float = 0.0, progress: Callable[[int], object] | None = None,
+                     detector_offsets_px=None, detector_tilt_deg: float = 0.0) -> np.ndarray:
     """Exact line integrals through analytic primitives.
 
     Every pixel integrates the ray from the source to its centre (or the mean of
@@ -187,6 +199,13 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         (``scipy.ndimage.gaussian_filter``, reflecting edges); 0 for none.
     progress : callable, optional
         Called with the number of views finished so far, after every chunk of views.
+    detector_offsets_px : array_like of shape (V, 2), optional
+        Per view ``(du, dv)`` pixels added to the principal point ``(u0_px, v0_px)``: the true
+        detector of a misaligned scan (:mod:`ctpipe.sim.drift`); a positive ``du`` moves the
+        projection towards larger columns. None: the geometry's principal point in every view.
+    detector_tilt_deg : float
+        In-plane rotation of the detector about the principal point, degrees, from the camera
+        ``x`` axis towards ``y`` (:mod:`ctpipe.sim.drift`); 0 for none.
 
     Returns
     -------
@@ -204,6 +223,14 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     if progress is not None and not callable(progress):
         raise InputError(f"progress: must be a callable taking a number of views, or None, got {progress!r}")
 
+    u0_v, v0_v = _principal_points(geometry, angles.size, detector_offsets_px)
+    tilt_deg = detector_tilt_deg
+    if not (isinstance(tilt_deg, (int, float, np.floating, np.integer)) and not isinstance(tilt_deg, bool)
+            and math.isfinite(tilt_deg) and abs(tilt_deg) <= 45):
+        raise InputError(f"detector_tilt_deg: must be a finite number of degrees in [-45, 45], got {tilt_deg!r}")
+    tilt = math.radians(detector_tilt_deg)
+    # cos(0) and sin(0) are exactly 1 and 0: the untilted kernel reproduces the plain mapping bit for bit.
+    cos_tilt, sin_tilt = math.cos(tilt), math.sin(tilt)
     check_fits(f"projecting {angles.size} views of {geometry.detector_rows} x {geometry.detector_cols}",
                angles.size * geometry.detector_rows * geometry.detector_cols * 4 * (2 if blur_px > 0 else 1),
                hint="use fewer views or a smaller detector")
@@ -215,12 +242,12 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         "nij,nkj->nki", primitives.rotation, signs[None, :, :] * primitives.half_size_mm[:, None, :])
     args = (primitives.kind, primitives.centre_mm, local_maps(primitives), np.ascontiguousarray(corners),
             primitives.density_per_mm, float(geometry.source_to_object_mm), float(geometry.source_to_detector_mm),
-            float(geometry.pixel_pitch_u_mm), float(geometry.pixel_pitch_v_mm), float(geometry.u0_px),
-            float(geometry.v0_px), supersample)
+            float(geometry.pixel_pitch_u_mm), float(geometry.pixel_pitch_v_mm))
     for start in range(0, angles.size, _CHUNK_VIEWS):
         stop = min(start + _CHUNK_VIEWS, angles.size)
         if len(primitives):
-            _project_primitives(out[start:stop], np.cos(theta[start:stop]), np.sin(theta[start:stop]), *args)
+            _project_primitives(out[start:stop], np.cos(theta[start:stop]), np.sin(theta[start:stop]), *args,
+                                u0_v[start:stop], v0_v[start:stop], cos_tilt, sin_tilt, supersample)
         if blur_px > 0:
             from scipy.ndimage import gaussian_filter
 
@@ -229,6 +256,19 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         if progress is not None:
             progress(stop)
     return out
+
+
+def _principal_points(geometry: Geometry, n_views: int, offsets_px) -> tuple[np.ndarray, np.ndarray]:
+    """Per-view ``(u0, v0)``, each float64 (V,): the geometry's, plus ``offsets_px`` (V, 2) when given."""
+    u0 = np.full(n_views, float(geometry.u0_px))
+    v0 = np.full(n_views, float(geometry.v0_px))
+    if offsets_px is None:
+        return u0, v0
+    offsets = np.asarray(offsets_px, dtype=np.float64)
+    if offsets.shape != (n_views, 2) or not np.all(np.isfinite(offsets)):
+        raise InputError(f"detector_offsets_px: must be finite pixels (du, dv) of shape (len(angles_deg), 2) = "
+                         f"{(n_views, 2)}, got shape {offsets.shape}")
+    return u0 + offsets[:, 0], v0 + offsets[:, 1]
 
 
 # --------------------------------------------------------------------------- voxel projector

@@ -36,6 +36,12 @@ class SimulatedScan:
     intensities : ndarray of shape (V, rows, cols), float32, or None
         Detector counts before the ``-log`` (None for a noise-free scan).
     flats, darks : ndarray of shape (F, rows, cols), float32, or None
+    true_detector_offsets_px : ndarray of shape (V, 2), float64, or None
+        True minus nominal principal point ``(du, dv)`` pixels in every view: the centre-of-rotation
+        offset plus the drift of a misaligned scan (:mod:`ctpipe.sim.drift`); None when the
+        scan has no ``misalignment``. ``geometry`` stays the nominal one.
+    true_detector_tilt_deg : float
+        The detector's true in-plane tilt (degrees; 0 unless the scan is misaligned).
     """
 
     projections: np.ndarray
@@ -45,17 +51,30 @@ class SimulatedScan:
     intensities: np.ndarray | None = None
     flats: np.ndarray | None = None
     darks: np.ndarray | None = None
+    true_detector_offsets_px: np.ndarray | None = None
+    true_detector_tilt_deg: float = 0.0
 
 
 def project_phantom(phantom, geometry: Geometry, angles_deg, *, supersample: int = 1, blur_px: float = 0.0,
-                    progress: Callable[[int], object] | None = None) -> np.ndarray:
-    """Line integrals (V, rows, cols), float32, of a primitive or voxel phantom."""
+                    progress: Callable[[int], object] | None = None, detector_offsets_px=None,
+                    detector_tilt_deg: float = 0.0) -> np.ndarray:
+    """Line integrals (V, rows, cols), float32, of a primitive or voxel phantom.
+
+    ``detector_offsets_px`` (V, 2) and ``detector_tilt_deg`` place the true detector of a misaligned
+    scan (:func:`ctpipe.sim.projectors.project_analytic`); a voxel phantom's projections on the
+    nominal detector are resampled onto it (:func:`ctpipe.sim.drift.resample_to_detector`).
+    """
     from ctpipe.sim.projectors import VoxelProjector, project_analytic
 
     if phantom.primitives is not None:
         return project_analytic(phantom.primitives, geometry, angles_deg, supersample=supersample, blur_px=blur_px,
-                                progress=progress)
+                                progress=progress, detector_offsets_px=detector_offsets_px,
+                                detector_tilt_deg=detector_tilt_deg)
     projections = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, angles_deg)
+    if detector_offsets_px is not None or detector_tilt_deg != 0:
+        from ctpipe.sim.drift import resample_to_detector
+
+        projections = resample_to_detector(projections, geometry, detector_offsets_px, detector_tilt_deg)
     if blur_px > 0:
         from scipy.ndimage import gaussian_filter
 
@@ -125,15 +144,18 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
 
     nominal = spec.nominal_angles_deg()
     truth = nominal + spec.jitter.sample(nominal, rng) if jitter else nominal.copy()
+    # After the jitter, before the noise; a scan without misalignment draws nothing here.
+    misaligned = _true_detector(spec, rng, jitter)
+    true_detector = {f"true_{key}": value for key, value in misaligned.items()}
     line_integrals = project_phantom(phantom, spec.geometry, truth, supersample=spec.projector.supersample,
-                                     blur_px=spec.projector.blur_px, progress=progress)
+                                     blur_px=spec.projector.blur_px, progress=progress, **misaligned)
     detector = spec.detector
     if spec.noise is None:
         if detector is not None:  # artefacts act on intensities: exp(-p) with I0 = 1, flat-corrected back
             from ctpipe.sim.detector import detected_line_integrals
 
             detected_line_integrals(line_integrals, detector, rng, out=line_integrals)
-        return SimulatedScan(line_integrals, nominal, truth, spec.geometry)
+        return SimulatedScan(line_integrals, nominal, truth, spec.geometry, **true_detector)
     if detector is not None:
         from ctpipe.sim.detector import record
 
@@ -141,7 +163,24 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
     else:
         intensities, flats, darks = acquire(line_integrals, spec.noise, rng)
     return SimulatedScan(log_transform(intensities, flats, darks), nominal, truth, spec.geometry, intensities, flats,
-                         darks)
+                         darks, **true_detector)
+
+
+def _true_detector(spec, rng, jitter: bool) -> dict:
+    """The projector's ``detector_offsets_px`` and ``detector_tilt_deg`` of a misaligned scan, or {}.
+
+    ``jitter=False`` (the reference at the nominal angles) leaves out the per-view drift too,
+    keeping the static centre-of-rotation offset and tilt of the scanner.
+    """
+    misalignment = getattr(spec, "misalignment", None)
+    if misalignment is None:
+        return {}
+    if getattr(spec, "beam", None) is not None:
+        from ctpipe.errors import ConfigError
+
+        raise ConfigError("scan.misalignment: not yet simulated together with scan.beam; drop one of them")
+    return {"detector_offsets_px": misalignment.sample_offsets_px(spec.n_views, rng, drift=jitter),
+            "detector_tilt_deg": misalignment.tilt_deg}
 
 
 def voxelise_phantom(phantom, grid: VolumeGrid, *, supersample: int = 2) -> np.ndarray:
@@ -173,6 +212,9 @@ def write_simulated_scan(out: str | Path, scan: SimulatedScan, *, phantom, spec,
     provenance = {"generator": f"ctpipe {__version__} simulate", "phantom": phantom.name,
                   "scan_spec": spec.to_dict(), "seed": seed,
                   "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    if scan.true_detector_offsets_px is not None:  # the scan folder's truth of a misaligned scanner
+        provenance["true_detector_offsets_px"] = np.asarray(scan.true_detector_offsets_px).tolist()
+        provenance["true_detector_tilt_deg"] = float(scan.true_detector_tilt_deg)
     if scan.intensities is None:
         return write_scan(out, scan.projections, scan.geometry, scan.nominal_angles_deg, scan.true_angles_deg,
                           values="line_integrals", provenance=provenance, overwrite=overwrite)
