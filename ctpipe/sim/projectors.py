@@ -13,6 +13,10 @@ view at turntable angle ``theta``, at ``X_cam = R(theta) X + (0, 0, SOD)`` with 
 Pixel centres are at integer ``(col, row)``; the ray of a pixel runs from the source to its
 centre. In the object frame the source is ``S = -R^T (0, 0, SOD)`` and the ray direction of
 the camera vector ``d_cam = ((col - u0) pitch_u, (row - v0) pitch_v, SDD)`` is ``R^T d_cam``.
+A misaligned detector (:mod:`ctpipe.sim.drift`) enters :func:`project_analytic` exactly: a
+principal point per view, and a tilt ``phi`` that turns the pixel offsets in the detector plane,
+``d_cam = (cos phi a - sin phi b, sin phi a + cos phi b, SDD)`` with ``a = (col - u0) pitch_u``,
+``b = (row - v0) pitch_v``.
 
 Projections are float32 arrays ``(views, rows, cols)`` of line integrals: density (1/mm) times
 length (mm), integrated over the segment from the source to the detector.
