@@ -1,4 +1,4 @@
-"""Command line: ``ctpipe plugins | estimate | detect | simulate | validate | experiment synthetic``.
+"""Command line: ``ctpipe plugins | estimate | detect | simulate | validate | experiment synthetic | sweep``.
 
 Errors caused by the user's input print one line ``ctpipe: error: ...`` on stderr and exit
 with status 2; nothing half-written is left behind: every output path is checked before the
@@ -373,6 +373,46 @@ def _cmd_validate(args) -> int:
     return 0
 
 
+def _cmd_experiment_sweep(args) -> int:
+    from ctpipe.evaluate.sweep import load_sweep_settings, run_sweep, write_sweep_outputs
+    from ctpipe.io.outputs import check_output_dir, staged_folder, to_jsonable
+
+    check_output_dir(args.out)
+    registry = _registry(args)
+    settings = load_sweep_settings(args.sweep, registry)
+    if args.seed is not None:
+        settings = dataclasses.replace(settings, seed=args.seed)
+    count = args.n or settings.n
+    executor = None
+    if args.dask is not None:
+        from ctpipe.execution import DaskExecutor
+
+        executor = DaskExecutor.connect(args.dask or None)
+        print(f"ctpipe: {executor.describe()}", file=sys.stderr, flush=True)
+    try:
+        with _progress(count, "scenarios", quiet=args.json, description="sweep") as advance:
+            report = run_sweep(settings, n=count, executor=executor, blocked=tuple(args.block_plugin),
+                               progress=advance)
+    finally:
+        if executor is not None:
+            executor.close()
+    with staged_folder(args.out) as tmp:
+        write_sweep_outputs(report, tmp)
+    if args.json:
+        print(json.dumps(to_jsonable({"summary": report.summary(), "rows": report.rows}), indent=2))
+        return 0
+    for row in report.rows:
+        if row["status"] == "ok":
+            print(f"scenario {row['scenario']:3d}: RMS {row['nominal_rms_deg']:.4f} -> {row['estimated_rms_deg']:.4f} deg, "
+                  f"recovery {row['recovery_reference']:+.3f}, kept {row['refiner_kept'] or '-'}, {row['seconds']:.0f} s")
+        else:
+            print(f"scenario {row['scenario']:3d}: failed: {row['reason']}")
+    print(report.summary_line())
+    print(f"results in {args.out}: sweep.csv, sweep.json, sweep.png, scenarios/NNN.yaml "
+          f"(re-run one: ctpipe validate {Path(args.out) / 'scenarios' / '000.yaml'})")
+    return 0
+
+
 def _cmd_experiment_synthetic(args) -> int:
     from ctpipe.evaluate.experiments import load_synthetic_settings, run_synthetic
     from ctpipe.evaluate.report import synthetic_table, write_synthetic_outputs
@@ -516,6 +556,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--out", help="directory for synthetic.csv, summary.json, tables.md and PNG plots")
     p.set_defaults(run=_cmd_experiment_synthetic)
+    p = experiments.add_parser("sweep", help="validate on many scenarios drawn from distributions; one table and plot")
+    p.add_argument("sweep", nargs="?", help="sweep YAML (default: the built-in ctpipe/evaluate/sweep.yaml)")
+    p.add_argument("--n", type=_int_at_least(1), help="scenarios to draw (default: the sweep's n)")
+    p.add_argument("--seed", type=_int_at_least(0), help="random seed of the draws (default: the sweep's)")
+    p.add_argument("--out", default="results/sweep",
+                   help="directory for sweep.csv, sweep.json, sweep.png and scenarios/ (default: results/sweep)")
+    p.add_argument("--dask", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="run the scenarios on a Dask cluster (a scheduler address or file; none: a LocalCluster)")
+    p.add_argument("--json", action="store_true", help="print the summary and rows as JSON")
+    p.set_defaults(run=_cmd_experiment_sweep)
     return parser
 
 

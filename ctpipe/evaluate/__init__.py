@@ -5,8 +5,10 @@ with known jitter, estimate its angles with a pipeline, reconstruct with nominal
 true angles and score each; :mod:`~ctpipe.evaluate.experiments` runs the synthetic studies of
 ``ctpipe synthetic`` on correspondences drawn from the model (:mod:`~ctpipe.evaluate.synthetic`);
 :mod:`~ctpipe.evaluate.scoring` holds the metrics (angle errors after the common offset, PSNR,
-SSIM, recovery) and :mod:`~ctpipe.evaluate.report` the figures and tables. Their built-in
-defaults are ``validate.yaml`` and ``synthetic.yaml`` in this folder.
+SSIM, recovery) and :mod:`~ctpipe.evaluate.report` the figures and tables;
+:mod:`~ctpipe.evaluate.sweep` is ``ctpipe experiment sweep``, validate on many scenarios drawn
+from distributions over any key of an experiment, one row each. Their built-in defaults are
+``validate.yaml``, ``synthetic.yaml`` and ``sweep.yaml`` in this folder.
 """
 
 from ctpipe.evaluate.experiments import (STUDIES, SyntheticReport, SyntheticSettings, load_synthetic_settings,
@@ -15,6 +17,8 @@ from ctpipe.evaluate.report import (angle_errors_png, estimate_angles_png, keypo
                                     write_synthetic_outputs)
 from ctpipe.evaluate.scoring import (align_offset, error_table, keypoint_agreement, pair_errors_deg, recovery,
                                      score_against_truth, support_mask, view_errors_deg, volume_metrics)
+from ctpipe.evaluate.sweep import (DISTRIBUTIONS, SweepReport, SweepSettings, draw_scenario, load_sweep_settings,
+                                   parse_sweep, run_scenario, run_sweep, write_sweep_outputs)
 from ctpipe.evaluate.synthetic import Cylinder, cylinder_points, make_correspondences
 from ctpipe.evaluate.validate import (ValidateReport, ValidateSettings, check_experiment, estimate_problems,
                                       load_validate_settings, pair_chained_deg, parse_validate, run_validate,
@@ -26,4 +30,5 @@ __all__ = ["run_validate", "load_validate_settings", "parse_validate", "check_ex
            "view_errors_deg", "pair_errors_deg", "score_against_truth", "align_offset", "support_mask", "volume_metrics",
            "recovery", "keypoint_agreement", "synthetic_table", "write_synthetic_outputs", "slices_png",
            "angle_errors_png", "estimate_angles_png", "keypoints_png", "Cylinder", "cylinder_points",
-           "make_correspondences"]
+           "make_correspondences", "run_sweep", "load_sweep_settings", "parse_sweep", "draw_scenario", "run_scenario",
+           "write_sweep_outputs", "SweepSettings", "SweepReport", "DISTRIBUTIONS"]
