@@ -11,10 +11,14 @@ scans in :mod:`ctpipe.io`. ``docs/simulation.md`` has the conventions and figure
 """
 
 from ctpipe.sim.acquisition import NoiseModel, acquire, beer_lambert, parse_noise
+from ctpipe.sim.beam import (ANODES, DETECTOR_RESPONSES, Beam, beam_spectrum, effective_energy_kev, parse_beam,
+                             polychromatic_line_integrals)
 from ctpipe.sim.detector import (FULL_SCALE_PER_FLAT, MAX_STUCK_FRACTION, DetectorModel, DetectorPattern,
                                  detected_line_integrals, draw_pattern, parse_detector, record, scatter_counts)
 from ctpipe.sim.drift import DetectorDrift, Misalignment, parse_misalignment, resample_to_detector
 from ctpipe.sim.jitter import JITTER_KINDS, Jitter, nominal_angles_deg, parse_jitter
+from ctpipe.sim.materials import (INSTALL_BEAM, MATERIALS, REFERENCE_KEV, Material, beam_libraries_missing,
+                                  mass_attenuation_cm2_g, resolve_material)
 from ctpipe.sim.phantoms import Phantom, list_phantoms, load_phantom, parse_phantom
 from ctpipe.sim.primitives import Primitives, voxelise
 from ctpipe.sim.projectors import VoxelProjector, project_analytic
@@ -29,4 +33,7 @@ __all__ = ["simulate", "SimulatedScan", "write_simulated_scan", "project_phantom
            "parse_scan_spec", "load_scan_spec"]
 __all__ += ["DetectorModel", "DetectorPattern", "parse_detector", "draw_pattern", "scatter_counts", "record",
             "detected_line_integrals", "MAX_STUCK_FRACTION", "FULL_SCALE_PER_FLAT"]
+__all__ += ["Beam", "parse_beam", "beam_spectrum", "effective_energy_kev", "polychromatic_line_integrals", "ANODES",
+            "DETECTOR_RESPONSES", "Material", "MATERIALS", "resolve_material", "INSTALL_BEAM", "REFERENCE_KEV",
+            "mass_attenuation_cm2_g", "beam_libraries_missing"]
 __all__ += ["Misalignment", "DetectorDrift", "parse_misalignment", "resample_to_detector"]

@@ -19,6 +19,8 @@ Schema
                     density_per_mm: 0.02}          # or radii_mm: [r_x, r_z] for an elliptic one
       - box:       {centre_mm: [x, y, z], size_mm: [s_x, s_y, s_z], rotation_deg: [...],
                     density_per_mm: 0.02}
+      - sphere:    {radius_mm: 2, material: aluminium, density_g_cm3: 2.7}   # a material instead of,
+                                                    # or as well as, density_per_mm (see below)
       - beads:                      # spheres in a cylinder (the paper's synthetic sample)
           container: {radius_mm: 40, height_mm: 80, centre_mm: [0, 0, 0], density_per_mm: 0.01,
                       wall_mm: 0, wall_density_per_mm: 0}
@@ -55,6 +57,17 @@ then ``z`` axes. Its matrix maps the shape's local axes to the object frame, as 
 :mod:`ctpipe.sim.primitives`. A cylinder's own axis is its local ``y``, so an unrotated cylinder
 stands along the rotation axis; ``height_mm`` is its full length.
 
+Materials: ``ellipsoid``, ``sphere``, ``cylinder`` and ``box`` may name a ``material`` (a
+built-in name of :data:`ctpipe.sim.materials.MATERIALS` - water, pmma, aluminium, titanium,
+iron, steel, copper, tungsten, hydroxyapatite, bone, air - or a chemical formula such as
+``Ca5(PO4)3OH``) with its mass density ``density_g_cm3`` (default: the built-in material's usual
+density; required for a formula; negative for a void, as mass densities add like attenuation).
+A scan with a polychromatic ``beam`` (:mod:`ctpipe.sim.beam`) attenuates such an object with the
+material's ``mu(E)``; a monochromatic scan uses ``density_per_mm``, which defaults to
+``mu/rho`` at :data:`ctpipe.sim.materials.REFERENCE_KEV` (60 keV) times the density. Objects
+without a material (and the generators' objects) count as water of that ``density_per_mm`` at
+60 keV under a beam.
+
 Generators (``beads``, ``grains``) draw from ``numpy.random.default_rng(seed)`` only, so the
 same file always gives the same primitives. Their ``density_per_mm`` is the *material* of the
 bead or grain, which replaces the container's matrix (the primitive added is ``material -
@@ -79,6 +92,7 @@ import numpy as np
 from ctpipe.config import check_keys, load_yaml
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.recon.volume import VolumeGrid
+from ctpipe.sim.materials import REFERENCE_KEV, mass_attenuation_cm2_g, resolve_material
 from ctpipe.sim.primitives import KINDS, Primitives
 from ctpipe.stages import ParamSpec, check_value
 
@@ -197,8 +211,12 @@ class _Builder:
         self.half: list[np.ndarray] = []
         self.rotation: list[np.ndarray] = []
         self.density: list[np.ndarray] = []
+        self.material: list[np.ndarray] = []
+        self.mass_density: list[np.ndarray] = []
+        self.materials: list[str] = []
 
-    def add(self, kind, centre, half, rotation, density) -> None:
+    def add(self, kind, centre, half, rotation, density, material: str | None = None,
+            mass_density_g_cm3: float = 0.0) -> None:
         kind = np.atleast_1d(np.asarray(kind, dtype=np.int32))
         n = len(kind)
         self.kind.append(kind)
@@ -206,36 +224,66 @@ class _Builder:
         self.half.append(np.asarray(half, dtype=np.float64).reshape(n, 3))
         self.rotation.append(np.asarray(rotation, dtype=np.float64).reshape(n, 3, 3))
         self.density.append(np.asarray(density, dtype=np.float64).reshape(n))
+        if material is not None and material not in self.materials:
+            self.materials.append(material)
+        self.material.append(np.full(n, -1 if material is None else self.materials.index(material), np.int32))
+        self.mass_density.append(np.full(n, mass_density_g_cm3, np.float64))
 
     def build(self) -> Primitives:
         if not self.kind:
             return Primitives.concatenate([])
         return Primitives(np.concatenate(self.kind), np.concatenate(self.centre), np.concatenate(self.half),
-                          np.concatenate(self.rotation), np.concatenate(self.density))
+                          np.concatenate(self.rotation), np.concatenate(self.density), np.concatenate(self.material),
+                          np.concatenate(self.mass_density), tuple(self.materials))
 
 
 def _density(mapping: Mapping, path: str) -> float:
     return _number(mapping, "density_per_mm", path)
 
 
+_MATERIAL_KEYS = ("density_per_mm", "material", "density_g_cm3")
+
+
+def _attenuation(mapping: Mapping, path: str) -> tuple[float, str | None, float]:
+    """``(density_per_mm, material name or None, density_g_cm3)`` of a primitive (see the module docstring)."""
+    if "material" not in mapping:
+        if "density_g_cm3" in mapping:
+            raise ConfigError(f"{path}.density_g_cm3: needs a material (e.g. material: aluminium)")
+        if "density_per_mm" not in mapping:
+            raise ConfigError(f"{path}.density_per_mm: missing; it is required (attenuation, 1/mm), unless the "
+                              f"object names a material (e.g. material: aluminium)")
+        return _density(mapping, path), None, 0.0
+    material = resolve_material(mapping["material"], f"{path}.material")
+    if "density_g_cm3" not in mapping and material.density_g_cm3 is None:
+        raise ConfigError(f"{path}.density_g_cm3: missing; a chemical formula ({material.name}) needs its density")
+    rho = _number(mapping, "density_g_cm3", path, ParamSpec("", float, None, "", ge=-30, le=30),
+                  default=material.density_g_cm3)
+    if "density_per_mm" in mapping:
+        return _density(mapping, path), material.name, rho
+    mu_rho = material.mu_rho_reference_cm2_g
+    if mu_rho is None:
+        mu_rho = float(mass_attenuation_cm2_g(material, [REFERENCE_KEV])[0])
+    return mu_rho * rho * 0.1, material.name, rho  # cm^2/g x g/cm^3 = 1/cm = 0.1/mm
+
+
 def _add_ellipsoid(builder: _Builder, p: Any, path: str) -> None:
-    check_keys(p, path, allowed=("centre_mm", "semi_axes_mm", "rotation_deg", "density_per_mm"),
-               required=("semi_axes_mm", "density_per_mm"))
+    check_keys(p, path, allowed=("centre_mm", "semi_axes_mm", "rotation_deg", *_MATERIAL_KEYS),
+               required=("semi_axes_mm",))
     builder.add(_ELLIPSOID, _vector(p, "centre_mm", path, 3, default=(0, 0, 0)),
                 _vector(p, "semi_axes_mm", path, 3, positive=True),
-                rotation_from_deg(_vector(p, "rotation_deg", path, 3, default=(0, 0, 0))), _density(p, path))
+                rotation_from_deg(_vector(p, "rotation_deg", path, 3, default=(0, 0, 0))), *_attenuation(p, path))
 
 
 def _add_sphere(builder: _Builder, p: Any, path: str) -> None:
-    check_keys(p, path, allowed=("centre_mm", "radius_mm", "density_per_mm"), required=("radius_mm", "density_per_mm"))
+    check_keys(p, path, allowed=("centre_mm", "radius_mm", *_MATERIAL_KEYS), required=("radius_mm",))
     radius = _number(p, "radius_mm", path, _POSITIVE)
     builder.add(_ELLIPSOID, _vector(p, "centre_mm", path, 3, default=(0, 0, 0)), [radius] * 3, np.eye(3),
-                _density(p, path))
+                *_attenuation(p, path))
 
 
 def _add_cylinder(builder: _Builder, p: Any, path: str) -> None:
-    check_keys(p, path, allowed=("centre_mm", "radius_mm", "radii_mm", "height_mm", "rotation_deg", "density_per_mm"),
-               required=("height_mm", "density_per_mm"))
+    check_keys(p, path, allowed=("centre_mm", "radius_mm", "radii_mm", "height_mm", "rotation_deg", *_MATERIAL_KEYS),
+               required=("height_mm",))
     if ("radius_mm" in p) == ("radii_mm" in p):
         raise ConfigError(f"{path}: give exactly one of radius_mm (circular) or radii_mm [r_x, r_z] (elliptic)")
     if "radius_mm" in p:
@@ -244,15 +292,14 @@ def _add_cylinder(builder: _Builder, p: Any, path: str) -> None:
         r_x, r_z = _vector(p, "radii_mm", path, 2, positive=True)
     half_height = _number(p, "height_mm", path, _POSITIVE) / 2.0
     builder.add(_CYLINDER, _vector(p, "centre_mm", path, 3, default=(0, 0, 0)), [r_x, half_height, r_z],
-                rotation_from_deg(_vector(p, "rotation_deg", path, 3, default=(0, 0, 0))), _density(p, path))
+                rotation_from_deg(_vector(p, "rotation_deg", path, 3, default=(0, 0, 0))), *_attenuation(p, path))
 
 
 def _add_box(builder: _Builder, p: Any, path: str) -> None:
-    check_keys(p, path, allowed=("centre_mm", "size_mm", "rotation_deg", "density_per_mm"),
-               required=("size_mm", "density_per_mm"))
+    check_keys(p, path, allowed=("centre_mm", "size_mm", "rotation_deg", *_MATERIAL_KEYS), required=("size_mm",))
     builder.add(_BOX, _vector(p, "centre_mm", path, 3, default=(0, 0, 0)),
                 _vector(p, "size_mm", path, 3, positive=True) / 2.0,
-                rotation_from_deg(_vector(p, "rotation_deg", path, 3, default=(0, 0, 0))), _density(p, path))
+                rotation_from_deg(_vector(p, "rotation_deg", path, 3, default=(0, 0, 0))), *_attenuation(p, path))
 
 
 @dataclass(frozen=True)

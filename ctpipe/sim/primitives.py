@@ -52,6 +52,14 @@ class Primitives:
         Orthonormal, columns are the local axes in the object frame.
     density_per_mm : ndarray of shape (N,), float64
         Attenuation added inside the primitive, 1/mm (may be negative).
+    material : ndarray of shape (N,), int32, or None
+        Index into ``materials`` of what a polychromatic beam (:mod:`ctpipe.sim.beam`) sees,
+        -1 for none (water-equivalent to ``density_per_mm``); None means -1 everywhere.
+    mass_density_g_cm3 : ndarray of shape (N,), float64, or None
+        Mass density added inside the primitive for its ``material`` (g/cm^3, may be negative);
+        None means 0 everywhere.
+    materials : tuple of str
+        Material names (see :func:`ctpipe.sim.materials.resolve_material`) ``material`` indexes.
     """
 
     kind: np.ndarray
@@ -59,11 +67,20 @@ class Primitives:
     half_size_mm: np.ndarray
     rotation: np.ndarray
     density_per_mm: np.ndarray
+    material: np.ndarray | None = None
+    mass_density_g_cm3: np.ndarray | None = None
+    materials: tuple = ()
 
     def __post_init__(self) -> None:
         n = len(self.kind)
         arrays = {"kind": (np.int32, (n,)), "centre_mm": (np.float64, (n, 3)), "half_size_mm": (np.float64, (n, 3)),
-                  "rotation": (np.float64, (n, 3, 3)), "density_per_mm": (np.float64, (n,))}
+                  "rotation": (np.float64, (n, 3, 3)), "density_per_mm": (np.float64, (n,)),
+                  "material": (np.int32, (n,)), "mass_density_g_cm3": (np.float64, (n,))}
+        if self.material is None:
+            object.__setattr__(self, "material", np.full(n, -1, np.int32))
+        if self.mass_density_g_cm3 is None:
+            object.__setattr__(self, "mass_density_g_cm3", np.zeros(n))
+        object.__setattr__(self, "materials", tuple(self.materials))
         for name, (dtype, shape) in arrays.items():
             value = np.ascontiguousarray(np.asarray(getattr(self, name), dtype=dtype))
             if value.shape != shape:
@@ -74,6 +91,8 @@ class Primitives:
             object.__setattr__(self, name, value)
         if n and (self.kind.min() < 0 or self.kind.max() >= len(KINDS)):
             raise InputError(f"Primitives.kind must index {KINDS}, got codes {sorted(set(self.kind.tolist()))}")
+        if n and (self.material.min() < -1 or self.material.max() >= len(self.materials)):
+            raise InputError(f"Primitives.material must be -1 or index materials {self.materials}")
         if n and self.half_size_mm.min() <= 0:
             raise InputError("Primitives.half_size_mm must be > 0 everywhere")
         if n and not np.allclose(np.einsum("nji,njk->nik", self.rotation, self.rotation), np.eye(3), atol=1e-9):
@@ -87,8 +106,20 @@ class Primitives:
         """All primitives of ``parts`` in one set, in order."""
         if not parts:
             return cls(np.zeros(0, np.int32), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0))
+        materials = tuple(dict.fromkeys(name for p in parts for name in p.materials))
+        # Each part's material indices, renumbered into the merged table (-1 stays -1).
+        material = np.concatenate([np.array([-1, *(materials.index(m) for m in p.materials)], np.int32)[p.material + 1]
+                                   for p in parts])
         return cls(*(np.concatenate([getattr(p, name) for p in parts]) for name in
-                     ("kind", "centre_mm", "half_size_mm", "rotation", "density_per_mm")))
+                     ("kind", "centre_mm", "half_size_mm", "rotation", "density_per_mm")), material,
+                   np.concatenate([p.mass_density_g_cm3 for p in parts]), materials)
+
+    def subset(self, mask) -> "Primitives":
+        """The primitives where ``mask`` (bool of shape (N,)) is true, with the same ``materials``."""
+        mask = np.asarray(mask, dtype=bool)
+        return Primitives(self.kind[mask], self.centre_mm[mask], self.half_size_mm[mask], self.rotation[mask],
+                          self.density_per_mm[mask], self.material[mask], self.mass_density_g_cm3[mask],
+                          self.materials)
 
     def bounding_boxes_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned object-frame boxes ``(low, high)``, each of shape (N, 3), that contain each primitive."""

@@ -8,6 +8,7 @@
     projector: {kind: analytic, supersample: 2, blur_px: 0.5}   # analytic or voxel
     detector: {scatter_fraction: 0.05, psf_sigma_px: 0.8, dead_pixels: 20, gain_drift_sigma: 0.005}
                                                      # ctpipe.sim.detector; null: an ideal detector
+    beam: {kvp: 120, anode: W, filter_mm: {Al: 1.0}, energy_bins: 32}   # ctpipe.sim.beam: polychromatic
     misalignment: {cor_offset_px: 1.5, tilt_deg: 0.3, drift: {walk_px: 0.05, jumps: 2, jump_px: 0.5}}
                                                      # ctpipe.sim.drift; null: the nominal scanner
     seed: 0
@@ -15,6 +16,7 @@
 ``geometry`` and ``angles`` are required; ``jitter`` defaults to none, ``noise`` to null,
 ``projector`` to ``{kind: analytic, supersample: 1, blur_px: 0}``, ``seed`` to 0, ``detector`` to
 null (no artefacts).
+``beam`` defaults to none: a monochromatic scan, each object attenuating by its ``density_per_mm``.
 ``misalignment`` defaults to null (the scanner is exactly its nominal geometry).
 """
 
@@ -29,6 +31,7 @@ import numpy as np
 from ctpipe.config import check_keys, load_yaml, parse_geometry
 from ctpipe.geometry import Geometry
 from ctpipe.sim.acquisition import NoiseModel, parse_noise
+from ctpipe.sim.beam import Beam, parse_beam
 from ctpipe.sim.detector import DetectorModel, parse_detector
 from ctpipe.sim.drift import Misalignment, parse_misalignment
 from ctpipe.sim.jitter import Jitter, nominal_angles_deg, parse_jitter
@@ -76,6 +79,7 @@ class ScanSpec:
     projector: ProjectorSpec = field(default_factory=ProjectorSpec)
     seed: int = 0
     detector: DetectorModel | None = None
+    beam: Beam | None = None
     misalignment: Misalignment | None = None
 
     @property
@@ -91,6 +95,7 @@ class ScanSpec:
         return {"geometry": self.geometry.to_dict(), "angles": self.angles.to_dict(), "jitter": self.jitter.to_dict(),
                 "noise": None if self.noise is None else self.noise.to_dict(), "projector": self.projector.to_dict(),
                 "seed": self.seed, **({} if self.detector is None else {"detector": self.detector.to_dict()}),
+                **({} if self.beam is None else {"beam": self.beam.to_dict()}),
                 **({} if self.misalignment is None else {"misalignment": self.misalignment.to_dict()})}
 
 
@@ -111,7 +116,7 @@ def _fields(value: Any, path: str, table: dict[str, ParamSpec], required: tuple[
 def parse_scan_spec(mapping: Any, path: str = "scan") -> ScanSpec:
     """Validate a scan spec mapping; errors name the YAML path, the value and what is allowed."""
     check_keys(mapping, path, allowed=("geometry", "angles", "jitter", "noise", "projector", "seed", "detector",
-                                       "misalignment"),
+                                      "beam", "misalignment"),
                required=("geometry", "angles"))
     geometry = parse_geometry(mapping["geometry"], f"{path}.geometry")
     angles = AngleSpec(**_fields(mapping["angles"], f"{path}.angles", _ANGLE_FIELDS, required=("n_views",)))
@@ -121,8 +126,10 @@ def parse_scan_spec(mapping: Any, path: str = "scan") -> ScanSpec:
     seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
     detector = parse_detector(mapping.get("detector"), f"{path}.detector",
                               (geometry.detector_rows, geometry.detector_cols))
+    beam = parse_beam(mapping.get("beam"), f"{path}.beam")
     misalignment = parse_misalignment(mapping.get("misalignment"), f"{path}.misalignment", n_views=angles.n_views)
-    return ScanSpec(geometry, angles, jitter, noise, projector, seed, detector=detector, misalignment=misalignment)
+    return ScanSpec(geometry, angles, jitter, noise, projector, seed, detector=detector, beam=beam,
+                    misalignment=misalignment)
 
 
 def load_scan_spec(path: str | Path) -> ScanSpec:

@@ -147,8 +147,15 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
     # After the jitter, before the noise; a scan without misalignment draws nothing here.
     misaligned = _true_detector(spec, rng, jitter)
     true_detector = {f"true_{key}": value for key, value in misaligned.items()}
-    line_integrals = project_phantom(phantom, spec.geometry, truth, supersample=spec.projector.supersample,
-                                     blur_px=spec.projector.blur_px, progress=progress, **misaligned)
+    if getattr(spec, "beam", None) is not None:  # polychromatic: -log of the flat-normalised transmission
+        from ctpipe.sim.beam import polychromatic_line_integrals
+
+        line_integrals = polychromatic_line_integrals(phantom, spec.beam, spec.geometry, truth,
+                                                      supersample=spec.projector.supersample,
+                                                      blur_px=spec.projector.blur_px, progress=progress)
+    else:
+        line_integrals = project_phantom(phantom, spec.geometry, truth, supersample=spec.projector.supersample,
+                                         blur_px=spec.projector.blur_px, progress=progress, **misaligned)
     detector = spec.detector
     if spec.noise is None:
         if detector is not None:  # artefacts act on intensities: exp(-p) with I0 = 1, flat-corrected back
