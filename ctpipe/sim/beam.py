@@ -235,7 +235,8 @@ def _groups(phantom) -> list[tuple[str, Any]]:
 
 
 def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, supersample: int = 1,
-                                 blur_px: float = 0.0, progress: Callable[[int], object] | None = None) -> np.ndarray:
+                                 blur_px: float = 0.0, progress: Callable[[int], object] | None = None,
+                                 detector_offsets_px=None, detector_tilt_deg: float = 0.0) -> np.ndarray:
     """``-log T`` of every pixel (see the module docstring), float32 of shape (V, rows, cols).
 
     Parameters
@@ -246,8 +247,9 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
     geometry : Geometry
     angles_deg : array_like of shape (V,)
         Turntable angles, degrees.
-    supersample, blur_px, progress
-        As for :func:`ctpipe.sim.projectors.project_analytic`; the blur acts on ``T``.
+    supersample, blur_px, progress, detector_offsets_px, detector_tilt_deg
+        As for :func:`ctpipe.sim.simulator.project_phantom` (a misaligned detector included); the
+        blur acts on ``T``.
     """
     from ctpipe.sim.projectors import VoxelProjector, project_analytic
 
@@ -266,12 +268,18 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
     for start in range(0, angles.size, _CHUNK_VIEWS):
         stop = min(start + _CHUNK_VIEWS, angles.size)
         chunk = angles[start:stop]
+        offsets = None if detector_offsets_px is None else np.asarray(detector_offsets_px)[start:stop]
         if phantom.primitives is not None:
-            paths = [project_analytic(prims, geometry, chunk, supersample=supersample).astype(np.float64)
+            paths = [project_analytic(prims, geometry, chunk, supersample=supersample, detector_offsets_px=offsets,
+                                      detector_tilt_deg=detector_tilt_deg).astype(np.float64)
                      for _, prims in groups]
         else:
-            paths = [VoxelProjector(geometry, phantom.grid).forward(phantom.volume, chunk).astype(np.float64)
-                     / water_per_mm]
+            path = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, chunk)
+            if offsets is not None or detector_tilt_deg != 0:
+                from ctpipe.sim.drift import resample_to_detector
+
+                path = resample_to_detector(path, geometry, offsets, detector_tilt_deg)
+            paths = [path.astype(np.float64) / water_per_mm]
         transmitted = np.zeros(paths[0].shape if paths else out[start:stop].shape)
         for b, w in enumerate(weights):
             exponent = np.zeros_like(transmitted)

@@ -152,7 +152,8 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
 
         line_integrals = polychromatic_line_integrals(phantom, spec.beam, spec.geometry, truth,
                                                       supersample=spec.projector.supersample,
-                                                      blur_px=spec.projector.blur_px, progress=progress)
+                                                      blur_px=spec.projector.blur_px, progress=progress,
+                                                      **misaligned)
     else:
         line_integrals = project_phantom(phantom, spec.geometry, truth, supersample=spec.projector.supersample,
                                          blur_px=spec.projector.blur_px, progress=progress, **misaligned)
@@ -182,10 +183,6 @@ def _true_detector(spec, rng, jitter: bool) -> dict:
     misalignment = getattr(spec, "misalignment", None)
     if misalignment is None:
         return {}
-    if getattr(spec, "beam", None) is not None:
-        from ctpipe.errors import ConfigError
-
-        raise ConfigError("scan.misalignment: not yet simulated together with scan.beam; drop one of them")
     return {"detector_offsets_px": misalignment.sample_offsets_px(spec.n_views, rng, drift=jitter),
             "detector_tilt_deg": misalignment.tilt_deg}
 

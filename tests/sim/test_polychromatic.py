@@ -268,3 +268,24 @@ def test_a_voxel_phantom_under_a_beam_is_water_equivalent(tmp_path):
     np.testing.assert_allclose(at_reference, mono, rtol=1e-5, atol=1e-6)
     hardened = polychromatic_line_integrals(phantom, parse_beam({"kvp": 60}), geometry, [0.0, 30.0])
     assert hardened.max() > mono.max() * 1.2  # a soft beam attenuates more than 60 keV photons would
+
+
+@pytest.mark.parametrize("voxels", [False, True])
+def test_a_beam_scan_sees_the_misaligned_detector_as_a_monochromatic_one_does(voxels, tmp_path):
+    from ctpipe.sim.simulator import simulate
+
+    if voxels:
+        volume = np.zeros((8, 24, 24), np.float32)
+        volume[2:6, 4:14, 8:20] = 0.03
+        np.save(tmp_path / "block.npy", volume)
+        phantom = parse_phantom({"voxels": {"file": "block.npy", "voxel_size_mm": 1.0}}, base_dir=tmp_path)
+    else:
+        phantom = parse_phantom({"objects": [{"box": {"size_mm": [6, 4, 10], "centre_mm": [2, 0, -3],
+                                                      "density_per_mm": 0.03}}]})
+    misalignment = {"cor_offset_px": 1.5, "tilt_deg": 0.3, "drift": {"walk_px": 0.2, "jumps": 1, "jump_px": 0.5}}
+    mono = simulate(phantom, _spec(misalignment=misalignment), rng=np.random.default_rng(5))
+    poly = simulate(phantom, _spec(misalignment=misalignment, beam={"energy_kev": REFERENCE_KEV}),
+                    rng=np.random.default_rng(5))
+    np.testing.assert_array_equal(poly.true_detector_offsets_px, mono.true_detector_offsets_px)
+    np.testing.assert_allclose(poly.projections, mono.projections, rtol=1e-5, atol=1e-6)
+    assert np.abs(mono.projections).max() > 0.1
