@@ -66,13 +66,13 @@ ANODES = ("W", "Mo", "Rh")
 DETECTOR_RESPONSES = ("energy-integrating", "photon-counting")
 
 _FIELDS = {
-    "kvp": ParamSpec("kvp", float | None, None, "", ge=10, le=500),
+    "kvp": ParamSpec("kvp", float, None, "", ge=10, le=500),
     "anode": ParamSpec("anode", Literal["W", "Mo", "Rh"], "W", ""),
     "anode_angle_deg": ParamSpec("anode_angle_deg", float, 12.0, "", ge=5, le=45),
     "energy_bins": ParamSpec("energy_bins", int, 32, "", ge=1, le=256),
     "detector_response": ParamSpec("detector_response", Literal["energy-integrating", "photon-counting"],
                                    "energy-integrating", ""),
-    "energy_kev": ParamSpec("energy_kev", float | None, None, "", ge=1, le=500),
+    "energy_kev": ParamSpec("energy_kev", float, None, "", ge=1, le=500),
 }
 _THICKNESS = ParamSpec("", float, None, "", ge=0, le=1000)
 _CHUNK_VIEWS = 8
