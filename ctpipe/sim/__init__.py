@@ -18,7 +18,7 @@ from ctpipe.sim.detector import (FULL_SCALE_PER_FLAT, MAX_STUCK_FRACTION, Detect
 from ctpipe.sim.drift import DetectorDrift, Misalignment, parse_misalignment, resample_to_detector
 from ctpipe.sim.jitter import JITTER_KINDS, Jitter, nominal_angles_deg, parse_jitter
 from ctpipe.sim.materials import (INSTALL_BEAM, MATERIALS, REFERENCE_KEV, Material, beam_libraries_missing,
-                                  mass_attenuation_cm2_g, resolve_material)
+                                  element_density_g_cm3, mass_attenuation_cm2_g, resolve_material)
 from ctpipe.sim.phantoms import Phantom, list_phantoms, load_phantom, parse_phantom
 from ctpipe.sim.primitives import Primitives, voxelise
 from ctpipe.sim.projectors import VoxelProjector, project_analytic
@@ -35,5 +35,5 @@ __all__ += ["DetectorModel", "DetectorPattern", "parse_detector", "draw_pattern"
             "detected_line_integrals", "MAX_STUCK_FRACTION", "FULL_SCALE_PER_FLAT"]
 __all__ += ["Beam", "parse_beam", "beam_spectrum", "effective_energy_kev", "polychromatic_line_integrals", "ANODES",
             "DETECTOR_RESPONSES", "Material", "MATERIALS", "resolve_material", "INSTALL_BEAM", "REFERENCE_KEV",
-            "mass_attenuation_cm2_g", "beam_libraries_missing"]
+            "mass_attenuation_cm2_g", "element_density_g_cm3", "beam_libraries_missing"]
 __all__ += ["Misalignment", "DetectorDrift", "parse_misalignment", "resample_to_detector"]

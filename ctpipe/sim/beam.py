@@ -54,7 +54,7 @@ import numpy as np
 from ctpipe.config import check_keys
 from ctpipe.errors import ConfigError
 from ctpipe.sim.materials import (INSTALL_BEAM, MATERIALS, REFERENCE_KEV, beam_libraries_missing,
-                                  mass_attenuation_cm2_g, resolve_material)
+                                  element_density_g_cm3, mass_attenuation_cm2_g, resolve_material)
 from ctpipe.stages import ParamSpec, check_value
 
 __all__ = ["Beam", "parse_beam", "beam_spectrum", "effective_energy_kev", "polychromatic_line_integrals", "ANODES",
@@ -154,13 +154,11 @@ def _filter_material(name, path: str):
     material = resolve_material(name, path)
     if material.density_g_cm3 is not None:
         return material, material.density_g_cm3
-    import xraydb
-
-    try:
-        return material, float(xraydb.atomic_density(material.formula))
-    except (ValueError, KeyError, TypeError):
+    density = element_density_g_cm3(material.formula)
+    if density is None:
         raise ConfigError(f"{path}: a filter is a built-in material ({', '.join(MATERIALS)}) or an element symbol "
-                          f"(Sn, Ag), got the formula {name!r}") from None
+                          f"(Sn, Ag), got the formula {name!r}")
+    return material, density
 
 
 @functools.lru_cache(maxsize=32)

@@ -24,7 +24,7 @@ import numpy as np
 from ctpipe.errors import ConfigError
 
 __all__ = ["Material", "MATERIALS", "REFERENCE_KEV", "INSTALL_BEAM", "resolve_material",
-           "mass_attenuation_cm2_g", "beam_libraries_missing"]
+           "mass_attenuation_cm2_g", "element_density_g_cm3", "beam_libraries_missing"]
 
 #: The pip command that installs the polychromatic beam's libraries (spekpy and xraydb).
 INSTALL_BEAM = "pip install 'ctpipe[beam]'"
@@ -140,3 +140,13 @@ def mass_attenuation_cm2_g(material: Material, energies_kev) -> np.ndarray:
     """
     energies = tuple(float(e) for e in np.atleast_1d(np.asarray(energies_kev, dtype=np.float64)))
     return _mass_attenuation(material, energies)
+
+
+def element_density_g_cm3(symbol: str) -> float | None:
+    """The density (g/cm^3) of the pure element ``symbol`` from xraydb, or None if it is not an element symbol."""
+    import xraydb
+
+    try:
+        return float(xraydb.atomic_density(symbol))
+    except (ValueError, KeyError, TypeError):
+        return None
