@@ -4,8 +4,9 @@ A simulated scan is made the way a real one is: a phantom (:mod:`~ctpipe.sim.pha
 from the analytic primitives of :mod:`~ctpipe.sim.primitives` or from a voxel volume) is
 projected at the true angles, nominal angles plus the jitter of :mod:`~ctpipe.sim.jitter`, by
 the exact or the voxel projector of :mod:`~ctpipe.sim.projectors`; :mod:`~ctpipe.sim.acquisition`
-turns the line integrals into detector counts with Poisson noise, flats and darks. A scan spec
-(:mod:`~ctpipe.sim.scan_spec`) says what to acquire and :mod:`~ctpipe.sim.simulator` runs the
+turns the line integrals into detector counts with Poisson noise, flats and darks; a sample
+holder (:mod:`~ctpipe.sim.holders`) adds parts that turn with the sample and parts that do not.
+A scan spec (:mod:`~ctpipe.sim.scan_spec`) says what to acquire and :mod:`~ctpipe.sim.simulator` runs the
 chain and writes a scan folder. Reconstruction is in :mod:`ctpipe.recon`, reading and writing
 scans in :mod:`ctpipe.io`. ``docs/simulation.md`` has the conventions and figures.
 """
@@ -16,10 +17,11 @@ from ctpipe.sim.beam import (ANODES, DETECTOR_RESPONSES, Beam, beam_spectrum, ef
 from ctpipe.sim.detector import (FULL_SCALE_PER_FLAT, MAX_STUCK_FRACTION, DetectorModel, DetectorPattern,
                                  detected_line_integrals, draw_pattern, parse_detector, record, scatter_counts)
 from ctpipe.sim.drift import DetectorDrift, Misalignment, parse_misalignment, resample_to_detector
+from ctpipe.sim.holders import HOLDER_ORIGINS, Holder, parse_holder
 from ctpipe.sim.jitter import JITTER_KINDS, Jitter, nominal_angles_deg, parse_jitter
 from ctpipe.sim.materials import (INSTALL_BEAM, MATERIALS, REFERENCE_KEV, Material, beam_libraries_missing,
                                   element_density_g_cm3, mass_attenuation_cm2_g, resolve_material)
-from ctpipe.sim.phantoms import Phantom, list_phantoms, load_phantom, parse_phantom
+from ctpipe.sim.phantoms import ELECTRONIC_MATERIALS, Phantom, list_phantoms, load_phantom, parse_objects, parse_phantom
 from ctpipe.sim.primitives import Primitives, voxelise
 from ctpipe.sim.projectors import VoxelProjector, project_analytic
 from ctpipe.sim.scan_spec import AngleSpec, ProjectorSpec, ScanSpec, load_scan_spec, parse_scan_spec
@@ -37,3 +39,4 @@ __all__ += ["Beam", "parse_beam", "beam_spectrum", "effective_energy_kev", "poly
             "DETECTOR_RESPONSES", "Material", "MATERIALS", "resolve_material", "INSTALL_BEAM", "REFERENCE_KEV",
             "mass_attenuation_cm2_g", "element_density_g_cm3", "beam_libraries_missing"]
 __all__ += ["Misalignment", "DetectorDrift", "parse_misalignment", "resample_to_detector"]
+__all__ += ["Holder", "parse_holder", "HOLDER_ORIGINS", "parse_objects", "ELECTRONIC_MATERIALS"]

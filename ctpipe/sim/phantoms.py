@@ -38,6 +38,29 @@ Schema
           void_fraction: 0.25            # this fraction of the grains are empty pores
           min_gap_mm: 0.2                # negative lets grains overlap loosely
           seed: 7
+      - trabecular:                 # trabecular bone: a cortical tube, rods and plates of bone in marrow
+          radius_mm: 24                  # outer radius (the cortical shell's)
+          height_mm: 50
+          centre_mm: [0, 0, 0]           # optional
+          cortical_mm: 2.0               # shell thickness; 0: none (default 1.0)
+          spacing_mm: 3.5                # lattice spacing of the struts' nodes (default 2.0)
+          thickness_mm: [0.6, 1.2]       # uniform range of rod diameters and plate thicknesses (default [0.3, 0.6])
+          plate_fraction: 0.3            # this fraction of the struts are plates, 0.4-0.8 spacing wide (default 0.3)
+          bone_volume_fraction: 0.12     # BV/TV of the core, 0-0.6
+          marrow: water                  # or air (a dry bone) (default water)
+          seed: 11
+      - electronic:                 # a board with copper traces, chips on solder balls, metal pads
+          board_mm: [50, 60, 1.6]        # x (lateral), y (along the axis), z (thickness): it stands upright
+          centre_mm: [0, 0, 0]           # optional
+          traces: 40                     # copper traces along x or y on either face (default 30)
+          trace_width_mm: [0.2, 0.6]     # (default [0.2, 0.5])
+          trace_thickness_mm: 0.1        # (default 0.1)
+          chips: 5                       # on the +z face, 1 mm apart (default 4)
+          chip_size_mm: [5, 12]          # uniform range of each side (default [4, 10])
+          chip_thickness_mm: 1.2         # (default 1.2)
+          ball_radius_mm: 0.3            # solder balls on a 4-radius grid under each chip (default 0.3)
+          pads_per_side: 4               # tungsten bond pads around each chip's top (default 4)
+          seed: 5
     voxels:                         # instead of objects: a voxel array
       file: sample.npy              # .npy or .tif, relative to the YAML file; volume[iy, iz, ix]
       voxel_size_mm: 0.5
@@ -68,9 +91,21 @@ material's ``mu(E)``; a monochromatic scan uses ``density_per_mm``, which defaul
 without a material (and the generators' objects) count as water of that ``density_per_mm`` at
 60 keV under a beam.
 
-Generators (``beads``, ``grains``) draw from ``numpy.random.default_rng(seed)`` only, so the
-same file always gives the same primitives. Their ``density_per_mm`` is the *material* of the
-bead or grain, which replaces the container's matrix (the primitive added is ``material -
+``trabecular`` puts a node at every ``spacing_mm`` of a cubic lattice filling the core (the
+cylinder inside the cortical shell), jitters it by up to 0.2 spacing per axis and joins each node
+to its +x, +y and +z neighbours by a strut: a rod (cylinder) or a plate (box) of bone (ICRU
+cortical, 1.92 g/cm^3). Struts are kept in a random order until their volume reaches
+``bone_volume_fraction`` of the core's (error if the lattice holds less); with water marrow
+each strut also removes its volume of water, so it replaces the marrow exactly (two primitives
+per strut). Struts overlap only where they meet at nodes, counting twice there. ``electronic``
+builds the part of :data:`ELECTRONIC_MATERIALS`: a board standing in the x-y plane, traces on
+both faces, chips placed at random without overlap, each on a grid of solder balls with pads on
+its top. Both name materials (for a polychromatic beam) and carry their ``density_per_mm`` at
+60 keV, so they scan monochromatically without xraydb.
+
+Generators (``beads``, ``grains``, ``trabecular``, ``electronic``) draw from
+``numpy.random.default_rng(seed)`` only, so the same file always gives the same primitives.
+The ``density_per_mm`` of ``beads`` and ``grains`` is the *material* of the bead or grain, which replaces the container's matrix (the primitive added is ``material -
 matrix``); a void is material 0. Beads and grains are placed whole inside the container's
 cavity, their bounding spheres at least ``min_gap_mm`` apart, so that the replacement is exact;
 with a negative gap the overlapping parts count twice. A container of density 0 is only a
@@ -92,16 +127,17 @@ import numpy as np
 from ctpipe.config import check_keys, load_yaml
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.recon.volume import VolumeGrid
-from ctpipe.sim.materials import REFERENCE_KEV, mass_attenuation_cm2_g, resolve_material
+from ctpipe.sim.materials import MATERIALS, REFERENCE_KEV, mass_attenuation_cm2_g, resolve_material
 from ctpipe.sim.primitives import KINDS, Primitives
 from ctpipe.stages import ParamSpec, check_value
 
-__all__ = ["Phantom", "load_phantom", "parse_phantom", "list_phantoms", "OBJECT_KINDS", "rotation_from_deg"]
+__all__ = ["Phantom", "load_phantom", "parse_phantom", "parse_objects", "list_phantoms", "OBJECT_KINDS",
+           "rotation_from_deg", "ELECTRONIC_MATERIALS"]
 
 _ELLIPSOID, _CYLINDER, _BOX = (KINDS.index(k) for k in ("ellipsoid", "cylinder", "box"))
 
 #: Object kinds a phantom's ``objects`` list accepts.
-OBJECT_KINDS = ("ellipsoid", "sphere", "cylinder", "box", "beads", "grains")
+OBJECT_KINDS = ("ellipsoid", "sphere", "cylinder", "box", "beads", "grains", "trabecular", "electronic")
 
 
 @dataclass(frozen=True, eq=False)
@@ -433,8 +469,212 @@ def _add_grains(builder: _Builder, p: Any, path: str) -> None:
                 material[keep] - container.density_per_mm)
 
 
+# ---------------------------------------------------------------------------------------------
+# Families that look like what labs scan: trabecular bone, an electronic part
+
+
+def _mu_per_mm(material: str, rho_g_cm3: float) -> float:
+    """Monochromatic attenuation (1/mm) at :data:`REFERENCE_KEV` of a built-in material at ``rho_g_cm3``."""
+    return MATERIALS[material].mu_rho_reference_cm2_g * rho_g_cm3 * 0.1  # cm^2/g x g/cm^3 = 1/cm = 0.1/mm
+
+
+def _count(mapping: Mapping, key: str, path: str, default: int, low: int = 0, high: int = 100_000) -> int:
+    return check_value(ParamSpec(key, int, None, "", ge=low, le=high), mapping.get(key, default), f"{path}.{key}")
+
+
+def _frames(direction: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Rotations (N, 3, 3) whose local ``y`` is ``direction`` (N, 3, unit) and local ``x`` a random normal to it."""
+    a = rng.normal(size=direction.shape)
+    e_x = a - np.sum(a * direction, axis=1, keepdims=True) * direction
+    e_x /= np.linalg.norm(e_x, axis=1, keepdims=True)
+    e_z = np.cross(e_x, direction)
+    return np.stack([e_x, direction, e_z], axis=2)  # columns: the local axes in the object frame
+
+
+_MAX_STRUTS = 6000
+
+
+def _add_trabecular(builder: _Builder, p: Any, path: str) -> None:
+    """Trabecular bone: a cortical tube around a jittered lattice of rods and plates of bone in marrow."""
+    check_keys(p, path, allowed=("centre_mm", "radius_mm", "height_mm", "cortical_mm", "spacing_mm", "thickness_mm",
+                                 "plate_fraction", "bone_volume_fraction", "marrow", "seed"),
+               required=("radius_mm", "height_mm", "bone_volume_fraction", "seed"))
+    centre = _vector(p, "centre_mm", path, 3, default=(0, 0, 0))
+    radius = _number(p, "radius_mm", path, _POSITIVE)
+    height = _number(p, "height_mm", path, _POSITIVE)
+    cortical = _number(p, "cortical_mm", path, _NON_NEGATIVE, default=1.0)
+    spacing = _number(p, "spacing_mm", path, _POSITIVE, default=2.0)
+    t_lo, t_hi = (0.3, 0.6) if "thickness_mm" not in p else _range(p, "thickness_mm", path, positive=True)
+    plate_fraction = _number(p, "plate_fraction", path, ParamSpec("", float, None, "", ge=0, le=1), default=0.3)
+    bvf = _number(p, "bone_volume_fraction", path, ParamSpec("", float, None, "", gt=0, le=0.6))
+    marrow = check_value(ParamSpec("marrow", str, None, ""), p.get("marrow", "water"), f"{path}.marrow")
+    if marrow not in ("water", "air"):
+        raise ConfigError(f"{path}.marrow: must be one of water, air, got {marrow!r}")
+    rng = np.random.default_rng(check_value(_SEED, p["seed"], f"{path}.seed"))
+    core_r = radius - cortical
+    if t_hi >= spacing / 2:
+        raise ConfigError(f"{path}.thickness_mm: must stay below half of spacing_mm ({spacing:g}), "
+                          f"got {p['thickness_mm']!r}")
+    # Nodes jitter by up to 0.2 spacing along each axis (0.3 radially), rods reach half their
+    # thickness past them: so every rod stays in the core; a plate that would not becomes a rod.
+    margin = 0.3 * spacing + t_hi / 2
+    if core_r <= margin + spacing or height / 2 <= margin + spacing:
+        raise ConfigError(f"{path}: radius_mm - cortical_mm ({core_r:g}) and height_mm / 2 ({height / 2:g}) must "
+                          f"exceed 1.3 spacing_mm + half the largest thickness ({margin + spacing:g}); "
+                          f"lower spacing_mm")
+    axis = np.arange(-core_r + margin, core_r - margin + 1e-9, spacing)
+    axis_y = np.arange(-height / 2 + margin, height / 2 - margin + 1e-9, spacing)
+    n_struts_max = 3 * len(axis) ** 2 * len(axis_y)
+    if n_struts_max > 20 * _MAX_STRUTS:
+        raise ConfigError(f"{path}.spacing_mm: a lattice of about {n_struts_max} struts is too many (at most "
+                          f"{20 * _MAX_STRUTS}); raise spacing_mm or shrink the bone")
+    ix, iy, iz = np.meshgrid(np.arange(len(axis)), np.arange(len(axis_y)), np.arange(len(axis)), indexing="ij")
+    inside = np.hypot(axis[ix], axis[iz]) <= core_r - margin
+    index = np.full(ix.shape, -1)
+    index[inside] = np.arange(int(inside.sum()))
+    nodes = np.column_stack([axis[ix[inside]], axis_y[iy[inside]], axis[iz[inside]]])
+    nodes += rng.uniform(-0.2 * spacing, 0.2 * spacing, nodes.shape)
+    starts, ends = [], []
+    for step in ((1, 0, 0), (0, 1, 0), (0, 0, 1)):  # each node to its +x, +y and +z neighbour
+        a = index[: index.shape[0] - step[0], : index.shape[1] - step[1], : index.shape[2] - step[2]]
+        b = index[step[0]:, step[1]:, step[2]:]
+        both = (a >= 0) & (b >= 0)
+        starts.append(a[both])
+        ends.append(b[both])
+    starts, ends = np.concatenate(starts), np.concatenate(ends)
+    order = rng.permutation(len(starts))
+    starts, ends = starts[order], ends[order]
+    n = len(starts)
+    vector = nodes[ends] - nodes[starts]
+    length = np.linalg.norm(vector, axis=1)
+    direction = vector / length[:, None]
+    thickness = rng.uniform(t_lo, t_hi, n)
+    plate = rng.random(n) < plate_fraction
+    width = rng.uniform(0.4, 0.8, n) * spacing
+    rotation = _frames(direction, rng)
+    half = np.column_stack([thickness / 2, length / 2, np.where(plate, width, thickness) / 2])
+    signs = np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)], dtype=np.float64)
+    corners = ((nodes[starts] + nodes[ends]) / 2)[:, None, :] + np.einsum("nij,knj->nki", rotation,
+                                                                         signs[:, None, :] * half[None])
+    outside = (np.hypot(corners[..., 0], corners[..., 2]).max(axis=1) > core_r) | \
+        (np.abs(corners[..., 1]).max(axis=1) > height / 2)
+    plate &= ~outside
+    half[:, 2] = np.where(plate, width, thickness) / 2
+    volume = np.where(plate, thickness * length * width, math.pi * (thickness / 2) ** 2 * length)
+    core_volume = math.pi * core_r ** 2 * height
+    target = bvf * core_volume
+    reach = np.cumsum(volume)
+    if reach[-1] < target:
+        raise ConfigError(f"{path}.bone_volume_fraction: {bvf:g} is more than this lattice holds "
+                          f"({reach[-1] / core_volume:.3f}); lower spacing_mm or raise thickness_mm")
+    keep = int(np.searchsorted(reach, target)) + 1
+    if keep > _MAX_STRUTS:
+        raise ConfigError(f"{path}: the bone_volume_fraction needs {keep} struts (at most {_MAX_STRUTS}); raise "
+                          f"thickness_mm or spacing_mm")
+    centres = centre + (nodes[starts[:keep]] + nodes[ends[:keep]]) / 2
+    rotation, half = rotation[:keep], half[:keep]
+    kinds = np.where(plate[:keep], _BOX, _CYLINDER)
+    bone_rho = MATERIALS["bone"].density_g_cm3
+    mu_bone, mu_water = _mu_per_mm("bone", bone_rho), _mu_per_mm("water", 1.0)
+    core = [core_r, height / 2, core_r]
+    if cortical > 0:
+        builder.add(_CYLINDER, centre, [radius, height / 2, radius], np.eye(3), mu_bone, "bone", bone_rho)
+        builder.add(_CYLINDER, centre, core, np.eye(3), -mu_bone, "bone", -bone_rho)
+    builder.add(kinds, centres, half, rotation, np.full(keep, mu_bone), "bone", bone_rho)
+    if marrow == "water":  # the struts replace marrow: water everywhere in the core, less under each strut
+        builder.add(_CYLINDER, centre, core, np.eye(3), mu_water, "water", 1.0)
+        builder.add(kinds, centres, half, rotation, np.full(keep, -mu_water), "water", -1.0)
+
+
+
+#: Materials of the electronic part: (name for the beam, mass density g/cm^3). The board is a
+#: stand-in for FR4 (epoxy and glass, 1.85 g/cm^3) and the chip body for silicon in its mould
+#: (2.33 g/cm^3): built-in materials of about their attenuation, so the part loads without xraydb.
+ELECTRONIC_MATERIALS = {"board": ("pmma", 1.85), "trace": ("copper", 8.96), "chip": ("aluminium", 2.33),
+                        "pad": ("tungsten", 19.25), "ball": ("copper", 8.96)}
+
+
+def _add_electronic(builder: _Builder, p: Any, path: str) -> None:
+    """An electronic part: a board with copper traces on both faces, chips on BGA solder balls, metal pads."""
+    check_keys(p, path, allowed=("centre_mm", "board_mm", "traces", "trace_width_mm", "trace_thickness_mm", "chips",
+                                 "chip_size_mm", "chip_thickness_mm", "ball_radius_mm", "pads_per_side", "seed"),
+               required=("board_mm", "seed"))
+    centre = _vector(p, "centre_mm", path, 3, default=(0, 0, 0))
+    width, height, thick = _vector(p, "board_mm", path, 3, positive=True)
+    n_traces = _count(p, "traces", path, 30, high=5000)
+    w_lo, w_hi = (0.2, 0.5) if "trace_width_mm" not in p else _range(p, "trace_width_mm", path, positive=True)
+    trace_t = _number(p, "trace_thickness_mm", path, _POSITIVE, default=0.1)
+    n_chips = _count(p, "chips", path, 4, high=200)
+    c_lo, c_hi = (4.0, 10.0) if "chip_size_mm" not in p else _range(p, "chip_size_mm", path, positive=True)
+    chip_t = _number(p, "chip_thickness_mm", path, _POSITIVE, default=1.2)
+    ball_r = _number(p, "ball_radius_mm", path, _POSITIVE, default=0.3)
+    pads = _count(p, "pads_per_side", path, 4, high=100)
+    rng = np.random.default_rng(check_value(_SEED, p["seed"], f"{path}.seed"))
+    if c_hi + 2.0 > min(width, height):
+        raise ConfigError(f"{path}.chip_size_mm: chips up to {c_hi:g} mm do not fit on a {width:g} x {height:g} mm "
+                          f"board with 1 mm margins")
+    if w_hi >= min(width, height) / 2:
+        raise ConfigError(f"{path}.trace_width_mm: must stay below half the board's width and height, got "
+                          f"{p['trace_width_mm']!r}")
+    mu = {part: _mu_per_mm(name, rho) for part, (name, rho) in ELECTRONIC_MATERIALS.items()}
+
+    def add(part, kinds, centres, half, rotation=None):
+        name, rho = ELECTRONIC_MATERIALS[part]
+        k = np.atleast_1d(kinds)
+        rot = np.broadcast_to(np.eye(3), (len(k), 3, 3)) if rotation is None else rotation
+        builder.add(k, centre + np.asarray(centres).reshape(-1, 3), half, rot, np.full(len(k), mu[part]), name, rho)
+
+    add("board", _BOX, [0, 0, 0], [width / 2, height / 2, thick / 2])
+    # Traces: straight runs along x or y on either face.
+    along_x = rng.random(n_traces) < 0.5
+    face = np.where(rng.random(n_traces) < 0.5, 1.0, -1.0)
+    span = np.where(along_x, width, height)
+    length = rng.uniform(0.2, 0.8, n_traces) * span
+    trace_w = rng.uniform(w_lo, w_hi, n_traces)
+    half_run = np.where(along_x, (width - length) / 2, (height - length) / 2)
+    half_across = np.where(along_x, (height - trace_w) / 2, (width - trace_w) / 2)
+    run = rng.uniform(-1, 1, n_traces) * half_run
+    across = rng.uniform(-1, 1, n_traces) * half_across
+    trace_centres = np.column_stack([np.where(along_x, run, across), np.where(along_x, across, run),
+                                     face * (thick + trace_t) / 2])
+    trace_half = np.column_stack([np.where(along_x, length, trace_w) / 2, np.where(along_x, trace_w, length) / 2,
+                                  np.full(n_traces, trace_t / 2)])
+    if n_traces:
+        add("trace", np.full(n_traces, _BOX), trace_centres, trace_half)
+    # Chips: rectangles on the +z face, 1 mm apart, each on a grid of solder balls, pads around its top.
+    placed: list[tuple[float, float, float, float]] = []
+    for i in range(n_chips):
+        for _ in range(500):
+            sx, sy = rng.uniform(c_lo, c_hi, 2)
+            x = rng.uniform(-(width - sx) / 2 + 1, (width - sx) / 2 - 1)
+            y = rng.uniform(-(height - sy) / 2 + 1, (height - sy) / 2 - 1)
+            if all(abs(x - ox) > (sx + osx) / 2 + 1 or abs(y - oy) > (sy + osy) / 2 + 1 for ox, oy, osx, osy in placed):
+                placed.append((x, y, sx, sy))
+                break
+        else:
+            raise ConfigError(f"{path}.chips: placed only {i} of {n_chips} chips on the board; fewer or smaller chips")
+    base = thick / 2 + trace_t  # balls stand on the traces' level
+    for x, y, sx, sy in placed:
+        add("chip", _BOX, [x, y, base + 2 * ball_r + chip_t / 2], [sx / 2, sy / 2, chip_t / 2])
+        pitch = 4 * ball_r
+        nx, ny = max(int((sx - pitch) // pitch) + 1, 1), max(int((sy - pitch) // pitch) + 1, 1)
+        gx, gy = np.meshgrid((np.arange(nx) - (nx - 1) / 2) * pitch, (np.arange(ny) - (ny - 1) / 2) * pitch)
+        balls = np.column_stack([x + gx.ravel(), y + gy.ravel(), np.full(gx.size, base + ball_r)])
+        add("ball", np.full(len(balls), _ELLIPSOID), balls, np.full((len(balls), 3), ball_r))
+        if pads:
+            pad = min(0.5, 0.8 * min(sx, sy) / (2 * pads))
+            top = base + 2 * ball_r + chip_t + 0.05
+            t = (np.arange(pads) + 0.5) / pads - 0.5
+            inset_x, inset_y = sx / 2 - 2 * pad, sy / 2 - 2 * pad
+            ring = np.concatenate([np.column_stack([t * 2 * inset_x, np.full(pads, s * inset_y)]) for s in (-1, 1)]
+                                  + [np.column_stack([np.full(pads, s * inset_x), t * 2 * inset_y]) for s in (-1, 1)])
+            pad_centres = np.column_stack([x + ring[:, 0], y + ring[:, 1], np.full(len(ring), top)])
+            add("pad", np.full(len(ring), _BOX), pad_centres, np.tile([pad / 2, pad / 2, 0.05], (len(ring), 1)))
+
+
 _OBJECT_BUILDERS = {"ellipsoid": _add_ellipsoid, "sphere": _add_sphere, "cylinder": _add_cylinder, "box": _add_box,
-                    "beads": _add_beads, "grains": _add_grains}
+                    "beads": _add_beads, "grains": _add_grains,
+                    "trabecular": _add_trabecular, "electronic": _add_electronic}
 
 
 def _parse_objects(value: Any, path: str) -> Primitives:
@@ -452,6 +692,17 @@ def _parse_objects(value: Any, path: str) -> Primitives:
             raise ConfigError(f"{where}.{kind}: unknown object kind; allowed: {', '.join(OBJECT_KINDS)}")
         _OBJECT_BUILDERS[kind](builder, params, f"{where}.{kind}")
     return builder.build()
+
+
+def parse_objects(value: Any, path: str) -> Primitives:
+    """Validate an ``objects`` list (see the module docstring) into primitives.
+
+    Raises
+    ------
+    ConfigError
+        A key, type or value is not allowed; the message names its YAML path under ``path``.
+    """
+    return _parse_objects(value, path)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@
     beam: {kvp: 120, anode: W, filter_mm: {Al: 1.0}, energy_bins: 32}   # ctpipe.sim.beam: polychromatic
     misalignment: {cor_offset_px: 1.5, tilt_deg: 0.3, drift: {walk_px: 0.05, jumps: 2, jump_px: 0.5}}
                                                      # ctpipe.sim.drift; null: the nominal scanner
+    holder: {origin: sample_bottom, turning: [{cylinder: {...}}], static: [{box: {...}}]}   # ctpipe.sim.holders
     seed: 0
 
 ``geometry`` and ``angles`` are required; ``jitter`` defaults to none, ``noise`` to null,
@@ -18,6 +19,8 @@
 null (no artefacts).
 ``beam`` defaults to none: a monochromatic scan, each object attenuating by its ``density_per_mm``.
 ``misalignment`` defaults to null (the scanner is exactly its nominal geometry).
+``holder`` defaults to null: no sample holder; ``{origin, turning: [...], static: [...]}`` adds objects
+that turn with the sample and objects that do not (:mod:`ctpipe.sim.holders`).
 """
 
 from __future__ import annotations
@@ -29,11 +32,13 @@ from typing import Any, Literal
 import numpy as np
 
 from ctpipe.config import check_keys, load_yaml, parse_geometry
+from ctpipe.errors import ConfigError
 from ctpipe.geometry import Geometry
 from ctpipe.sim.acquisition import NoiseModel, parse_noise
 from ctpipe.sim.beam import Beam, parse_beam
 from ctpipe.sim.detector import DetectorModel, parse_detector
 from ctpipe.sim.drift import Misalignment, parse_misalignment
+from ctpipe.sim.holders import Holder, parse_holder
 from ctpipe.sim.jitter import Jitter, nominal_angles_deg, parse_jitter
 from ctpipe.stages import ParamSpec, check_value
 
@@ -81,6 +86,7 @@ class ScanSpec:
     detector: DetectorModel | None = None
     beam: Beam | None = None
     misalignment: Misalignment | None = None
+    holder: Holder | None = None
 
     @property
     def n_views(self) -> int:
@@ -96,7 +102,8 @@ class ScanSpec:
                 "noise": None if self.noise is None else self.noise.to_dict(), "projector": self.projector.to_dict(),
                 "seed": self.seed, **({} if self.detector is None else {"detector": self.detector.to_dict()}),
                 **({} if self.beam is None else {"beam": self.beam.to_dict()}),
-                **({} if self.misalignment is None else {"misalignment": self.misalignment.to_dict()})}
+                **({} if self.misalignment is None else {"misalignment": self.misalignment.to_dict()}),
+                **({} if self.holder is None else {"holder": self.holder.to_dict()})}
 
 
 _ANGLE_FIELDS = {"n_views": ParamSpec("n_views", int, None, "", ge=1, le=100_000),
@@ -116,7 +123,7 @@ def _fields(value: Any, path: str, table: dict[str, ParamSpec], required: tuple[
 def parse_scan_spec(mapping: Any, path: str = "scan") -> ScanSpec:
     """Validate a scan spec mapping; errors name the YAML path, the value and what is allowed."""
     check_keys(mapping, path, allowed=("geometry", "angles", "jitter", "noise", "projector", "seed", "detector",
-                                      "beam", "misalignment"),
+                                      "beam", "misalignment", "holder"),
                required=("geometry", "angles"))
     geometry = parse_geometry(mapping["geometry"], f"{path}.geometry")
     angles = AngleSpec(**_fields(mapping["angles"], f"{path}.angles", _ANGLE_FIELDS, required=("n_views",)))
@@ -128,8 +135,12 @@ def parse_scan_spec(mapping: Any, path: str = "scan") -> ScanSpec:
                               (geometry.detector_rows, geometry.detector_cols))
     beam = parse_beam(mapping.get("beam"), f"{path}.beam")
     misalignment = parse_misalignment(mapping.get("misalignment"), f"{path}.misalignment", n_views=angles.n_views)
+    holder = parse_holder(mapping.get("holder"), f"{path}.holder")
+    if holder is not None and beam is not None and len(holder.static):
+        raise ConfigError(f"{path}.holder.static: a static holder is not simulated under a polychromatic beam yet; "
+                          f"leave out beam or the static objects")
     return ScanSpec(geometry, angles, jitter, noise, projector, seed, detector=detector, beam=beam,
-                    misalignment=misalignment)
+                    misalignment=misalignment, holder=holder)
 
 
 def load_scan_spec(path: str | Path) -> ScanSpec:

@@ -147,9 +147,23 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
     # After the jitter, before the noise; a scan without misalignment draws nothing here.
     misaligned = _true_detector(spec, rng, jitter)
     true_detector = {f"true_{key}": value for key, value in misaligned.items()}
+    holder = getattr(spec, "holder", None)
+    turning, static = holder.placed(phantom) if holder is not None else (None, None)
+    if turning is not None and len(turning) and phantom.primitives is not None:
+        from dataclasses import replace
+
+        from ctpipe.sim.primitives import Primitives
+
+        phantom = replace(phantom, primitives=Primitives.concatenate([phantom.primitives, turning]))
+        turning = None
     if getattr(spec, "beam", None) is not None:  # polychromatic: -log of the flat-normalised transmission
         from ctpipe.sim.beam import polychromatic_line_integrals
 
+        if (turning is not None and len(turning)) or (static is not None and len(static)):
+            from ctpipe.errors import InputError
+
+            raise InputError("holder: under a polychromatic beam only a turning holder of a primitive phantom is "
+                             "simulated; leave out the beam, the static objects or the voxel phantom")
         line_integrals = polychromatic_line_integrals(phantom, spec.beam, spec.geometry, truth,
                                                       supersample=spec.projector.supersample,
                                                       blur_px=spec.projector.blur_px, progress=progress,
@@ -157,6 +171,10 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
     else:
         line_integrals = project_phantom(phantom, spec.geometry, truth, supersample=spec.projector.supersample,
                                          blur_px=spec.projector.blur_px, progress=progress, **misaligned)
+        if turning is not None and len(turning):  # a voxel phantom's turning holder: its own exact projection
+            _add_holder(line_integrals, turning, spec, truth, misaligned)
+        if static is not None and len(static):  # does not turn: turntable angle 0 in every view
+            _add_holder(line_integrals, static, spec, np.zeros(len(truth)), misaligned)
     detector = spec.detector
     if spec.noise is None:
         if detector is not None:  # artefacts act on intensities: exp(-p) with I0 = 1, flat-corrected back
@@ -172,6 +190,30 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
         intensities, flats, darks = acquire(line_integrals, spec.noise, rng)
     return SimulatedScan(log_transform(intensities, flats, darks), nominal, truth, spec.geometry, intensities, flats,
                          darks, **true_detector)
+
+
+def _add_holder(out: np.ndarray, primitives, spec, angles_deg: np.ndarray, misaligned: dict) -> None:
+    """Add to ``out`` (V, rows, cols) the line integrals of holder ``primitives`` at ``angles_deg``.
+
+    On the scan's (true) detector. Projections are linear, so adding them to the sample's is
+    projecting both together (the detector blur included). A static holder without per-view
+    detector offsets is projected once (all its angles are 0) and broadcast; otherwise views go
+    in chunks, so the holder never holds a second stack in memory.
+    """
+    from ctpipe.sim.projectors import project_analytic
+
+    settings = {"supersample": spec.projector.supersample, "blur_px": spec.projector.blur_px,
+                "detector_tilt_deg": misaligned.get("detector_tilt_deg", 0.0)}
+    offsets = misaligned.get("detector_offsets_px")
+    if offsets is None and np.all(angles_deg == angles_deg[0]):
+        out += project_analytic(primitives, spec.geometry, angles_deg[:1], **settings)
+        return
+    chunk = 32
+    for start in range(0, len(angles_deg), chunk):
+        stop = min(start + chunk, len(angles_deg))
+        out[start:stop] += project_analytic(primitives, spec.geometry, angles_deg[start:stop],
+                                            detector_offsets_px=None if offsets is None else offsets[start:stop],
+                                            **settings)
 
 
 def _true_detector(spec, rng, jitter: bool) -> dict:
