@@ -61,6 +61,16 @@ Schema
           ball_radius_mm: 0.3            # solder balls on a 4-radius grid under each chip (default 0.3)
           pads_per_side: 4               # tungsten bond pads around each chip's top (default 4)
           seed: 5
+      - foam:                       # a closed-cell foam: a solid cylinder with spherical voids
+          radius_mm: 20
+          height_mm: 40
+          centre_mm: [0, 0, 0]           # optional
+          material: pmma                 # a built-in material (default pmma)
+          density_g_cm3: 1.18            # of the solid (default: the material's usual)
+          porosity: 0.3                  # volume fraction of the cells, at most 0.4
+          cell_radius_mm: [0.6, 2.5]     # uniform range of cell radii (default [0.5, 1.5])
+          wall_mm: 0.15                  # least wall between cells and to the outside (default 0.1)
+          seed: 13
     voxels:                         # instead of objects: a voxel array
       file: sample.npy              # .npy or .tif, relative to the YAML file; volume[iy, iz, ix]
       voxel_size_mm: 0.5
@@ -100,13 +110,16 @@ each strut also removes its volume of water, so it replaces the marrow exactly (
 per strut). Struts overlap only where they meet at nodes, counting twice there. ``electronic``
 builds the part of :data:`ELECTRONIC_MATERIALS`: a board standing in the x-y plane, traces on
 both faces, chips placed at random without overlap, each on a grid of solder balls with pads on
-its top. Both name materials (for a polychromatic beam) and carry their ``density_per_mm`` at
+its top. ``foam`` draws cell radii until their volume reaches ``porosity`` of the cylinder's and
+packs them whole and ``wall_mm`` apart as ``beads`` are placed (a void is the solid's negative).
+The three name materials (for a polychromatic beam) and carry their ``density_per_mm`` at
 60 keV, so they scan monochromatically without xraydb.
 
-Generators (``beads``, ``grains``, ``trabecular``, ``electronic``) draw from
+Generators (``beads``, ``grains``, ``trabecular``, ``electronic``, ``foam``) draw from
 ``numpy.random.default_rng(seed)`` only, so the same file always gives the same primitives.
-The ``density_per_mm`` of ``beads`` and ``grains`` is the *material* of the bead or grain, which replaces the container's matrix (the primitive added is ``material -
-matrix``); a void is material 0. Beads and grains are placed whole inside the container's
+The ``density_per_mm`` of ``beads`` and ``grains`` is the *material* of the bead or grain,
+which replaces the container's matrix (the primitive added is ``material - matrix``); a void is
+material 0. Beads and grains are placed whole inside the container's
 cavity, their bounding spheres at least ``min_gap_mm`` apart, so that the replacement is exact;
 with a negative gap the overlapping parts count twice. A container of density 0 is only a
 region: no primitive is emitted for it. ``wall_mm > 0`` adds a tube of ``wall_density_per_mm``
@@ -137,7 +150,7 @@ __all__ = ["Phantom", "load_phantom", "parse_phantom", "parse_objects", "list_ph
 _ELLIPSOID, _CYLINDER, _BOX = (KINDS.index(k) for k in ("ellipsoid", "cylinder", "box"))
 
 #: Object kinds a phantom's ``objects`` list accepts.
-OBJECT_KINDS = ("ellipsoid", "sphere", "cylinder", "box", "beads", "grains", "trabecular", "electronic")
+OBJECT_KINDS = ("ellipsoid", "sphere", "cylinder", "box", "beads", "grains", "trabecular", "electronic", "foam")
 
 
 @dataclass(frozen=True, eq=False)
@@ -672,9 +685,59 @@ def _add_electronic(builder: _Builder, p: Any, path: str) -> None:
             add("pad", np.full(len(ring), _BOX), pad_centres, np.tile([pad / 2, pad / 2, 0.05], (len(ring), 1)))
 
 
+_MAX_CELLS = 20_000
+
+
+def _add_foam(builder: _Builder, p: Any, path: str) -> None:
+    """A closed-cell foam: a solid cylinder with spherical cells (voids) of random sizes, ``porosity`` of it."""
+    check_keys(p, path, allowed=("centre_mm", "radius_mm", "height_mm", "material", "density_g_cm3", "porosity",
+                                 "cell_radius_mm", "wall_mm", "seed"),
+               required=("radius_mm", "height_mm", "porosity", "seed"))
+    material = resolve_material(p.get("material", "pmma"), f"{path}.material")
+    if material.name not in MATERIALS:
+        raise ConfigError(f"{path}.material: must be a built-in material ({', '.join(MATERIALS)}), got "
+                          f"{p['material']!r}")
+    rho = _number(p, "density_g_cm3", path, ParamSpec("", float, None, "", gt=0, le=30),
+                  default=material.density_g_cm3)
+    # Random sequential packing of the cells jams near 0.4 (they stay whole and apart).
+    porosity = _number(p, "porosity", path, ParamSpec("", float, None, "", gt=0, le=0.4))
+    r_lo, r_hi = (0.5, 1.5) if "cell_radius_mm" not in p else _range(p, "cell_radius_mm", path, positive=True)
+    wall = _number(p, "wall_mm", path, _NON_NEGATIVE, default=0.1)
+    container = _Container(_vector(p, "centre_mm", path, 3, default=(0, 0, 0)),
+                           _number(p, "radius_mm", path, _POSITIVE), _number(p, "height_mm", path, _POSITIVE),
+                           0.0, 0.0, 0.0)
+    rng = np.random.default_rng(check_value(_SEED, p["seed"], f"{path}.seed"))
+    target = porosity * math.pi * container.radius_mm ** 2 * container.height_mm
+    mean_cell = 4.0 / 3.0 * math.pi * np.mean(rng.uniform(r_lo, r_hi, 256) ** 3)
+    if target / mean_cell > _MAX_CELLS:
+        raise ConfigError(f"{path}.cell_radius_mm: about {int(target / mean_cell)} cells make that porosity (at most "
+                          f"{_MAX_CELLS}); use larger cells or a smaller foam")
+    radii: list[float] = []
+    volume = 0.0
+    while volume < target:
+        r = float(rng.uniform(r_lo, r_hi))
+        radii.append(r)
+        volume += 4.0 / 3.0 * math.pi * r ** 3
+    cells = np.array(radii)
+    if r_hi + wall > min(container.radius_mm, container.height_mm / 2):
+        raise ConfigError(f"{path}.cell_radius_mm: cells up to {r_hi:g} mm (and wall_mm {wall:g}) do not fit in the "
+                          f"foam's radius and half height")
+    try:
+        centres = _place(cells, container, wall, rng, path, "cell")
+    except ConfigError:
+        raise ConfigError(f"{path}.porosity: random packing does not place {len(cells)} cells for porosity "
+                          f"{porosity:g}; lower porosity or wall_mm, or widen cell_radius_mm") from None
+    mu = material.mu_rho_reference_cm2_g * rho * 0.1
+    half_height = container.height_mm / 2.0
+    builder.add(_CYLINDER, container.centre_mm, [container.radius_mm, half_height, container.radius_mm], np.eye(3),
+                mu, material.name, rho)
+    builder.add(np.full(len(cells), _ELLIPSOID), centres, np.repeat(cells[:, None], 3, axis=1),
+                np.broadcast_to(np.eye(3), (len(cells), 3, 3)), np.full(len(cells), -mu), material.name, -rho)
+
+
 _OBJECT_BUILDERS = {"ellipsoid": _add_ellipsoid, "sphere": _add_sphere, "cylinder": _add_cylinder, "box": _add_box,
                     "beads": _add_beads, "grains": _add_grains,
-                    "trabecular": _add_trabecular, "electronic": _add_electronic}
+                    "trabecular": _add_trabecular, "electronic": _add_electronic, "foam": _add_foam}
 
 
 def _parse_objects(value: Any, path: str) -> Primitives:

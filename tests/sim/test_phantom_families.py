@@ -1,4 +1,4 @@
-"""Procedural phantom families (trabecular bone, an electronic part) and sample holders."""
+"""Procedural phantom families (trabecular bone, an electronic part, a foam) and sample holders."""
 
 import hashlib
 import math
@@ -28,6 +28,11 @@ ELECTRONIC = """
 objects:
   - electronic: {board_mm: [20, 24, 1.6], traces: 12, chips: 3, chip_size_mm: [4, 7], pads_per_side: 3, seed: SEED}
 """
+FOAM = """
+objects:
+  - foam: {radius_mm: 6, height_mm: 8, material: pmma, porosity: 0.25, cell_radius_mm: [0.4, 1.0], wall_mm: 0.1,
+           seed: SEED}
+"""
 
 
 def parse(text: str, seed: int = 1):
@@ -38,7 +43,7 @@ def arrays(p):
     return [p.kind, p.centre_mm, p.half_size_mm, p.rotation, p.density_per_mm, p.material, p.mass_density_g_cm3]
 
 
-@pytest.mark.parametrize("text", [TRABECULAR, ELECTRONIC], ids=["trabecular", "electronic"])
+@pytest.mark.parametrize("text", [TRABECULAR, ELECTRONIC, FOAM], ids=["trabecular", "electronic", "foam"])
 def test_same_seed_same_primitives_and_another_seed_others(text):
     a, b, c = parse(text, 1).primitives, parse(text, 1).primitives, parse(text, 2).primitives
     for x, y in zip(arrays(a), arrays(b)):
@@ -74,6 +79,22 @@ def test_trabecular_bone_volume_fraction_and_materials_measured_by_voxelising():
 def test_trabecular_dry_bone_has_no_water():
     p = parse(TRABECULAR.replace("seed: SEED", "marrow: air, seed: 3")).primitives
     assert p.materials == ("bone",)
+
+
+def test_foam_porosity_measured_by_voxelising():
+    p = parse(FOAM).primitives
+    mu = MATERIALS["pmma"].mu_rho_reference_cm2_g * 1.18 * 0.1
+    assert p.materials == ("pmma",) and np.allclose(np.abs(p.density_per_mm), mu)
+    cells = p.subset(p.density_per_mm < 0)
+    assert len(cells) > 50 and cells.half_size_mm.min() >= 0.4 and cells.half_size_mm.max() <= 1.0
+    # Cells are whole and apart: no voxel is emptier than a void.
+    grid = VolumeGrid(90, 60, 90, 0.15)  # 13.5 x 9 x 13.5 mm
+    volume = voxelise(p, grid, supersample=2)
+    assert volume.min() > -1e-6
+    x, z = np.meshgrid(grid.axis_mm("x"), grid.axis_mm("z"))
+    solid = volume[np.abs(grid.axis_mm("y")) < 4.0 - 0.15][:, np.hypot(x, z) < 6.0 - 0.2]
+    porosity = 1.0 - solid.mean() / mu
+    assert porosity == pytest.approx(0.25, rel=0.2), porosity  # measured 0.275 (the rim, left out, is sparser)
 
 
 def test_electronic_part_materials_counts_and_metal_is_densest():
@@ -112,9 +133,9 @@ def test_electronic_part_materials_counts_and_metal_is_densest():
 def test_built_in_families_load_and_project_like_a_lab_sample():
     from ctpipe.geometry import Geometry
 
-    assert {"trabecular", "electronic"} <= set(list_phantoms())
+    assert {"trabecular", "electronic", "foam"} <= set(list_phantoms())
     geometry = Geometry(150.0, 390.0, 64, 64, 3.2, 3.2)
-    for name, most in (("trabecular", 6000), ("electronic", 1000)):
+    for name, most in (("trabecular", 6000), ("electronic", 1000), ("foam", 2000)):
         phantom = load_phantom(name)
         assert len(phantom.primitives) <= most
         views = project_analytic(phantom.primitives, geometry, [0.0, 90.0])
@@ -152,6 +173,14 @@ def test_the_older_built_in_phantoms_are_unchanged(name):
      "p.objects[0].trabecular: radius_mm - cortical_mm"),
     ("trabecular: {radius_mm: 8, height_mm: 12, bone_volume_fraction: 0.1}",
      "p.objects[0].trabecular.seed: missing; it is required"),
+    ("foam: {radius_mm: 6, height_mm: 8, porosity: 0.6, seed: 1}",
+     "p.objects[0].foam.porosity: must be a number > 0 and <= 0.4, got 0.6"),
+    ("foam: {radius_mm: 6, height_mm: 8, porosity: 0.3, cell_radius_mm: [1, 5], seed: 1}",
+     "p.objects[0].foam.cell_radius_mm: cells up to 5 mm"),
+    ("foam: {radius_mm: 6, height_mm: 8, porosity: 0.4, cell_radius_mm: 1.5, wall_mm: 0.5, seed: 1}",
+     "p.objects[0].foam.porosity: random packing does not place"),
+    ("foam: {radius_mm: 6, height_mm: 8, porosity: 0.3, material: Ca5(PO4)3OH, seed: 1}",
+     "p.objects[0].foam.material: must be a built-in material"),
     ("electronic: {board_mm: [20, 24, 1.6], chips: 40, seed: 1}",
      "p.objects[0].electronic.chips: placed only"),
     ("electronic: {board_mm: [20, 24, 1.6], chip_size_mm: [4, 30], seed: 1}",
