@@ -262,3 +262,23 @@ def test_a_static_holder_under_a_beam_is_refused_in_one_line():
         parse_scan_spec({**SCAN, "beam": {"energy_kev": 60}, "holder": {"static": [TABLE]}})
     spec = parse_scan_spec({**SCAN, "beam": {"energy_kev": 60}, "holder": {"turning": [PIN]}})
     assert len(spec.holder.turning) == 1 and math.isfinite(spec.holder.turning.density_per_mm[0])
+
+
+def test_a_voxel_phantoms_turning_holder_is_added_exactly(tmp_path):
+    np.save(tmp_path / "v.npy", np.full((4, 4, 4), 0.01, np.float32))
+    (tmp_path / "v.yaml").write_text("voxels: {file: v.npy, voxel_size_mm: 2.0}\n")
+    voxel = load_phantom(tmp_path / "v.yaml")
+    spec = parse_scan_spec({**SCAN, "holder": {"turning": [PIN]}})
+    bare = simulate(voxel, parse_scan_spec(SCAN), rng=np.random.default_rng(0)).projections
+    held = simulate(voxel, spec, rng=np.random.default_rng(0)).projections
+    pin, _ = _holder_part({"turning": [PIN]})
+    np.testing.assert_allclose(held - bare, pin, atol=1e-5)
+
+
+def test_a_turning_holder_at_one_energy_is_the_monochromatic_one():
+    pytest.importorskip("xraydb")
+    pin, phantom = _holder_part({"turning": [PIN]})
+    spec = parse_scan_spec({**SCAN, "beam": {"energy_kev": 60}, "holder": {"turning": [PIN]}})
+    bare = simulate(phantom, parse_scan_spec({**SCAN, "beam": {"energy_kev": 60}}), rng=np.random.default_rng(0))
+    held = simulate(phantom, spec, rng=np.random.default_rng(0))
+    np.testing.assert_allclose(held.projections - bare.projections, pin, atol=2e-4)
