@@ -1,0 +1,283 @@
+"""Conjugate rays: a truth-free check of a scan's angles that no reconstruction can bend to fit.
+
+The sources of a circular scan all lie in one plane, the midplane, which the detector sees as
+the row through the principal point (``v0_px``). Two views ``i`` and ``j`` of a full or short
+scan whose sources are about half a turn apart both measure one ray exactly: the straight line
+through their two sources. Whatever the object, the beam (monochromatic or not) or the
+reconstruction, the two measured line integrals of that ray must be equal. Where that ray
+falls on each detector depends only on the angle ``alpha = theta_j - theta_i`` between the views
+(ctpipe's convention, :mod:`ctpipe.model`): with the source frame of :mod:`ctpipe.geometry` the
+source of view ``j`` is seen from view ``i`` at::
+
+    x_n = -cot(alpha / 2)   in view i,      x_n = +cot(alpha / 2)   in view j,
+
+on the midplane row, normalised coordinates (``x_n = (u - u0) pitch_u / SDD``). A wrong
+``alpha`` samples the two views at the wrong columns, half the angle error apart from the right
+ones each (``d x_n / d alpha = 1 / (2 sin^2(alpha/2))``), and the two samples disagree by about
+the projections' slope times that shift. The mean squared disagreement over every such pair of
+views is the measure (:func:`conjugate_ray_costs`).
+
+What it sees and what it does not:
+
+- each pair measures ``e_j - e_i`` of the angle errors ``e`` of two views about half a turn
+  apart: jitter, jumps, slips, a scale error (the pair steps too short or too long) and
+  turn-periodic errors of odd order (``sin(theta)``: an eccentric table) are seen at first order;
+  even orders (``sin(2 theta)``) only through the spread ``2 gamma`` of the pairs over the fan;
+  a common offset of all views is not seen at all (nor does it matter);
+- it compares measured data with measured data, so a reconstruction made from the same angles
+  cannot absorb their errors, as it does in the reconstruct-and-reproject residual of
+  :func:`ctpipe.solve.reprojection.consistency_costs`; on the test scan of
+  ``tests/solve/test_conjugate.py`` a once-per-turn error of 0.3 deg raises this measure by
+  about 70 % and that residual by 1 %;
+- it needs no untruncated rows (unlike the integral consistency conditions of Grangeat's
+  formula, Aichert et al., "Epipolar consistency in transmission imaging", IEEE TMI 34(11),
+  2015, which integrate along detector lines): a region-of-interest scan whose sample is wider
+  than the field of view is checked as well as any other, since a ray is compared with itself;
+- it needs the midplane on the detector and views half a turn apart (a short scan of
+  180 deg plus the fan angle has them for its first fan-angle's worth of views), and its power
+  grows with the number of such pairs; at a few dozen views it says little, and
+  :class:`ConjugateRayScore` carries the standard error that says how little;
+- a projection that is shifted as a whole (a drifting source spot or detector, see
+  :mod:`ctpipe.sim.drift`) moves its samples as an angle error does: a random walk of 0.05 px a
+  view hides a 0.3 deg once-per-turn error from it, so on drifting scans it says "no evidence"
+  rather than "better";
+- what remains at the true angles is the midplane falling between two detector rows and the
+  detector blur, which mix neighbouring rays that are not conjugate: a floor common to every
+  candidate, which is why candidates are compared pair by pair (:class:`ConjugateRayScore`).
+
+Half-turn pairs of projections are the classical way to find the centre of rotation (the
+projection of the axis, ``u0_px`` here); :func:`conjugate_ray_costs` can fit ``u0_px`` for
+each candidate, so an offset axis does not pass for an angle error.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+from ctpipe.errors import InputError
+from ctpipe.geometry import Geometry, check_geometry
+
+__all__ = ["midplane_rows", "conjugate_pairs", "conjugate_ray_mismatch", "ConjugateRayScore", "conjugate_ray_costs"]
+
+
+def midplane_rows(projections, geometry: Geometry) -> np.ndarray:
+    """The row of every view through the principal point, shape (V, cols), float64.
+
+    Interpolated linearly between the two detector rows around ``v0_px``; ``projections`` are
+    line integrals (an array or a :class:`~ctpipe.io.scans.ViewStack`, read one view at a time).
+
+    Raises
+    ------
+    InputError
+        When ``v0_px`` is not on the detector: the midplane is then not measured.
+    """
+    g = check_geometry(geometry)
+    if not 0.0 <= g.v0_px <= g.detector_rows - 1:
+        raise InputError(f"geometry.v0_px: the midplane row must be on the detector (0 to {g.detector_rows - 1}) "
+                         f"for conjugate rays, got {g.v0_px:g}")
+    low = min(int(math.floor(g.v0_px)), g.detector_rows - 2) if g.detector_rows > 1 else 0
+    frac = g.v0_px - low
+    rows = np.empty((len(projections), g.detector_cols), np.float64)
+    for view in range(len(projections)):
+        image = np.asarray(projections[view], dtype=np.float64)
+        if image.shape != g.shape:
+            raise InputError(f"projections[{view}]: must be {g.detector_rows} x {g.detector_cols}, got {image.shape}")
+        rows[view] = image[low] if g.detector_rows == 1 else (1.0 - frac) * image[low] + frac * image[low + 1]
+    return rows
+
+
+def _common_ray_columns(angles_deg: np.ndarray, geometry: Geometry, i: np.ndarray, j: np.ndarray,
+                        u0_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Columns where the ray through the sources of views ``i`` and ``j`` meets each detector."""
+    half = np.deg2rad(angles_deg[j] - angles_deg[i]) / 2.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_n = -np.cos(half) / np.sin(half)
+    scale = geometry.source_to_detector_mm / geometry.pixel_pitch_u_mm
+    return u0_px + x_n * scale, u0_px - x_n * scale
+
+
+def conjugate_pairs(angles_deg, geometry: Geometry, *, margin_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The view pairs ``(i, j)``, ``i < j``, whose common ray is on both detectors, shapes (P,).
+
+    Their sources are 90 to 270 deg apart (in practice half a turn give or take the fan angle,
+    since the ray must reach the detector) and the ray meets both detectors at least
+    ``margin_px`` inside its first and last column.
+    """
+    g = check_geometry(geometry)
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    if angles.ndim != 1 or not np.all(np.isfinite(angles)):
+        raise InputError(f"angles_deg: must be finite angles, one per view, got shape {angles.shape}")
+    i, j = np.triu_indices(len(angles), 1)
+    col_i, col_j = _common_ray_columns(angles, g, i, j, g.u0_px)
+    high = g.detector_cols - 1 - margin_px
+    with np.errstate(invalid="ignore"):
+        keep = (np.cos(np.deg2rad(angles[j] - angles[i])) < 0.0) & (col_i >= margin_px) & (col_i <= high) \
+            & (col_j >= margin_px) & (col_j <= high)
+    return i[keep], j[keep]
+
+
+def conjugate_ray_mismatch(rows: np.ndarray, geometry: Geometry, angles_deg, pairs: tuple[np.ndarray, np.ndarray], *,
+                           u0_px: float | None = None) -> np.ndarray:
+    """Measured minus conjugate line integral of every pair's common ray, shape (P,).
+
+    ``rows`` from :func:`midplane_rows`; ``pairs`` from :func:`conjugate_pairs`; the rows are
+    interpolated with cubic splines (linear interpolation adds a floor of its own at sharp edges)
+    at the columns, clamped to the detector.
+    """
+    g = check_geometry(geometry)
+    i, j = (np.asarray(k, dtype=np.intp) for k in pairs)
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    col_i, col_j = _common_ray_columns(angles, g, i, j, g.u0_px if u0_px is None else float(u0_px))
+    col_i = np.clip(col_i, 0.0, g.detector_cols - 1)
+    col_j = np.clip(col_j, 0.0, g.detector_cols - 1)
+    at_i = map_coordinates(rows, [i.astype(np.float64), col_i], order=3, mode="nearest")
+    at_j = map_coordinates(rows, [j.astype(np.float64), col_j], order=3, mode="nearest")
+    return at_i - at_j
+
+
+@dataclass(frozen=True)
+class ConjugateRayScore:
+    """How consistent one candidate set of angles is with the projections' conjugate rays.
+
+    Attributes
+    ----------
+    cost : float
+        Mean squared mismatch of the common rays, relative to the mean square of the line
+        integrals sampled (dimensionless; lower is more consistent).
+    u0_px : float
+        The principal point column used (fitted when asked).
+    n_pairs : int
+        Pairs of views compared.
+    versus : str
+        The candidate this one is compared with (the reference), or "" for the reference itself.
+    delta : float
+        ``cost - cost(reference)``, over the same pairs.
+    delta_se : float
+        Standard error of ``delta``: the pairs are grouped by their first view and the groups'
+        sums taken as independent, since one view's error is shared by all its pairs.
+    """
+
+    cost: float
+    u0_px: float
+    n_pairs: int
+    versus: str = ""
+    delta: float = 0.0
+    delta_se: float = 0.0
+
+    @property
+    def z(self) -> float:
+        """``delta / delta_se``: below -2, this candidate is more consistent than its reference beyond noise."""
+        return self.delta / self.delta_se if self.delta_se > 0 else 0.0
+
+    def to_dict(self) -> dict:
+        return {"cost": self.cost, "u0_px": self.u0_px, "n_pairs": self.n_pairs, "versus": self.versus,
+                "delta": self.delta, "delta_se": self.delta_se, "z": self.z}
+
+
+def _fit_u0(rows, geometry, angles, pairs, search_px: float) -> float:
+    """The ``u0_px`` within ``search_px`` of the geometry's that makes the common rays agree best."""
+    def cost(u0):
+        return float(np.mean(conjugate_ray_mismatch(rows, geometry, angles, pairs, u0_px=u0) ** 2))
+
+    centre = geometry.u0_px
+    grid = centre + np.linspace(-search_px, search_px, int(2 * math.ceil(search_px / 0.25)) + 1)
+    best = float(grid[int(np.argmin([cost(u) for u in grid]))])
+    low, high = best - 0.25, best + 0.25
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0                       # golden section on the bracketing cell
+    a, b = high - ratio * (high - low), low + ratio * (high - low)
+    fa, fb = cost(a), cost(b)
+    for _ in range(12):
+        if fa < fb:
+            high, b, fb = b, a, fa
+            a = high - ratio * (high - low)
+            fa = cost(a)
+        else:
+            low, a, fa = a, b, fb
+            b = low + ratio * (high - low)
+            fb = cost(b)
+    return float(np.clip((low + high) / 2.0, centre - search_px, centre + search_px))
+
+
+def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, np.ndarray], *,
+                        reference: str | None = None, fit_u0_px: float = 0.0,
+                        rows: np.ndarray | None = None) -> dict[str, ConjugateRayScore]:
+    """Score candidate angle sets by their conjugate rays, each against a reference, without the truth.
+
+    Parameters
+    ----------
+    projections : array-like of shape (V, rows, cols)
+        Line integrals (``-log`` of flat-corrected intensities); only the midplane row is read.
+    geometry : Geometry
+    candidates : dict of str to ndarray of shape (V,)
+        Angle sets in degrees (any common offset).
+    reference : str, optional
+        The candidate every other is compared with (its ``delta`` and ``delta_se``); default the
+        first.
+    fit_u0_px : float
+        Fit the principal point column within this many pixels of the geometry's for each
+        candidate (0: use the geometry's). A centre of rotation off by a pixel makes every pair
+        disagree, and the best angles then are the ones that hide it best.
+    rows : ndarray of shape (V, cols), optional
+        :func:`midplane_rows` of the projections, if already read.
+
+    Returns
+    -------
+    dict of str to ConjugateRayScore
+        In the order of ``candidates``. The pairs compared are those whose common ray is on both
+        detectors for every candidate, so all scores are over the same rays.
+
+    Raises
+    ------
+    InputError
+        When no pair of views is about half a turn apart with its common ray on the detector (a
+        scan of less than 180 deg, a midplane off the detector).
+    """
+    g = check_geometry(geometry)
+    if not candidates:
+        raise InputError("candidates: must name at least one set of angles")
+    if rows is None:
+        rows = midplane_rows(projections, g)
+    n_views = rows.shape[0]
+    sets = {}
+    for name, angles in candidates.items():
+        a = np.asarray(angles, dtype=np.float64)
+        if a.shape != (n_views,) or not np.all(np.isfinite(a)):
+            raise InputError(f"candidates[{name!r}]: must be {n_views} finite angles in degrees, got shape {a.shape}")
+        sets[name] = a
+    reference = next(iter(sets)) if reference is None else reference
+    if reference not in sets:
+        raise InputError(f"reference: {reference!r} is not a candidate. Try one of {sorted(sets)}")
+    margin = 1.0 + float(fit_u0_px)
+    keep = None
+    i_all, j_all = np.triu_indices(n_views, 1)
+    for angles in sets.values():
+        i, j = conjugate_pairs(angles, g, margin_px=margin)
+        flags = np.zeros((n_views, n_views), bool)
+        flags[i, j] = True
+        keep = flags if keep is None else keep & flags
+    pairs = (i_all[keep[i_all, j_all]], j_all[keep[i_all, j_all]])
+    if len(pairs[0]) == 0:
+        raise InputError("projections: no two views are half a turn apart with their common ray on the detector, "
+                         "so conjugate rays cannot check the angles (a scan must cover 180 deg plus the fan angle)")
+    scale = float(np.mean(rows ** 2)) or 1.0
+    squared = {}
+    u0s = {}
+    for name, angles in sets.items():
+        u0s[name] = _fit_u0(rows, g, angles, pairs, fit_u0_px) if fit_u0_px > 0 else g.u0_px
+        squared[name] = conjugate_ray_mismatch(rows, g, angles, pairs, u0_px=u0s[name]) ** 2 / scale
+    groups = pairs[0]
+    n_groups = len(np.unique(groups))
+    scores = {}
+    for name, sq in squared.items():
+        if name == reference:
+            scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq))
+            continue
+        diff = sq - squared[reference]
+        per_view = np.bincount(groups, weights=diff, minlength=n_views)[np.unique(groups)]
+        se = float(np.std(per_view, ddof=1) * math.sqrt(n_groups) / len(diff)) if n_groups > 1 else math.inf
+        scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq), reference, float(np.mean(diff)), se)
+    return scores
