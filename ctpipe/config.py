@@ -15,6 +15,8 @@ A pipeline file::
                                     # turn (known from the nominal angles) also pairs across its seam
     preprocess: {static_background: auto}   # detect on views less their per-pixel median
                                     # (auto: when the nominal angles span >= 180 deg); on, off
+    gate: auto                      # return corrected angles only where the projections show them
+                                    # better than the nominal ones (ctpipe.solve.gate); off
     # a kind left out gets DEFAULT_STAGES[kind]
     seed: 0
 """
@@ -274,12 +276,13 @@ class PipelineConfig:
     seed: int | None = 0
     loop_closure: bool = True
     static_background: str = "auto"
+    gate: str = "auto"
 
     def to_dict(self) -> dict:
         return {"detector": self.detector.to_dict(), "matcher": self.matcher.to_dict(),
                 "estimator": self.estimator.to_dict(), "refiner": self.refiner.to_dict(),
                 "pairs": {"baselines": list(self.baselines), "loop_closure": self.loop_closure},
-                "preprocess": {"static_background": self.static_background}, "seed": self.seed}
+                "preprocess": {"static_background": self.static_background}, "gate": self.gate, "seed": self.seed}
 
 
 _PAIRS_BASELINES = ParamSpec("baselines", tuple[int, ...], (1,), "view offsets", ge=1)
@@ -287,13 +290,17 @@ _PAIRS_LOOP_CLOSURE = ParamSpec("loop_closure", bool, True, "pair the last views
 _STATIC_BACKGROUND = ParamSpec("static_background", Literal["auto", "on", "off"], "auto",
                                "subtract the per-pixel median over the views before detection")
 _SEED = ParamSpec("seed", int | None, 0, "random seed", ge=0)
+_GATE = ParamSpec("gate", Literal["auto", "off"], "auto",
+                  "return corrected angles only where the projections show them better than the nominal ones "
+                  "(ctpipe.solve.gate); off: the refiner's angles as they are")
 
 
 def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline") -> PipelineConfig:
     """Validate a pipeline mapping (see the module docstring) against ``registry``."""
     if mapping is None:
         mapping = {}
-    check_keys(mapping, path, allowed=("detector", "matcher", "estimator", "refiner", "pairs", "preprocess", "seed"))
+    check_keys(mapping, path, allowed=("detector", "matcher", "estimator", "refiner", "pairs", "preprocess", "gate",
+                                       "seed"))
     stages = {kind: parse_stage(mapping.get(kind, default), kind, registry, f"{path}.{kind}")
               for kind, default in DEFAULT_STAGES.items()}
     pairs = check_keys(mapping.get("pairs", {}), f"{path}.pairs", allowed=("baselines", "loop_closure"))
@@ -303,8 +310,9 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
     static_background = check_value(_STATIC_BACKGROUND, preprocess.get("static_background", "auto"),
                                     f"{path}.preprocess.static_background")
     seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
+    gate = check_value(_GATE, mapping.get("gate", "auto"), f"{path}.gate")
     return PipelineConfig(**stages, baselines=tuple(sorted(set(baselines))), seed=seed, loop_closure=loop_closure,
-                          static_background=static_background)
+                          static_background=static_background, gate=gate)
 
 
 _GEOMETRY_FIELDS = {name: ParamSpec(name, annotation, None, "", **bounds)

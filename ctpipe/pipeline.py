@@ -23,6 +23,8 @@ from ctpipe.io.scans import ScanFiles, StackReference, ViewStack
 from ctpipe.model import wrap_deg
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
+from ctpipe.solve.conjugate import midplane_rows
+from ctpipe.solve.gate import GateDecision, gate_angles
 from ctpipe.solve.graph import view_pairs
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner
 
@@ -256,6 +258,10 @@ class ScanResult:
         The configuration of the pipeline that ran, when it was built from one.
     angle_errors : AngleErrors or None
         Errors against the true angles, filled by :func:`ctpipe.evaluate.scoring.score_against_truth`.
+    gate : ctpipe.solve.gate.GateDecision or None
+        Whether the projections showed the refiner's angles (or one band of their correction)
+        better than the nominal angles, and which were returned (:mod:`ctpipe.solve.gate`);
+        None when the run had no nominal angles or the pipeline's gate is off.
     """
 
     pairs: np.ndarray
@@ -279,6 +285,7 @@ class ScanResult:
     scan: ScanFiles | None = None
     pipeline: PipelineConfig | None = None
     angle_errors: AngleErrors | None = None
+    gate: GateDecision | None = None
 
     @property
     def estimated_deg(self) -> np.ndarray:
@@ -334,6 +341,8 @@ class ScanResult:
         if recorded is not None:
             report["recorded_deg"] = recorded
             report["against_recorded"] = difference_table(estimated, recorded)
+        if self.gate is not None:
+            report["gate"] = self.gate.to_dict()
         if self.angle_errors is not None:
             report["angle_errors"] = self.angle_errors.to_dict()
         return report
@@ -404,6 +413,9 @@ class ScanResult:
         if choice.matched:
             lines.append(f"refiner: projection matching from the {choice.matched_from} angles, kept the "
                          f"{'matched' if choice.chosen is None else choice.chosen} ones")
+        gate = self.gate
+        if gate is not None:
+            lines.append(_gate_line(gate))
         estimated = self.estimated_deg
         for reference, label in ((self.nominal_angles_deg, "nominal angles"),
                                  (self.recorded_angles_deg, "scanner's angle log")):
@@ -435,6 +447,18 @@ class ScanResult:
         if written:
             lines.append("written: " + ", ".join(written))
         return "\n".join(lines)
+
+
+def _gate_line(gate: GateDecision) -> str:
+    """The summary's one line on whether the correction helped, by the projections alone."""
+    if not gate.decided:
+        return f"gate: {gate.reason}; the refiner's angles are returned unchecked"
+    if gate.chosen == "nominal":
+        return f"gate: returned the NOMINAL angles: {gate.reason}"
+    what = {"estimate": "the corrected angles", "fast band": "the fast part of the correction only (jitter, jumps)",
+            "slow band": "the slow part of the correction only (drift, eccentricity)"}[gate.chosen]
+    return (f"gate: the correction helped: {what} agree {gate.improvement:.0%} better than the nominal angles with the "
+            f"projections' conjugate rays (z {gate.scores[gate.chosen].z:+.1f})")
 
 
 def difference_table(estimated_deg: np.ndarray, reference_deg: np.ndarray) -> dict[str, Any]:
@@ -472,6 +496,7 @@ class Pipeline:
     seed: int | None = 0
     loop_closure: bool = True
     static_background: str = "auto"
+    gate: str = "auto"
     config: PipelineConfig | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -482,6 +507,9 @@ class Pipeline:
                                  f"Pipeline.from_config), got {type(stage).__name__} {short_repr(stage)}")
         if self.static_background not in ("auto", "on", "off"):
             raise InputError(f"static_background: must be one of 'auto', 'on', 'off', got {self.static_background!r}")
+        if self.gate not in ("auto", "off"):
+            raise InputError(f"gate: must be 'auto' (return corrected angles only where the projections show them "
+                             f"better than the nominal ones) or 'off', got {self.gate!r}")
         # A stage built in Python may name a nested stage (ProjectionMatchingRefiner(start=
         # "bundle-adjustment")): build it through the registry here, as from_config does.
         registry = None
@@ -503,7 +531,7 @@ class Pipeline:
             config = parse_pipeline(config, registry)
         return cls(*(build_stage(getattr(config, kind), registry) for kind in ("detector", "matcher", "estimator", "refiner")),
                    baselines=config.baselines, seed=config.seed, loop_closure=config.loop_closure,
-                   static_background=config.static_background, config=config)
+                   static_background=config.static_background, gate=config.gate, config=config)
 
     def run(self, projections: np.ndarray | ViewStack | ScanFiles, geometry: Geometry | None = None, *,
             nominal_angles_deg=None, pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None,
@@ -644,8 +672,9 @@ class Pipeline:
         start = time.perf_counter()
         # The refiner's generator is the last of len(pairs) + 1 children, as it always was.
         seed = np.random.SeedSequence(self.seed).spawn(len(observations.pairs) + 1)[-1]
+        gate = self.gate == "auto" and observations.nominal_angles_deg is not None
         if executor is None:
-            solution = self.refiner.refine(observations, rng=np.random.default_rng(seed))
+            solution, decision = _refine_task(self.refiner, observations, None, None, seed, gate)
         else:
             # The features and projections already where the tasks run are passed as handles, not sent again.
             if placed is not None:
@@ -655,8 +684,9 @@ class Pipeline:
                 projections = observations.projections
                 source = None if projections is None else executor.scatter(_shippable(projections))
                 features, observations_out = None, dataclasses.replace(observations, projections=None)
-            task = executor.submit(_refine_task, self.refiner, observations_out, source, features, seed, name="refine")
-            solution, = executor.gather([task])
+            task = executor.submit(_refine_task, self.refiner, observations_out, source, features, seed, gate,
+                                   name="refine")
+            (solution, decision), = executor.gather([task])
         timings["refine"] = time.perf_counter() - start
 
         refined, matches, features = solution.pair_estimates, observations.matches, observations.features
@@ -667,6 +697,8 @@ class Pipeline:
                 f"{', ...' if observations.n_views > 6 else ''}")
         pair_angles_deg = np.array([np.rad2deg(e.angle_rad) if e else np.nan for e in refined])
         angles_deg = np.rad2deg(solution.angles_rad)
+        if decision is not None and decision.chosen != "estimate":
+            angles_deg = decision.angles_deg - decision.angles_deg[0]
         info = dict(solution.info)
         nominal = observations.nominal_angles_deg
         closing = None
@@ -697,6 +729,7 @@ class Pipeline:
             closing_view=closing,
             scan=scan,
             pipeline=self.config,
+            gate=decision,
         )
 
     def _background_views(self, projections, nominal: np.ndarray | None) -> np.ndarray | None:
@@ -761,11 +794,32 @@ def _estimate_pairs(estimator: Estimator, matched: list, seeds: list) -> list:
 
 
 def _refine_task(refiner: Refiner, observations: ScanObservations, source, features: list | None,
-                 seed) -> ScanSolution:
+                 seed, gate: bool = False) -> tuple[ScanSolution, GateDecision | None]:
+    """The refiner's solution and, with ``gate``, the gate's decision on it (where the projections are)."""
     changes = {} if features is None else {"features": tuple(features)}
     if source is not None:
         changes["projections"] = _views(source)
-    return refiner.refine(dataclasses.replace(observations, **changes), rng=np.random.default_rng(seed))
+    observations = dataclasses.replace(observations, **changes)
+    solution = refiner.refine(observations, rng=np.random.default_rng(seed))
+    return solution, (_gate(observations, solution) if gate else None)
+
+
+def _gate(observations: ScanObservations, solution: ScanSolution) -> GateDecision:
+    """The gate on a solution: the midplane rows of the projections (as line integrals) against its angles."""
+    estimate = np.rad2deg(solution.angles_rad)
+    projections = observations.projections
+    if projections is None:
+        return GateDecision("estimate", estimate, False, "not gated: no projections to check the angles against")
+    try:
+        rows = midplane_rows(projections, observations.geometry)
+    except InputError as error:
+        return GateDecision("estimate", estimate, False, f"not gated: {error}")
+    border = max(rows.shape[1] // 16, 1)
+    if float(np.median(np.concatenate([rows[:, :border], rows[:, -border:]]))) > float(np.median(rows[:, border:-border])):
+        # Intensities (a bright field around a dark object): line integrals against each row's flat level.
+        flat = np.maximum(np.percentile(rows, 99.5, axis=1, keepdims=True), 1e-30)
+        rows = np.maximum(-np.log(np.maximum(rows, 1e-6 * flat) / flat), 0.0)
+    return gate_angles(rows, observations.geometry, observations.nominal_angles_deg, estimate)
 
 
 class _Placed(NamedTuple):

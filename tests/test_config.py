@@ -29,9 +29,10 @@ def test_defaults_and_bare_names():
     ("detector: {name: surff}", "pipeline.detector.name: unknown detector 'surff'; registered detectors: akaze, beads, brisk"),
     ("detector: {n_features: 3}", "pipeline.detector.name: missing; registered detectors: akaze"),
     ("matcher: [1, 2]", "pipeline.matcher: must be a matcher name or a mapping"),
-    ("colour: red", "pipeline.colour: unknown key; allowed: detector, matcher, estimator, refiner, pairs, preprocess, seed"),
+    ("colour: red", "pipeline.colour: unknown key; allowed: detector, matcher, estimator, refiner, pairs, preprocess, gate, seed"),
     ("pairs: {baselines: [0]}", "pipeline.pairs.baselines: must be a non-empty list of integers >= 1, got [0]"),
     ("seed: -3", "pipeline.seed: must be an integer >= 0 or null, got -3"),
+    ("gate: maybe", "pipeline.gate: must be one of 'auto', 'off', got 'maybe'"),
     ("[1, 2", "p.yaml: not valid YAML at line 1"),
     ("seed: 1\nseed: 2\n", "p.yaml: duplicate key 'seed' at line 2"),
 ])

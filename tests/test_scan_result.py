@@ -52,7 +52,8 @@ def test_a_run_on_an_opened_scan_carries_its_geometry_turn_check_and_report(scan
     report = result.report()
     assert list(report) == ["pipeline", "geometry", "angles_deg", "n_keypoints", "pairs", "timings_s", "refiner",
                             "static_background_removed", "estimated_deg", "scan", "nominal_deg", "against_nominal",
-                            "turn_check"]
+                            "turn_check", "gate"]
+    assert report["gate"] == result.gate.to_dict() and report["pipeline"]["gate"] == "auto"
     assert report["pipeline"]["refiner"]["name"] == "least-squares"
     assert report["scan"]["format"] == "ctpipe" and report["against_nominal"]["views"] == 48
     assert report["turn_check"] == result.turn_check.to_dict()
@@ -61,6 +62,7 @@ def test_a_run_on_an_opened_scan_carries_its_geometry_turn_check_and_report(scan
     summary = result.summary(described=True)
     assert summary.startswith("pipeline: sift -> brute-force -> ransac-1pt -> least-squares\npairs: ")
     assert "estimated minus nominal angles: RMS" in summary and "turn the other way" not in summary
+    assert "\ngate: " in summary
     assert result.summary().startswith(f"ctpipe scan {scan.path}: 48 views")
 
 
@@ -169,3 +171,34 @@ def test_a_scan_brings_its_own_geometry_and_projections_need_one(scan_and_result
         pipeline.run(scan, nominal_angles_deg=scan.nominal_angles_deg)
     with pytest.raises(InputError, match="geometry: missing"):
         pipeline.run(scan.projections)
+
+
+def test_the_gate_returns_the_refiners_angles_only_where_the_projections_show_them_better(scan_and_result):
+    scan, result = scan_and_result
+    ungated = Pipeline.from_config({**FAST, "gate": "off"}).run(scan)
+    assert ungated.gate is None and "gate" not in ungated.report() and "gate:" not in ungated.summary()
+    gate = result.gate
+    assert gate.decided and gate.chosen in ("estimate", "fast band", "slow band", "nominal")
+    if gate.chosen == "estimate":
+        np.testing.assert_array_equal(result.angles_deg, ungated.angles_deg)
+    else:
+        np.testing.assert_allclose(result.angles_deg, gate.angles_deg - gate.angles_deg[0], atol=1e-12)
+    # Whatever it chose, it is the candidate of lowest conjugate-ray cost among those shown better, or nominal.
+    shown = [name for name, score in gate.scores.items() if name != "nominal" and score.z < -gate.z]
+    assert (gate.chosen == "nominal") == (not shown)
+
+
+def test_a_refiner_worse_than_the_nominal_angles_is_not_returned(small_scan_folder):
+    scan = open_scan(small_scan_folder)
+    pipeline = Pipeline.from_config(FAST)
+    observations = pipeline.observe(scan.projections, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg)
+    shaken = np.deg2rad(scan.nominal_angles_deg + np.random.default_rng(0).normal(0.0, 2.0, scan.n_views))
+
+    class Shaken(type(pipeline.refiner)):
+        def refine(self, observations, *, rng):
+            return ScanSolution(shaken - shaken[0], observations.estimates, {})
+
+    bad = dataclasses.replace(pipeline, refiner=Shaken())
+    result = bad.refine(observations)
+    assert result.gate.chosen == "nominal" and "NOMINAL" in result.summary(described=True)
+    np.testing.assert_allclose(result.angles_deg, scan.nominal_angles_deg - scan.nominal_angles_deg[0], atol=1e-9)

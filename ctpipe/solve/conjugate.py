@@ -56,7 +56,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import map_coordinates
+from scipy.ndimage import map_coordinates, spline_filter
 
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
@@ -120,6 +120,20 @@ def conjugate_pairs(angles_deg, geometry: Geometry, *, margin_px: float = 1.0) -
     return i[keep], j[keep]
 
 
+def _spline(rows: np.ndarray) -> np.ndarray:
+    """Cubic-spline coefficients of ``rows``, computed once for many samplings."""
+    return spline_filter(np.asarray(rows, dtype=np.float64), order=3, mode="nearest")
+
+
+def _mismatch(coefficients: np.ndarray, geometry: Geometry, angles: np.ndarray, i: np.ndarray, j: np.ndarray,
+              u0_px: float) -> np.ndarray:
+    col_i, col_j = _common_ray_columns(angles, geometry, i, j, u0_px)
+    last = geometry.detector_cols - 1
+    sample = lambda views, cols: map_coordinates(coefficients, [views.astype(np.float64), np.clip(cols, 0.0, last)],
+                                                 order=3, mode="nearest", prefilter=False)
+    return sample(i, col_i) - sample(j, col_j)
+
+
 def conjugate_ray_mismatch(rows: np.ndarray, geometry: Geometry, angles_deg, pairs: tuple[np.ndarray, np.ndarray], *,
                            u0_px: float | None = None) -> np.ndarray:
     """Measured minus conjugate line integral of every pair's common ray, shape (P,).
@@ -130,13 +144,8 @@ def conjugate_ray_mismatch(rows: np.ndarray, geometry: Geometry, angles_deg, pai
     """
     g = check_geometry(geometry)
     i, j = (np.asarray(k, dtype=np.intp) for k in pairs)
-    angles = np.asarray(angles_deg, dtype=np.float64)
-    col_i, col_j = _common_ray_columns(angles, g, i, j, g.u0_px if u0_px is None else float(u0_px))
-    col_i = np.clip(col_i, 0.0, g.detector_cols - 1)
-    col_j = np.clip(col_j, 0.0, g.detector_cols - 1)
-    at_i = map_coordinates(rows, [i.astype(np.float64), col_i], order=3, mode="nearest")
-    at_j = map_coordinates(rows, [j.astype(np.float64), col_j], order=3, mode="nearest")
-    return at_i - at_j
+    return _mismatch(_spline(rows), g, np.asarray(angles_deg, dtype=np.float64), i, j,
+                     g.u0_px if u0_px is None else float(u0_px))
 
 
 @dataclass(frozen=True)
@@ -178,19 +187,22 @@ class ConjugateRayScore:
                 "delta": self.delta, "delta_se": self.delta_se, "z": self.z}
 
 
-def _fit_u0(rows, geometry, angles, pairs, search_px: float) -> float:
-    """The ``u0_px`` within ``search_px`` of the geometry's that makes the common rays agree best."""
+def _fit_u0(coefficients, geometry, angles, pairs, search_px: float) -> float:
+    """The ``u0_px`` within ``search_px`` of the geometry's that makes the common rays agree best.
+
+    A grid of half-pixel steps, then a golden-section search on the cell around its best.
+    """
     def cost(u0):
-        return float(np.mean(conjugate_ray_mismatch(rows, geometry, angles, pairs, u0_px=u0) ** 2))
+        return float(np.mean(_mismatch(coefficients, geometry, angles, *pairs, u0) ** 2))
 
     centre = geometry.u0_px
-    grid = centre + np.linspace(-search_px, search_px, int(2 * math.ceil(search_px / 0.25)) + 1)
+    grid = centre + np.linspace(-search_px, search_px, int(2 * math.ceil(search_px / 0.5)) + 1)
     best = float(grid[int(np.argmin([cost(u) for u in grid]))])
-    low, high = best - 0.25, best + 0.25
-    ratio = (math.sqrt(5.0) - 1.0) / 2.0                       # golden section on the bracketing cell
+    low, high = best - 0.5, best + 0.5
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
     a, b = high - ratio * (high - low), low + ratio * (high - low)
     fa, fb = cost(a), cost(b)
-    for _ in range(12):
+    for _ in range(14):
         if fa < fb:
             high, b, fb = b, a, fa
             a = high - ratio * (high - low)
@@ -264,11 +276,12 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
         raise InputError("projections: no two views are half a turn apart with their common ray on the detector, "
                          "so conjugate rays cannot check the angles (a scan must cover 180 deg plus the fan angle)")
     scale = float(np.mean(rows ** 2)) or 1.0
+    coefficients = _spline(rows)
     squared = {}
     u0s = {}
     for name, angles in sets.items():
-        u0s[name] = _fit_u0(rows, g, angles, pairs, fit_u0_px) if fit_u0_px > 0 else g.u0_px
-        squared[name] = conjugate_ray_mismatch(rows, g, angles, pairs, u0_px=u0s[name]) ** 2 / scale
+        u0s[name] = _fit_u0(coefficients, g, angles, pairs, fit_u0_px) if fit_u0_px > 0 else g.u0_px
+        squared[name] = _mismatch(coefficients, g, angles, *pairs, u0s[name]) ** 2 / scale
     groups = pairs[0]
     n_groups = len(np.unique(groups))
     scores = {}

@@ -1,0 +1,95 @@
+"""The gate: the estimate, one band of its correction, or the nominal angles, as the projections show."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from ctpipe.errors import InputError
+from ctpipe.sim.phantoms import load_phantom
+from ctpipe.sim.scan_spec import parse_scan_spec
+from ctpipe.sim.simulator import simulate
+from ctpipe.solve.conjugate import midplane_rows
+from ctpipe.solve.gate import gate_angles, split_bands
+
+SCAN = {
+    "geometry": {"source_to_object_mm": 130.0, "source_to_detector_mm": 300.0, "detector_cols": 128,
+                 "detector_rows": 128, "pixel_pitch_u_mm": 1.6, "pixel_pitch_v_mm": 1.6},
+    "angles": {"n_views": 180, "range_deg": 360.0},
+    "jitter": [{"gaussian": {"sigma_deg": 0.3}}],
+    "noise": {"photons_per_pixel": 100000, "flat_frames": 4, "dark_frames": 2, "dark_counts": 100},
+    "projector": {"kind": "analytic", "supersample": 1, "blur_px": 0.5},
+    "seed": 1,
+}
+
+
+def _rms(angles, truth) -> float:
+    error = angles - truth
+    return float(np.sqrt(np.mean((error - error.mean()) ** 2)))
+
+
+@pytest.fixture(scope="module", params=["full turn", "short scan"])
+def scan(request):
+    spec = copy.deepcopy(SCAN)
+    if request.param == "short scan":
+        spec["angles"]["range_deg"] = 250.0
+    s = simulate(load_phantom("bead-cylinder"), parse_scan_spec(spec), rng=np.random.default_rng(5))
+    return s, midplane_rows(s.projections, s.geometry)
+
+
+def test_the_bands_add_up_and_split_where_they_should():
+    theta = np.linspace(0.0, 360.0, 200, endpoint=False)
+    slow_true = 0.3 * np.sin(np.deg2rad(theta)) + 0.1 * np.cos(np.deg2rad(2 * theta))
+    fast_true = np.where(np.arange(200) % 2 == 0, 0.05, -0.05)
+    slow, fast = split_bands(slow_true + fast_true, theta, harmonics=3)
+    np.testing.assert_allclose(slow + fast, slow_true + fast_true, atol=1e-12)
+    np.testing.assert_allclose(slow, slow_true, atol=1e-9)      # the alternation has no low harmonic
+    np.testing.assert_allclose(fast, fast_true, atol=1e-9)
+
+
+def test_a_good_estimate_is_kept(scan):
+    s, rows = scan
+    truth, nominal = s.true_angles_deg, s.nominal_angles_deg
+    estimate = truth + np.random.default_rng(3).normal(0.0, 0.03, len(truth)) + 7.0   # any common offset
+    decision = gate_angles(rows, s.geometry, nominal, estimate)
+    assert decision.decided and decision.chosen == "estimate"
+    np.testing.assert_allclose(decision.angles_deg, estimate, atol=1e-9)
+    assert decision.improvement > 0.1 and decision.scores["estimate"].z < -2
+
+
+def test_an_estimate_worse_than_nominal_gives_the_nominal_angles(scan):
+    s, rows = scan
+    truth, nominal = s.true_angles_deg, s.nominal_angles_deg
+    estimate = nominal + np.random.default_rng(4).normal(0.0, 0.5, len(truth))
+    decision = gate_angles(rows, s.geometry, nominal, estimate)
+    assert decision.chosen == "nominal" and "do not show" in decision.reason
+    assert _rms(decision.angles_deg, truth) == pytest.approx(_rms(nominal, truth))
+
+
+def test_a_wrong_slow_band_is_dropped_and_the_fast_one_kept(scan):
+    s, rows = scan
+    truth, nominal = s.true_angles_deg, s.nominal_angles_deg
+    theta = np.deg2rad(nominal)
+    # Right about the jitter, wrong by a 0.5 deg once-per-turn error: no better than nominal as a whole.
+    estimate = truth + 0.5 * np.sin(theta) + np.random.default_rng(3).normal(0.0, 0.03, len(truth))
+    assert _rms(estimate, truth) > 0.9 * _rms(nominal, truth)
+    decision = gate_angles(rows, s.geometry, nominal, estimate)
+    assert decision.chosen == "fast band"
+    assert _rms(decision.angles_deg, truth) < 0.5 * _rms(nominal, truth)
+
+
+def test_without_conjugate_rays_the_gate_says_it_cannot_decide(scan):
+    s, rows = scan
+    decision = gate_angles(rows[:30], s.geometry, s.nominal_angles_deg[:30], s.true_angles_deg[:30])
+    assert not decision.decided and decision.chosen == "estimate" and "half a turn" in decision.reason
+    assert decision.improvement is None
+
+
+def test_bad_arguments_are_one_clear_error(scan):
+    s, rows = scan
+    with pytest.raises(InputError, match="must be finite angles of one shape"):
+        gate_angles(rows, s.geometry, s.nominal_angles_deg, s.nominal_angles_deg[:5])
+    with pytest.raises(InputError, match="z must be > 0"):
+        gate_angles(rows, s.geometry, s.nominal_angles_deg, s.nominal_angles_deg, z=0.0)
