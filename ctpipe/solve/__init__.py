@@ -10,7 +10,8 @@ robust losses every solver uses); :mod:`~ctpipe.solve.pairs` packages pair estim
 point per track, through the camera model of :mod:`~ctpipe.solve.camera`;
 :mod:`~ctpipe.solve.reprojection` matches every view against the reprojection of the scan's own
 reconstruction (projection matching); :mod:`~ctpipe.solve.conjugate` checks a set of angles
-against the projections alone, by the rays that two views half a turn apart both measure. :mod:`~ctpipe.solve.simulated` draws observations of
+against the projections alone, by the rays that two views half a turn apart both measure, and
+:mod:`~ctpipe.solve.gate` returns corrected angles only where that check shows them better. :mod:`~ctpipe.solve.simulated` draws observations of
 known points for testing the solvers without images. ``docs/wholescan.md`` has the methods and
 figures; the refiner stages that call these are in :mod:`ctpipe.builtin`.
 """
@@ -19,6 +20,7 @@ from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bu
 from ctpipe.solve.camera import pixels_to_rays, project_points
 from ctpipe.solve.conjugate import (ConjugateRayScore, conjugate_pairs, conjugate_ray_costs, conjugate_ray_mismatch,
                                      midplane_rows)
+from ctpipe.solve.gate import CANDIDATES, GateDecision, gate_angles, split_bands
 from ctpipe.solve.graph import (PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
                                 solve_view_graph, turn_pairs, unwrap_pair_angles_deg, view_pairs)
 from ctpipe.solve.losses import LOSSES, check_loss, robust_loss, robust_weight
@@ -34,4 +36,5 @@ __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pai
            "triangulate_tracks", "bundle_adjust", "solve_bundle", "BundleResult", "BundleSettings", "BundleSolution",
            "projection_matching", "consistency_costs", "matching_levels", "ProjectionMatchingResult",
            "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "conjugate_pairs",
-           "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore"]
+           "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "gate_angles", "GateDecision",
+           "split_bands", "CANDIDATES"]
