@@ -359,6 +359,10 @@ class ScanResult:
         if recorded is not None:
             columns["recorded_deg"] = recorded
             columns["estimated_minus_recorded_deg"] = estimated - recorded
+        gate = self.gate
+        if gate is not None and gate.decided and gate.chosen != "estimate":
+            # What the refiner said, before the gate replaced it (nominal frame, as angle_deg).
+            columns["refiner_deg"] = gate.estimate_deg
         if self.angle_errors is not None:
             columns["true_deg"] = self.angle_errors.true_angles_deg
             columns["error_deg"] = self.angle_errors.view_errors_deg

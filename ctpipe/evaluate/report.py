@@ -193,10 +193,17 @@ def estimate_angles_png(result: ScanResult) -> bytes | None:
                                                                   "estimated_minus_recorded_deg") if name in columns}
     if "error_deg" in columns:
         curves["estimated minus true"] = columns["error_deg"]
+    if "refiner_deg" in columns and "nominal_deg" in columns:
+        curves["refiner's angles (not returned) minus nominal"] = columns["refiner_deg"] - columns["nominal_deg"]
     if not curves:
         return None
     scan = result.scan
     title = f"{scan.format} scan {scan.path.name}" if scan is not None else ""
+    gate = result.gate
+    if gate is not None and gate.decided:
+        verdict = ("nominal angles returned: the projections do not show the correction better" if gate.chosen == "nominal"
+                   else f"{gate.chosen} returned: conjugate rays agree {gate.improvement:.0%} better than nominal")
+        title = f"{title}\ngate: {verdict}" if title else f"gate: {verdict}"
     return angle_errors_png({k[:-4] if k.endswith(" deg") else k: v for k, v in curves.items()}, title,
                             ylabel="difference (deg), median offset removed")
 

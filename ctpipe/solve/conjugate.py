@@ -240,7 +240,8 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
     -------
     dict of str to ConjugateRayScore
         In the order of ``candidates``. The pairs compared are those whose common ray is on both
-        detectors for every candidate, so all scores are over the same rays.
+        detectors at the reference's angles, so all scores are over the same rays (a candidate
+        that moves one off the detector samples the detector's edge for it).
 
     Raises
     ------
@@ -263,15 +264,9 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
     reference = next(iter(sets)) if reference is None else reference
     if reference not in sets:
         raise InputError(f"reference: {reference!r} is not a candidate. Try one of {sorted(sets)}")
-    margin = 1.0 + float(fit_u0_px)
-    keep = None
-    i_all, j_all = np.triu_indices(n_views, 1)
-    for angles in sets.values():
-        i, j = conjugate_pairs(angles, g, margin_px=margin)
-        flags = np.zeros((n_views, n_views), bool)
-        flags[i, j] = True
-        keep = flags if keep is None else keep & flags
-    pairs = (i_all[keep[i_all, j_all]], j_all[keep[i_all, j_all]])
+    # The rays compared are those of the reference's pairs; a candidate that puts one off the
+    # detector samples the edge there, and pays for it.
+    pairs = conjugate_pairs(sets[reference], g, margin_px=1.0 + float(fit_u0_px))
     if len(pairs[0]) == 0:
         raise InputError("projections: no two views are half a turn apart with their common ray on the detector, "
                          "so conjugate rays cannot check the angles (a scan must cover 180 deg plus the fan angle)")

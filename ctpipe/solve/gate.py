@@ -33,6 +33,7 @@ import numpy as np
 
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
+from ctpipe.model import wrap_deg
 from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_ray_costs
 
 __all__ = ["GateDecision", "split_bands", "gate_angles", "CANDIDATES"]
@@ -79,6 +80,9 @@ class GateDecision:
         Harmonics of the turn in the slow band.
     z : float
         Standard errors a candidate must gain over the nominal angles to be returned.
+    estimate_deg : ndarray of shape (V,) or None
+        The refiner's angles as they came, in the nominal angles' frame (their median offset
+        from them removed); None when the gate could not decide.
     """
 
     chosen: str
@@ -88,6 +92,7 @@ class GateDecision:
     scores: dict[str, ConjugateRayScore] = field(default_factory=dict)
     harmonics: int = 3
     z: float = 2.0
+    estimate_deg: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def improvement(self) -> float | None:
@@ -135,8 +140,10 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     if not finite.all():
         return GateDecision("estimate", estimate, False, f"{int((~finite).sum())} views have no estimate; not gated",
                             harmonics=harmonics, z=z)
-    shift = float(np.median(estimate - nominal))
-    correction = estimate - shift - nominal
+    # Whole turns between them do not count (a refiner's angles may run past 360 deg, or wrap).
+    difference = wrap_deg(estimate - nominal)
+    shift = float(np.median(wrap_deg(difference - difference[0]))) + float(difference[0])
+    correction = wrap_deg(difference - shift)
     slow, fast = split_bands(correction, nominal, harmonics)
     candidates = {"nominal": nominal, "estimate": nominal + correction, "fast band": nominal + fast,
                   "slow band": nominal + slow}
@@ -151,7 +158,8 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         return GateDecision("nominal", nominal + shift, True,
                             f"the projections do not show the estimate better than the nominal angles "
                             f"(conjugate-ray cost {est.delta / max(scores['nominal'].cost, 1e-300):+.1%} of the "
-                            f"nominal's, z {est.z:+.1f}; needs z < {-z:g})", scores, harmonics, z)
+                            f"nominal's, z {est.z:+.1f}; needs z < {-z:g})", scores, harmonics, z,
+                            candidates["estimate"])
     best = min(shown, key=lambda name: scores[name].cost)
     if best != "estimate" and "estimate" in shown:
         versus = conjugate_ray_costs(None, g, {"estimate": candidates["estimate"], best: candidates[best]},
@@ -161,4 +169,5 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     score = scores[best]
     reason = (f"{best}: conjugate-ray cost {score.delta / max(scores['nominal'].cost, 1e-300):+.1%} against the "
               f"nominal angles' (z {score.z:+.1f})")
-    return GateDecision(best, candidates[best] + shift, True, reason, scores, harmonics, z)
+    angles = estimate if best == "estimate" else candidates[best] + shift
+    return GateDecision(best, angles, True, reason, scores, harmonics, z, candidates["estimate"])
