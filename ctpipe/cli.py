@@ -404,7 +404,8 @@ def _cmd_experiment_sweep(args) -> int:
     for row in report.rows:
         if row["status"] == "ok":
             print(f"scenario {row['scenario']:3d}: RMS {row['nominal_rms_deg']:.4f} -> {row['estimated_rms_deg']:.4f} deg, "
-                  f"recovery {row['recovery_reference']:+.3f}, kept {row['refiner_kept'] or '-'}, {row['seconds']:.0f} s")
+                  f"recovery {row['recovery_reference']:+.3f}, kept {row['refiner_kept'] or '-'}, gate {row['gate'] or '-'}, "
+                  f"{row['seconds']:.0f} s")
         else:
             print(f"scenario {row['scenario']:3d}: failed: {row['reason']}")
     print(report.summary_line())

@@ -23,8 +23,11 @@ validate scenarios/NNN.yaml`` runs again.
 
 Each scenario runs as ``ctpipe validate`` would, as a task on the execution layer (a thread
 pool, or Dask workers), and becomes one row: its draw, the nominal and estimated per-view RMS
-angle errors, the recovery against the jitter-free scan and against the phantom, what the
-refiner kept, seconds. A scenario that the experiment refuses or that fails is a row with its
+angle errors, the PSNR gains of the estimated angles over the nominal ones against the
+jitter-free scan and the phantom, how much the true angles gain (``visible_db``), the
+recoveries, what the refiner kept and what the gate returned (:mod:`ctpipe.solve.gate`), seconds.
+A scenario is *worse than nominal* when its per-view RMS is above the nominal angles' or either
+reconstruction falls more than :data:`WORSE_DB` below theirs. A scenario that the experiment refuses or that fails is a row with its
 reason, never the end of the sweep.
 """
 
@@ -56,7 +59,13 @@ MAX_SCENARIOS = 10_000
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 #: The columns of ``sweep.csv`` after the drawn keys.
 COLUMNS = ("scenario", "status", "nominal_rms_deg", "estimated_rms_deg", "worse_than_nominal", "gain_db",
-           "recovery_reference", "recovery_phantom", "refiner_kept", "seconds", "reason")
+           "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate", "seconds",
+           "reason")
+#: How far below the nominal angles' PSNR a reconstruction may fall and still count as no worse (dB).
+WORSE_DB = 0.05
+#: The true angles must gain this much PSNR over the nominal ones (against the jitter-free scan) for
+#: a scenario's recovery to count in the median: below it the jitter is not visible (dB).
+VISIBLE_DB = 0.5
 
 
 @dataclass(frozen=True)
@@ -234,19 +243,30 @@ def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> 
         row["reason"] = f"{type(exc).__name__}: {_one_line(exc)}"
     else:
         views = report.angle_tables["views"]
-        metrics = report.metrics["reference"]
         failed = report.failed
-        gain = (None if "estimated" in failed or "nominal" in failed else
-                float(metrics["estimated"]["psnr_db"] - metrics["nominal"]["psnr_db"]))
+
+        def gain(reference: str, label: str = "estimated") -> float | None:
+            if label in failed or "nominal" in failed:
+                return None
+            metrics = report.metrics[reference]
+            return float(metrics[label]["psnr_db"] - metrics["nominal"]["psnr_db"])
+
+        gains = (gain("reference"), gain("phantom"))
+        nominal_rms, estimated_rms = float(views["nominal"]["rms_deg"]), float(views["estimated"]["rms_deg"])
+        gate = report.pipeline_result.gate
         row.update({
             "status": "ok",
-            "nominal_rms_deg": float(views["nominal"]["rms_deg"]),
-            "estimated_rms_deg": float(views["estimated"]["rms_deg"]),
-            "gain_db": gain,
-            "worse_than_nominal": None if gain is None else bool(gain < 0),
+            "nominal_rms_deg": nominal_rms,
+            "estimated_rms_deg": estimated_rms,
+            "gain_db": gains[0],
+            "gain_phantom_db": gains[1],
+            "visible_db": gain("reference", "true"),
+            "worse_than_nominal": None if None in gains else bool(estimated_rms > nominal_rms
+                                                                  or min(gains) < -WORSE_DB),
             "recovery_reference": float(report.recovery["reference"]),
             "recovery_phantom": float(report.recovery["phantom"]),
             "refiner_kept": report.pipeline_result.refiner_info.get("chosen", ""),
+            "gate": "" if gate is None else gate.chosen if gate.decided else "undecided",
             "reason": "; ".join(report.problems),
         })
     row["seconds"] = time.perf_counter() - start
@@ -270,11 +290,16 @@ class SweepReport:
             values = [r[key] for r in ok if r.get(key) is not None and np.isfinite(r[key])]
             return float(np.median(values)) if values else None
 
+        visible = [r["recovery_reference"] for r in ok if (r.get("visible_db") or 0.0) >= VISIBLE_DB
+                   and np.isfinite(r["recovery_reference"])]
         return {"scenarios": len(self.rows), "ok": len(ok), "failed": len(self.rows) - len(ok),
                 "worse_than_nominal": len(worse),
                 "median_nominal_rms_deg": median("nominal_rms_deg"),
                 "median_estimated_rms_deg": median("estimated_rms_deg"),
-                "median_recovery_reference": median("recovery_reference"), "wall_s": self.wall_s}
+                "median_recovery_reference": median("recovery_reference"),
+                "visible": len(visible),
+                "median_recovery_visible": float(np.median(visible)) if visible else None,
+                "wall_s": self.wall_s}
 
     def summary_line(self) -> str:
         s = self.summary()
@@ -285,7 +310,8 @@ class SweepReport:
         return (f"{s['scenarios']} scenarios: {s['worse_than_nominal']} worse than the nominal angles, "
                 f"{s['failed']} failed; median per-view RMS {fmt(s['median_estimated_rms_deg'], '.4f')} deg "
                 f"(nominal {fmt(s['median_nominal_rms_deg'], '.4f')}); median recovery "
-                f"{fmt(s['median_recovery_reference'], '.3f')}; {s['wall_s']:.0f} s")
+                f"{fmt(s['median_recovery_reference'], '.3f')} ({fmt(s['median_recovery_visible'], '.3f')} over the "
+                f"{s['visible']} with visible jitter); {s['wall_s']:.0f} s")
 
     def table_rows(self) -> list[dict]:
         """One flat row per scenario: the drawn keys, then :data:`COLUMNS`."""

@@ -353,6 +353,9 @@ class ValidateReport:
                 lines.append(f"  {label:<9}  PSNR {m['psnr_db']:6.2f} dB  SSIM {m['ssim']:.4f}  "
                              f"relative RMSE {m['relative_rmse']:.4f}")
             lines.append(f"  recovery {self.recovery[reference]:+.3f}")
+        gate = self.pipeline_result.gate
+        if gate is not None:
+            lines.append(f"gate: {gate.chosen if gate.decided else 'undecided'}: {gate.reason}")
         lines.append(self.verdict())
         lines.extend(self.notes)
         return lines
@@ -397,7 +400,8 @@ class ValidateReport:
                          "median_inliers": float(np.median(result.n_inliers)),
                          "median_matches": float(np.median(result.n_matches)),
                          "median_keypoints": float(np.median(result.n_keypoints)),
-                         "timings_s": result.timings_s, "refiner": result.refiner_info},
+                         "timings_s": result.timings_s, "refiner": result.refiner_info,
+                         "gate": None if result.gate is None else result.gate.to_dict()},
             "estimate_problems": self.problems,
             "timings_s": self.timings_s,
             "verdict": self.verdict(),
@@ -462,6 +466,10 @@ def _run_validate(settings: ValidateSettings, registry: StageRegistry, progress)
     if n_filled:
         notes.append(f"{n_filled} views were not connected to view 0 by estimated pairs; they keep their nominal angle")
     problems = estimate_problems(estimated_rel, truth, scan.angles.range_deg)
+    gate = result.gate
+    if gate is not None and gate.decided and gate.chosen != "estimate":
+        returned = "the nominal angles" if gate.chosen == "nominal" else f"only the {gate.chosen} of the correction"
+        problems.insert(0, f"the gate returned {returned}: {gate.reason}")
     chosen = result.refiner_info.get("chosen")
     if chosen in ("nominal", "start"):
         problems.insert(0, f"the refiner kept the {'nominal' if chosen == 'nominal' else 'feature-based start'} "
