@@ -167,7 +167,7 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         if versus.z >= -z:
             best = "estimate"
     score = scores[best]
-    reason = (f"{best}: conjugate-ray cost {score.delta / max(scores['nominal'].cost, 1e-300):+.1%} against the "
-              f"nominal angles' (z {score.z:+.1f})")
+    reason = (f"conjugate-ray cost {score.delta / max(scores['nominal'].cost, 1e-300):+.1%} against the nominal "
+              f"angles' (z {score.z:+.1f})")
     angles = estimate if best == "estimate" else candidates[best] + shift
     return GateDecision(best, angles, True, reason, scores, harmonics, z, candidates["estimate"])
