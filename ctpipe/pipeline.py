@@ -459,10 +459,10 @@ def _gate_line(gate: GateDecision) -> str:
         return f"gate: {gate.reason}; the refiner's angles are returned unchecked"
     if gate.chosen == "nominal":
         return f"gate: returned the NOMINAL angles: {gate.reason}"
-    what = {"estimate": "the corrected angles", "fast band": "the fast part of the correction only (jitter, jumps)",
-            "slow band": "the slow part of the correction only (drift, eccentricity)"}[gate.chosen]
+    what = ("the corrected angles" if gate.chosen == "estimate" else
+            f"the nominal angles corrected by the {gate.chosen} part{'s' if len(gate.bands) > 1 else ''} of the correction")
     return (f"gate: the correction helped: {what} agree {gate.improvement:.0%} better than the nominal angles with the "
-            f"projections' conjugate rays (z {gate.scores[gate.chosen].z:+.1f})")
+            f"projections' conjugate rays (z {gate.scores['returned'].z:+.1f})")
 
 
 def difference_table(estimated_deg: np.ndarray, reference_deg: np.ndarray) -> dict[str, Any]:

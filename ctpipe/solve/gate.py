@@ -1,23 +1,24 @@
-"""The gate: corrected angles only where the projections show they are better than the nominal ones.
+"""The gate: corrected angles only where the projections show them better than the nominal ones.
 
 A refiner's angles can be worse than the scanner's nominal ones (a scale bias of the pair
 estimates on a truncated scan, flips on a feature-poor sample, a smooth error a short scan
 cannot close), and on a real scan nobody knows the truth. The gate asks the projections
 themselves, through the conjugate rays of :mod:`ctpipe.solve.conjugate`, which no reconstruction
-can bend to fit. It scores four candidate angle sets against the nominal ones:
+can bend to fit.
 
-- ``estimate``: the refiner's angles;
-- ``fast band``: the nominal angles plus the fast part of the correction (``estimate - nominal``
-  less its projection on the turn's first ``harmonics`` harmonics: jitter, jumps, slips);
-- ``slow band``: the nominal angles plus only the slow part (drift, eccentricity, a scale error);
-- ``nominal``, the reference.
+The correction (``estimate - nominal``, its median removed) is split into three bands
+(:func:`split_bands`): ``fast`` (what the turn's first ``harmonics`` harmonics leave: jitter,
+jumps, slips), ``slow-odd`` (odd harmonics: an eccentric table, a scale error) and
+``slow-even`` (even harmonics, which conjugate rays see only weakly). Starting from the nominal
+angles, bands are added one at a time (forward selection): of the bands not yet added, the one
+whose addition lowers the conjugate-ray cost most is added if it lowers it by more than ``z``
+standard errors (:class:`~ctpipe.solve.conjugate.ConjugateRayScore`), and the search stops when
+none does. Every band must earn its place on its own evidence, so a wrong slow part cannot ride
+into the result on a right fast part: on the sweep's scenarios that is what returned angles
+worse than the nominal ones when the estimate was judged as a whole or in two bands.
 
-A candidate is *shown better* when its conjugate-ray cost is below the nominal angles' by more
-than ``z`` standard errors (:class:`~ctpipe.solve.conjugate.ConjugateRayScore`). Of those, the
-lowest cost is returned, but the whole estimate is preferred to one of its bands unless the band
-is itself shown better than the estimate (the bands are tried to drop a part that is wrong, not
-to pick between two that the data cannot tell apart). When none is shown better, the nominal
-angles are returned, and said so.
+Views that no pair of conjugate rays reaches (the middle of a short scan) are not seen by the
+measure at all, so they keep their nominal angles whatever the bands.
 
 Where the projections cannot tell (no views half a turn apart, a midplane off the detector), the
 gate says so and passes the estimate through: there is no evidence either way, and nothing to
@@ -34,29 +35,42 @@ import numpy as np
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.model import wrap_deg
-from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_ray_costs
+from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_pairs, conjugate_ray_costs
 
-__all__ = ["GateDecision", "split_bands", "gate_angles", "CANDIDATES"]
+__all__ = ["GateDecision", "split_bands", "gate_angles", "BANDS"]
 
-CANDIDATES = ("estimate", "fast band", "slow band", "nominal")
+#: The bands of a correction, in the order they are reported.
+BANDS = ("fast", "slow-odd", "slow-even")
 
 
-def split_bands(correction_deg: np.ndarray, nominal_deg: np.ndarray, harmonics: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(slow, fast)`` parts of a per-view correction, each shape (V,); ``slow + fast == correction``.
+def split_bands(correction_deg: np.ndarray, nominal_deg: np.ndarray, harmonics: int,
+                fit: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The ``fast``, ``slow-odd`` and ``slow-even`` parts of a per-view correction, each shape (V,).
 
-    The slow part is the least-squares fit of ``1, cos(k theta), sin(k theta)`` for ``k`` up to
-    ``harmonics``, ``theta`` the nominal angles: on a full turn the turn-periodic errors of low
-    order; on a short scan the smooth errors over its range.
+    The slow parts are the least-squares fit of ``cos(k theta), sin(k theta)`` for odd and even
+    ``k`` up to ``harmonics`` (``theta`` the nominal angles; the constant goes with the even
+    part), the fast part what the fit leaves. They add up to the correction. On a short scan the
+    harmonics are not orthogonal over its range; they still span its smooth errors. ``fit``, a
+    boolean mask of shape (V,), fits the harmonics to those views only (the others' values do not
+    pull the fit).
     """
     correction = np.asarray(correction_deg, dtype=np.float64)
     theta = np.deg2rad(np.asarray(nominal_deg, dtype=np.float64))
-    columns = [np.ones_like(theta)]
+    columns = {"slow-odd": [], "slow-even": [np.ones_like(theta)]}
     for k in range(1, harmonics + 1):
-        columns += [np.cos(k * theta), np.sin(k * theta)]
-    basis = np.stack(columns, axis=1)
-    coeffs, *_ = np.linalg.lstsq(basis, correction, rcond=None)
-    slow = basis @ coeffs
-    return slow, correction - slow
+        columns["slow-odd" if k % 2 else "slow-even"] += [np.cos(k * theta), np.sin(k * theta)]
+    names = [name for name in ("slow-odd", "slow-even") if columns[name]]
+    basis = np.stack([column for name in names for column in columns[name]], axis=1)
+    rows = slice(None) if fit is None else np.asarray(fit, dtype=bool)
+    coeffs, *_ = np.linalg.lstsq(basis[rows], correction[rows], rcond=None)
+    parts, first = {}, 0
+    for name in names:
+        count = len(columns[name])
+        parts[name] = basis[:, first:first + count] @ coeffs[first:first + count]
+        first += count
+    parts.setdefault("slow-odd", np.zeros_like(correction))
+    return {"fast": correction - parts["slow-odd"] - parts["slow-even"], "slow-odd": parts["slow-odd"],
+            "slow-even": parts["slow-even"]}
 
 
 @dataclass(frozen=True)
@@ -66,20 +80,29 @@ class GateDecision:
     Attributes
     ----------
     chosen : str
-        ``estimate``, ``fast band``, ``slow band`` or ``nominal``; ``estimate`` also when the gate
-        could not decide (see ``reason``).
+        ``estimate`` (every band added and every view seen), ``nominal`` (no band), or the bands
+        added, e.g. ``fast + slow-odd``; ``estimate`` also when the gate could not decide (see
+        ``decided``).
     angles_deg : ndarray of shape (V,)
-        The angles returned, in the estimate's frame (view 0 at the estimate's).
+        The angles returned, in the estimate's frame.
     decided : bool
         Whether the projections could be asked at all.
     reason : str
-        One sentence: why this candidate (or why no decision).
+        One sentence: why this result (or why no decision).
+    bands : tuple of str
+        The bands added, in the order they were.
+    steps : tuple of dict
+        One entry per round of the selection: each remaining band's ``z`` against the angles of
+        that round.
     scores : dict of str to ConjugateRayScore
-        Each candidate's conjugate-ray cost and its difference from the nominal angles'.
+        ``nominal`` and the returned angles (``returned``), the latter against the former; and
+        the whole ``estimate`` against the nominal angles, for the record.
+    views_seen : int
+        Views reached by at least one pair of conjugate rays; the others keep their nominal angle.
     harmonics : int
-        Harmonics of the turn in the slow band.
+        Harmonics of the turn in the slow bands.
     z : float
-        Standard errors a candidate must gain over the nominal angles to be returned.
+        Standard errors of gain a band needs to be added.
     estimate_deg : ndarray of shape (V,) or None
         The refiner's angles as they came, in the nominal angles' frame (their median offset
         from them removed); None when the gate could not decide.
@@ -89,7 +112,10 @@ class GateDecision:
     angles_deg: np.ndarray
     decided: bool
     reason: str
+    bands: tuple[str, ...] = ()
+    steps: tuple[dict, ...] = ()
     scores: dict[str, ConjugateRayScore] = field(default_factory=dict)
+    views_seen: int = 0
     harmonics: int = 3
     z: float = 2.0
     estimate_deg: np.ndarray | None = field(default=None, repr=False)
@@ -97,20 +123,21 @@ class GateDecision:
     @property
     def improvement(self) -> float | None:
         """Relative drop of the conjugate-ray cost from the nominal angles to the returned ones (0.12: 12 % lower)."""
-        if not self.decided or "nominal" not in self.scores:
+        if not self.decided or "returned" not in self.scores:
             return None
         nominal = self.scores["nominal"].cost
-        return (nominal - self.scores[self.chosen].cost) / nominal if nominal > 0 else 0.0
+        return (nominal - self.scores["returned"].cost) / nominal if nominal > 0 else 0.0
 
     def to_dict(self) -> dict:
-        return {"chosen": self.chosen, "decided": self.decided, "reason": self.reason, "harmonics": self.harmonics,
-                "z": self.z, "improvement": self.improvement,
+        return {"chosen": self.chosen, "decided": self.decided, "reason": self.reason, "bands": list(self.bands),
+                "steps": [dict(step) for step in self.steps], "views_seen": self.views_seen,
+                "harmonics": self.harmonics, "z": self.z, "improvement": self.improvement,
                 "scores": {name: score.to_dict() for name, score in self.scores.items()}}
 
 
 def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg, *, z: float = 2.0,
                 harmonics: int = 3, fit_u0_px: float | None = None) -> GateDecision:
-    """The estimate, one of its bands, or the nominal angles: whichever the conjugate rays show best.
+    """The nominal angles plus those bands of the correction that the conjugate rays show better.
 
     Parameters
     ----------
@@ -118,11 +145,12 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         The midplane rows of the line integrals (:func:`~ctpipe.solve.conjugate.midplane_rows`).
     geometry : Geometry
     nominal_deg, estimate_deg : array_like of shape (V,)
-        Degrees, any common offset (the estimate is compared in the nominal frame).
+        Degrees, any common offset (the estimate is compared in the nominal frame; whole turns
+        between them do not count).
     z : float
-        Standard errors of gain over the nominal angles a candidate needs.
+        Standard errors of gain a band needs to be added.
     harmonics : int
-        Harmonics of the turn in the slow band.
+        Harmonics of the turn in the slow bands.
     fit_u0_px : float, optional
         Search for the axis column this far either side of ``geometry.u0_px`` (default: 2 % of
         the detector width, at least 3 px), for every candidate.
@@ -133,41 +161,52 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     if nominal.shape != estimate.shape or nominal.ndim != 1 or not np.all(np.isfinite(nominal)):
         raise InputError(f"nominal_deg and estimate_deg: must be finite angles of one shape (V,), got {nominal.shape} "
                          f"and {estimate.shape}")
-    if not (z > 0 and math.isfinite(z)) or not (0 <= harmonics <= 32):
-        raise InputError(f"z must be > 0 and harmonics 0 to 32, got {z!r} and {harmonics!r}")
-    # The estimate in the nominal frame: its median offset from the nominal angles removed.
+    if not (z > 0 and math.isfinite(z)) or not (1 <= harmonics <= 32):
+        raise InputError(f"z must be > 0 and harmonics 1 to 32, got {z!r} and {harmonics!r}")
     finite = np.isfinite(estimate)
     if not finite.all():
         return GateDecision("estimate", estimate, False, f"{int((~finite).sum())} views have no estimate; not gated",
                             harmonics=harmonics, z=z)
-    # Whole turns between them do not count (a refiner's angles may run past 360 deg, or wrap).
+    # The estimate in the nominal frame: its median offset from the nominal angles removed.
     difference = wrap_deg(estimate - nominal)
     shift = float(np.median(wrap_deg(difference - difference[0]))) + float(difference[0])
     correction = wrap_deg(difference - shift)
-    slow, fast = split_bands(correction, nominal, harmonics)
-    candidates = {"nominal": nominal, "estimate": nominal + correction, "fast band": nominal + fast,
-                  "slow band": nominal + slow}
     search = max(3.0, 0.02 * g.detector_cols) if fit_u0_px is None else float(fit_u0_px)
-    try:
-        scores = conjugate_ray_costs(None, g, candidates, reference="nominal", fit_u0_px=search, rows=rows)
-    except InputError as error:
-        return GateDecision("estimate", estimate, False, f"not gated: {error}", harmonics=harmonics, z=z)
-    shown = [name for name in ("estimate", "fast band", "slow band") if scores[name].z < -z]
-    if not shown:
-        est = scores["estimate"]
-        return GateDecision("nominal", nominal + shift, True,
-                            f"the projections do not show the estimate better than the nominal angles "
-                            f"(conjugate-ray cost {est.delta / max(scores['nominal'].cost, 1e-300):+.1%} of the "
-                            f"nominal's, z {est.z:+.1f}; needs z < {-z:g})", scores, harmonics, z,
-                            candidates["estimate"])
-    best = min(shown, key=lambda name: scores[name].cost)
-    if best != "estimate" and "estimate" in shown:
-        versus = conjugate_ray_costs(None, g, {"estimate": candidates["estimate"], best: candidates[best]},
-                                     reference="estimate", fit_u0_px=search, rows=rows)[best]
-        if versus.z >= -z:
-            best = "estimate"
-    score = scores[best]
-    reason = (f"conjugate-ray cost {score.delta / max(scores['nominal'].cost, 1e-300):+.1%} against the nominal "
-              f"angles' (z {score.z:+.1f})")
-    angles = estimate if best == "estimate" else candidates[best] + shift
-    return GateDecision(best, angles, True, reason, scores, harmonics, z, candidates["estimate"])
+    first, second = conjugate_pairs(nominal, g, margin_px=1.0 + search)
+    if len(first) == 0:
+        return GateDecision("estimate", estimate, False, "not gated: no two views are half a turn apart with their "
+                            "common ray on the detector (a scan must cover 180 deg plus the fan angle)",
+                            harmonics=harmonics, z=z)
+    seen = np.zeros(len(nominal), bool)
+    seen[first] = seen[second] = True
+    parts = {name: np.where(seen, part, 0.0) for name, part in split_bands(correction, nominal, harmonics, seen).items()}
+
+    def scored(candidates: dict, reference: str) -> dict[str, ConjugateRayScore]:
+        return conjugate_ray_costs(None, g, candidates, reference=reference, fit_u0_px=search, rows=rows)
+
+    current, added, steps = nominal, [], []
+    remaining = [name for name in BANDS if np.any(parts[name] != 0.0)]
+    while remaining:
+        scores = scored({"current": current, **{name: current + parts[name] for name in remaining}}, "current")
+        steps.append({name: scores[name].z for name in remaining})
+        best = min(remaining, key=lambda name: scores[name].z)
+        if not scores[best].z < -z:
+            break
+        current = current + parts[best]
+        added.append(best)
+        remaining.remove(best)
+    record = scored({"nominal": nominal, "returned": current, "estimate": nominal + correction}, "nominal")
+    if not added:
+        chosen = "nominal"
+        reason = (f"no band of the correction is shown better than the nominal angles by the projections' conjugate rays "
+                  f"(best z {min(steps[0].values()):+.1f}; needs z < {-z:g})" if steps else
+                  "the estimate is the nominal angles")
+    else:
+        chosen = "estimate" if len(added) == len(BANDS) and seen.all() else " + ".join(added)
+        reason = (f"conjugate-ray cost {record['returned'].delta / max(record['nominal'].cost, 1e-300):+.1%} against the "
+                  f"nominal angles' (z {record['returned'].z:+.1f}) with the {', '.join(added)} band"
+                  f"{'s' if len(added) > 1 else ''} of the correction"
+                  + ("" if seen.all() else f"; {int((~seen).sum())} views no pair reaches keep their nominal angle"))
+    angles = estimate if chosen == "estimate" else current + shift
+    return GateDecision(chosen, angles, True, reason, tuple(added), tuple(steps), record, int(seen.sum()), harmonics, z,
+                        nominal + correction)

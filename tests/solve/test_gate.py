@@ -11,7 +11,7 @@ from ctpipe.errors import InputError
 from ctpipe.sim.phantoms import load_phantom
 from ctpipe.sim.scan_spec import parse_scan_spec
 from ctpipe.sim.simulator import simulate
-from ctpipe.solve.conjugate import midplane_rows
+from ctpipe.solve.conjugate import conjugate_pairs, midplane_rows
 from ctpipe.solve.gate import gate_angles, split_bands
 
 SCAN = {
@@ -23,6 +23,13 @@ SCAN = {
     "projector": {"kind": "analytic", "supersample": 1, "blur_px": 0.5},
     "seed": 1,
 }
+
+
+def _seen(s) -> np.ndarray:
+    first, second = conjugate_pairs(s.nominal_angles_deg, s.geometry, margin_px=4.0)
+    seen = np.zeros(len(s.nominal_angles_deg), bool)
+    seen[first] = seen[second] = True
+    return seen
 
 
 def _rms(angles, truth) -> float:
@@ -41,12 +48,14 @@ def scan(request):
 
 def test_the_bands_add_up_and_split_where_they_should():
     theta = np.linspace(0.0, 360.0, 200, endpoint=False)
-    slow_true = 0.3 * np.sin(np.deg2rad(theta)) + 0.1 * np.cos(np.deg2rad(2 * theta))
-    fast_true = np.where(np.arange(200) % 2 == 0, 0.05, -0.05)
-    slow, fast = split_bands(slow_true + fast_true, theta, harmonics=3)
-    np.testing.assert_allclose(slow + fast, slow_true + fast_true, atol=1e-12)
-    np.testing.assert_allclose(slow, slow_true, atol=1e-9)      # the alternation has no low harmonic
-    np.testing.assert_allclose(fast, fast_true, atol=1e-9)
+    odd = 0.3 * np.sin(np.deg2rad(theta)) - 0.05 * np.cos(np.deg2rad(3 * theta))
+    even = 0.1 * np.cos(np.deg2rad(2 * theta)) + 0.2
+    fast = np.where(np.arange(200) % 2 == 0, 0.05, -0.05)   # the alternation has no low harmonic
+    parts = split_bands(odd + even + fast, theta, harmonics=3)
+    assert list(parts) == ["fast", "slow-odd", "slow-even"]
+    np.testing.assert_allclose(sum(parts.values()), odd + even + fast, atol=1e-12)
+    for name, truth in (("fast", fast), ("slow-odd", odd), ("slow-even", even)):
+        np.testing.assert_allclose(parts[name], truth, atol=1e-9, err_msg=name)
 
 
 def test_a_good_estimate_is_kept(scan):
@@ -54,9 +63,14 @@ def test_a_good_estimate_is_kept(scan):
     truth, nominal = s.true_angles_deg, s.nominal_angles_deg
     estimate = truth + np.random.default_rng(3).normal(0.0, 0.03, len(truth)) + 7.0   # any common offset
     decision = gate_angles(rows, s.geometry, nominal, estimate)
-    assert decision.decided and decision.chosen == "estimate"
-    np.testing.assert_allclose(decision.angles_deg, estimate, atol=1e-9)
-    assert decision.improvement > 0.1 and decision.scores["estimate"].z < -2
+    assert decision.decided and decision.improvement > 0.1 and decision.scores["returned"].z < -2
+    assert "fast" in decision.bands              # the jitter is what the estimate corrects
+    if decision.chosen == "estimate":
+        np.testing.assert_allclose(decision.angles_deg, estimate, atol=1e-9)
+    # Where conjugate rays reach (all views of a full turn, both ends of a short scan), corrected.
+    seen = _seen(s)
+    assert seen.sum() == decision.views_seen
+    assert _rms(decision.angles_deg[seen], truth[seen]) < 0.3 * _rms(nominal[seen], truth[seen])
 
 
 def test_an_estimate_worse_than_nominal_gives_the_nominal_angles(scan):
@@ -64,7 +78,7 @@ def test_an_estimate_worse_than_nominal_gives_the_nominal_angles(scan):
     truth, nominal = s.true_angles_deg, s.nominal_angles_deg
     estimate = nominal + np.random.default_rng(4).normal(0.0, 0.5, len(truth))
     decision = gate_angles(rows, s.geometry, nominal, estimate)
-    assert decision.chosen == "nominal" and "do not show" in decision.reason
+    assert decision.chosen == "nominal" and "no band of the correction is shown better" in decision.reason
     assert _rms(decision.angles_deg, truth) == pytest.approx(_rms(nominal, truth))
 
 
@@ -76,14 +90,44 @@ def test_a_wrong_slow_band_is_dropped_and_the_fast_one_kept(scan):
     estimate = truth + 0.5 * np.sin(theta) + np.random.default_rng(3).normal(0.0, 0.03, len(truth))
     assert _rms(estimate, truth) > 0.9 * _rms(nominal, truth)
     decision = gate_angles(rows, s.geometry, nominal, estimate)
-    assert decision.chosen == "fast band"
+    assert decision.bands == ("fast",) and decision.chosen == "fast"
     assert _rms(decision.angles_deg, truth) < 0.5 * _rms(nominal, truth)
+
+
+def test_a_wrong_even_band_does_not_ride_in_on_a_right_odd_one(scan):
+    s, rows = scan
+    truth, nominal = s.true_angles_deg, s.nominal_angles_deg
+    theta = np.deg2rad(nominal)
+    # The nominal angles carry a once-per-turn error the estimate corrects, and the estimate adds
+    # a twice-per-turn error of its own, which conjugate rays see only weakly.
+    nominal_odd = nominal + 0.4 * np.sin(theta)
+    estimate = truth + 0.5 * np.sin(2 * theta)
+    decision = gate_angles(rows, s.geometry, nominal_odd, estimate)
+    assert "slow-even" not in decision.bands
+    assert _rms(decision.angles_deg, truth) < _rms(nominal_odd, truth)
+
+
+def test_views_no_conjugate_ray_reaches_keep_their_nominal_angle():
+    spec = copy.deepcopy(SCAN)
+    spec["angles"]["range_deg"] = 250.0
+    s = simulate(load_phantom("bead-cylinder"), parse_scan_spec(spec), rng=np.random.default_rng(5))
+    rows = midplane_rows(s.projections, s.geometry)
+    truth, nominal = s.true_angles_deg, s.nominal_angles_deg
+    middle = (nominal > 120.0) & (nominal < 140.0)
+    # Right where pairs see it, 5 deg off in the middle of the short scan, where none does.
+    estimate = truth + np.where(middle, 5.0, 0.0)
+    decision = gate_angles(rows, s.geometry, nominal, estimate)
+    assert decision.decided and decision.views_seen < len(nominal)
+    offset = decision.angles_deg[middle] - nominal[middle]      # the estimate's frame: one common offset
+    assert np.ptp(offset) < 1e-9
+    assert "keep their nominal angle" in decision.reason
 
 
 def test_without_conjugate_rays_the_gate_says_it_cannot_decide(scan):
     s, rows = scan
     decision = gate_angles(rows[:30], s.geometry, s.nominal_angles_deg[:30], s.true_angles_deg[:30])
     assert not decision.decided and decision.chosen == "estimate" and "half a turn" in decision.reason
+    assert decision.angles_deg is not None
     assert decision.improvement is None
 
 
