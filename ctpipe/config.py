@@ -295,6 +295,11 @@ _GATE = ParamSpec("gate", Literal["auto", "off"], "auto",
                   "(ctpipe.solve.gate); off: the refiner's angles as they are")
 
 
+def _on_off(value: Any, on: str) -> Any:
+    """``off`` for a YAML 1.1 boolean false (a bare ``off``), ``on`` for true; anything else as it is."""
+    return value if not isinstance(value, bool) else (on if value else "off")
+
+
 def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline") -> PipelineConfig:
     """Validate a pipeline mapping (see the module docstring) against ``registry``."""
     if mapping is None:
@@ -307,10 +312,11 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
     baselines = check_value(_PAIRS_BASELINES, pairs.get("baselines", [1]), f"{path}.pairs.baselines")
     loop_closure = check_value(_PAIRS_LOOP_CLOSURE, pairs.get("loop_closure", True), f"{path}.pairs.loop_closure")
     preprocess = check_keys(mapping.get("preprocess", {}) or {}, f"{path}.preprocess", allowed=("static_background",))
-    static_background = check_value(_STATIC_BACKGROUND, preprocess.get("static_background", "auto"),
+    # YAML 1.1 reads a bare on/off as a boolean: take it as the word the user wrote.
+    static_background = check_value(_STATIC_BACKGROUND, _on_off(preprocess.get("static_background", "auto"), "on"),
                                     f"{path}.preprocess.static_background")
     seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
-    gate = check_value(_GATE, mapping.get("gate", "auto"), f"{path}.gate")
+    gate = check_value(_GATE, _on_off(mapping.get("gate", "auto"), "auto"), f"{path}.gate")
     return PipelineConfig(**stages, baselines=tuple(sorted(set(baselines))), seed=seed, loop_closure=loop_closure,
                           static_background=static_background, gate=gate)
 

@@ -458,7 +458,8 @@ def _gate_line(gate: GateDecision) -> str:
     if not gate.decided:
         return f"gate: {gate.reason}; the refiner's angles are returned unchecked"
     if gate.chosen == "nominal":
-        return f"gate: returned the NOMINAL angles: {gate.reason}"
+        return (f"gate: returned the NOMINAL angles: {gate.reason} (the refiner's angles are in angles.csv as "
+                f"refiner_deg; gate: off returns them)")
     what = ("the corrected angles" if gate.chosen == "estimate" else
             f"the nominal angles corrected by the {gate.chosen} part{'s' if len(gate.bands) > 1 else ''} of the correction")
     return (f"gate: the correction helped: {what} agree {gate.improvement:.0%} better than the nominal angles with the "

@@ -17,6 +17,12 @@ def test_defaults_and_bare_names():
     assert config.baselines == (1,) and config.seed == 0
 
 
+def test_a_bare_on_or_off_is_the_word_not_yaml_1_1s_boolean():
+    config = parse("gate: off\npreprocess: {static_background: on}\n")
+    assert (config.gate, config.static_background) == ("off", "on")
+    assert parse("gate: on\npreprocess: {static_background: off}\n").static_background == "off"
+
+
 @pytest.mark.parametrize("text, message", [
     ("estimator: {name: ransac-1pt, sampson_threshold: -1}",
      "pipeline.estimator.sampson_threshold: must be a number > 0 and <= 1, got -1"),

@@ -131,7 +131,12 @@ def _mismatch(coefficients: np.ndarray, geometry: Geometry, angles: np.ndarray, 
     last = geometry.detector_cols - 1
     sample = lambda views, cols: map_coordinates(coefficients, [views.astype(np.float64), np.clip(cols, 0.0, last)],
                                                  order=3, mode="nearest", prefilter=False)
-    return sample(i, col_i) - sample(j, col_j)
+    mismatch = sample(i, col_i) - sample(j, col_j)
+    # A ray the angles put off either detector was not measured there: NaN, not the edge's value
+    # (the edges are often air on both sides, which would agree and reward angles that push rays off).
+    off = (col_i < 0.0) | (col_i > last) | (col_j < 0.0) | (col_j > last) | ~np.isfinite(col_i) | ~np.isfinite(col_j)
+    mismatch[off] = np.nan
+    return mismatch
 
 
 def conjugate_ray_mismatch(rows: np.ndarray, geometry: Geometry, angles_deg, pairs: tuple[np.ndarray, np.ndarray], *,
@@ -140,7 +145,7 @@ def conjugate_ray_mismatch(rows: np.ndarray, geometry: Geometry, angles_deg, pai
 
     ``rows`` from :func:`midplane_rows`; ``pairs`` from :func:`conjugate_pairs`; the rows are
     interpolated with cubic splines (linear interpolation adds a floor of its own at sharp edges)
-    at the columns, clamped to the detector.
+    at the columns; NaN where ``angles_deg`` put a pair's ray off either detector.
     """
     g = check_geometry(geometry)
     i, j = (np.asarray(k, dtype=np.intp) for k in pairs)
@@ -193,7 +198,7 @@ def _fit_u0(coefficients, geometry, angles, pairs, search_px: float) -> float:
     A grid of half-pixel steps, then a golden-section search on the cell around its best.
     """
     def cost(u0):
-        return float(np.mean(_mismatch(coefficients, geometry, angles, *pairs, u0) ** 2))
+        return float(np.nanmean(_mismatch(coefficients, geometry, angles, *pairs, u0) ** 2))
 
     centre = geometry.u0_px
     grid = centre + np.linspace(-search_px, search_px, int(2 * math.ceil(search_px / 0.5)) + 1)
@@ -240,8 +245,9 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
     -------
     dict of str to ConjugateRayScore
         In the order of ``candidates``. The pairs compared are those whose common ray is on both
-        detectors at the reference's angles, so all scores are over the same rays (a candidate
-        that moves one off the detector samples the detector's edge for it).
+        detectors at the reference's angles, so all scores are over the same rays; a ray that a
+        candidate moves off a detector cannot be checked and counts as it does for the reference
+        (neither reward nor charge).
 
     Raises
     ------
@@ -274,9 +280,13 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
     coefficients = _spline(rows)
     squared = {}
     u0s = {}
-    for name, angles in sets.items():
+    for name in [reference, *(n for n in sets if n != reference)]:
+        angles = sets[name]
         u0s[name] = _fit_u0(coefficients, g, angles, pairs, fit_u0_px) if fit_u0_px > 0 else g.u0_px
-        squared[name] = _mismatch(coefficients, g, angles, *pairs, u0s[name]) ** 2 / scale
+        value = _mismatch(coefficients, g, angles, *pairs, u0s[name]) ** 2 / scale
+        # A ray a candidate puts off a detector cannot be checked: it counts as the reference has it.
+        squared[name] = value if name == reference else np.where(np.isnan(value), squared[reference], value)
+    squared = {name: squared[name] for name in sets}
     groups = pairs[0]
     n_groups = len(np.unique(groups))
     scores = {}

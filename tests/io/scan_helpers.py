@@ -27,6 +27,10 @@ FAST_PIPELINE = {
     "estimator": {"name": "ransac-1pt", "hypotheses": "all", "scoring": "msac", "sampson_threshold": 3.0e-3},
     "refiner": {"name": "least-squares"},
     "pairs": {"baselines": [1, 2]},
+    # The formats are compared through the refiner's own angles. On these small scans (tens of
+    # views, 64-128 px) conjugate rays have too few pairs to show a correction better, and the
+    # gate would return the nominal angles, which say nothing about a reader.
+    "gate": "off",
 }
 
 
