@@ -90,7 +90,7 @@ def test_exact_data_agree_best_at_the_true_angles():
     truth = exact.true_angles_deg
 
     def cost(angles):
-        return float(np.mean(conjugate_ray_mismatch(rows, exact.geometry, angles, pairs) ** 2))
+        return float(np.nanmean(conjugate_ray_mismatch(rows, exact.geometry, angles, pairs) ** 2))
 
     # A common offset changes nothing; the 0.3 deg jitter of the nominal angles and a 1 % scale
     # error do. What is left at the truth is the midplane falling between two rows and the
