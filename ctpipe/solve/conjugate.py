@@ -198,7 +198,10 @@ def _fit_u0(coefficients, geometry, angles, pairs, search_px: float) -> float:
     A grid of half-pixel steps, then a golden-section search on the cell around its best.
     """
     def cost(u0):
-        return float(np.nanmean(_mismatch(coefficients, geometry, angles, *pairs, u0) ** 2))
+        squared = _mismatch(coefficients, geometry, angles, *pairs, u0) ** 2
+        checked = np.isfinite(squared)
+        # Rays off the detector cannot be checked; an axis that leaves none checkable is no fit.
+        return float(np.mean(squared[checked])) if checked.any() else math.inf
 
     centre = geometry.u0_px
     grid = centre + np.linspace(-search_px, search_px, int(2 * math.ceil(search_px / 0.5)) + 1)
