@@ -24,50 +24,40 @@ stays fast.
 
 from __future__ import annotations
 
-import importlib
+from ctpipe._shared.lazy import lazy_exports
 
 from ctpipe._version import __version__
 
-#: Public name -> the module that defines it.
+#: Public name -> the module (under ctpipe) that defines it.
 _EXPORTS = {
-    "Pipeline": "ctpipe.pipeline",
-    "ScanResult": "ctpipe.pipeline",
-    "Geometry": "ctpipe.geometry",
-    "Features": "ctpipe.data",
-    "Matches": "ctpipe.data",
-    "PairEstimate": "ctpipe.data",
-    "ScanObservations": "ctpipe.data",
-    "ScanSolution": "ctpipe.data",
-    "get_registry": "ctpipe.plugins",
-    "CtpipeError": "ctpipe.errors",
-    "ConfigError": "ctpipe.errors",
-    "InputError": "ctpipe.errors",
-    "EstimationError": "ctpipe.errors",
-    "PluginError": "ctpipe.errors",
-    "open_scan": "ctpipe.io.scans",
-    "ScanFiles": "ctpipe.io.scans",
-    "Scan": "ctpipe.io.scan_folder",
-    "read_scan": "ctpipe.io.scan_folder",
-    "write_scan": "ctpipe.io.scan_folder",
-    "simulate": "ctpipe.sim.simulator",
-    "load_phantom": "ctpipe.sim.phantoms",
-    "load_scan_spec": "ctpipe.sim.scan_spec",
-    "VolumeGrid": "ctpipe.recon.volume",
-    "fdk": "ctpipe.recon.feldkamp",
-    "run_validate": "ctpipe.evaluate.validate",
+    "Pipeline": "pipeline",
+    "ScanResult": "pipeline",
+    "Geometry": "geometry",
+    "Features": "data",
+    "Matches": "data",
+    "PairEstimate": "data",
+    "ScanObservations": "data",
+    "ScanSolution": "data",
+    "get_registry": "plugins",
+    "CtpipeError": "errors",
+    "ConfigError": "errors",
+    "InputError": "errors",
+    "EstimationError": "errors",
+    "PluginError": "errors",
+    "open_scan": "io.scans",
+    "ScanFiles": "io.scans",
+    "Scan": "io.scan_folder",
+    "read_scan": "io.scan_folder",
+    "write_scan": "io.scan_folder",
+    "simulate": "sim.simulator",
+    "load_phantom": "sim.phantoms",
+    "load_scan_spec": "sim.scan_spec",
+    "VolumeGrid": "recon.volume",
+    "fdk": "recon.feldkamp",
+    "run_validate": "evaluate.validate",
 }
 
 __all__ = ["__version__", *_EXPORTS]
 
 
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'ctpipe' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

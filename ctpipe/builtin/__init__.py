@@ -15,7 +15,7 @@ The modules are imported on first use of a name, so that ``--block-plugin`` keep
 
 from __future__ import annotations
 
-import importlib
+from ctpipe._shared.lazy import lazy_exports
 
 #: Public name -> the module of this package that defines it.
 _EXPORTS = {
@@ -32,14 +32,4 @@ _EXPORTS = {
 __all__ = list(_EXPORTS)
 
 
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'ctpipe.builtin' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"ctpipe.builtin.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

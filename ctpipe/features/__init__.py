@@ -11,7 +11,7 @@ numerics belong here, its stage there.
 
 from __future__ import annotations
 
-import importlib
+from ctpipe._shared.lazy import lazy_exports
 
 #: Public name -> the module of this package that defines it. Imported on first use, so that the
 #: SURF detector does not load the ball finder's scipy modules (0.6 s) and the other way round.
@@ -23,14 +23,4 @@ _EXPORTS = {
 __all__ = list(_EXPORTS)
 
 
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'ctpipe.features' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"ctpipe.features.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

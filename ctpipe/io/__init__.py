@@ -19,7 +19,7 @@ The readers are imported on first use, so that a blocked format plugin is never 
 
 from __future__ import annotations
 
-import importlib
+from ctpipe._shared.lazy import lazy_exports
 
 #: Public name -> the module that defines it.
 _EXPORTS = {
@@ -41,14 +41,4 @@ _EXPORTS = {
 __all__ = list(_EXPORTS)
 
 
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'ctpipe.io' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"ctpipe.io.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -30,7 +30,7 @@ angle logs ``ctpipe estimate`` writes for users stay with their readers
 
 from __future__ import annotations
 
-import importlib
+from ctpipe._shared.lazy import lazy_exports
 
 import numpy as np
 from scipy import ndimage
@@ -53,17 +53,7 @@ _WRITERS = {"write_nikon": "nikon", "write_zeiss": "zeiss", "write_bruker": "bru
             "write_compound_file": "ole"}
 
 
-def __getattr__(name: str):
-    module = _WRITERS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'ctpipe.testing' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"ctpipe.testing.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_WRITERS))
+__getattr__, __dir__ = lazy_exports(__name__, _WRITERS)
 
 
 def textured_image(shape: tuple[int, int] = (256, 256), seed: int = 0) -> np.ndarray:
