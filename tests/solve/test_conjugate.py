@@ -2,41 +2,16 @@
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 import pytest
 
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.model import rotation_matrix
-from ctpipe.sim.phantoms import load_phantom
-from ctpipe.sim.scan_spec import parse_scan_spec
-from ctpipe.sim.simulator import simulate
 from ctpipe.solve.conjugate import conjugate_pairs, conjugate_ray_costs, conjugate_ray_mismatch, midplane_rows
 from ctpipe.solve.reprojection import consistency_costs
 
-SCAN = {
-    "geometry": {"source_to_object_mm": 130.0, "source_to_detector_mm": 300.0, "detector_cols": 128,
-                 "detector_rows": 128, "pixel_pitch_u_mm": 1.6, "pixel_pitch_v_mm": 1.6},
-    "angles": {"n_views": 180, "range_deg": 360.0},
-    "jitter": [{"gaussian": {"sigma_deg": 0.3}}],
-    "noise": {"photons_per_pixel": 100000, "flat_frames": 4, "dark_frames": 2, "dark_counts": 100},
-    "projector": {"kind": "analytic", "supersample": 1, "blur_px": 0.5},
-    "seed": 1,
-}
-
-
-def _scan(phantom="bead-cylinder", **changes):
-    spec = copy.deepcopy(SCAN)
-    for key, value in changes.items():
-        node = spec
-        *parents, last = key.split(".")
-        for part in parents:
-            node = node.setdefault(part, {})
-        node[last] = value
-    return simulate(load_phantom(phantom), parse_scan_spec(spec), rng=np.random.default_rng(5))
-
+from conjugate_scans import simulate_scan
 
 def _candidates(scan):
     truth, nominal = scan.true_angles_deg, scan.nominal_angles_deg
@@ -48,7 +23,7 @@ def _candidates(scan):
 
 @pytest.fixture(scope="module")
 def scan():
-    return _scan()
+    return simulate_scan()
 
 
 def test_the_common_ray_is_the_line_through_both_sources_in_ctpipes_convention():
@@ -84,7 +59,7 @@ def test_pairs_are_half_a_turn_apart_give_or_take_the_fan():
 
 
 def test_exact_data_agree_best_at_the_true_angles():
-    exact = _scan(noise=None)
+    exact = simulate_scan(noise=None)
     rows = midplane_rows(exact.projections, exact.geometry)
     pairs = conjugate_pairs(exact.nominal_angles_deg, exact.geometry)
     truth = exact.true_angles_deg
@@ -116,16 +91,16 @@ def test_the_truth_ranks_first_and_smooth_errors_are_seen(scan):
 
 @pytest.mark.parametrize("case", ["region of interest", "short scan", "metal"])
 def test_the_ranking_holds_where_reconstructions_struggle(case):
-    scan = {"region of interest": lambda: _scan(**{"geometry.source_to_object_mm": 60.0}),
-            "short scan": lambda: _scan(**{"angles.range_deg": 250.0}),
-            "metal": lambda: _scan("metal-insert")}[case]()
+    scan = {"region of interest": lambda: simulate_scan(**{"geometry.source_to_object_mm": 60.0}),
+            "short scan": lambda: simulate_scan(**{"angles.range_deg": 250.0}),
+            "metal": lambda: simulate_scan("metal-insert")}[case]()
     scores = conjugate_ray_costs(scan.projections, scan.geometry, _candidates(scan), reference="truth")
     for name in ("nominal", "once-per-turn", "scale"):
         assert scores[name].z > 2.0, (case, name)
 
 
 def test_an_offset_axis_is_fitted_rather_than_blamed_on_the_angles():
-    scan = _scan(misalignment={"cor_offset_px": 1.5})
+    scan = simulate_scan(misalignment={"cor_offset_px": 1.5})
     candidates = _candidates(scan)
     blind = conjugate_ray_costs(scan.projections, scan.geometry, candidates, reference="truth")
     fitted = conjugate_ray_costs(scan.projections, scan.geometry, candidates, reference="truth", fit_u0_px=3.0)
@@ -135,7 +110,7 @@ def test_an_offset_axis_is_fitted_rather_than_blamed_on_the_angles():
 
 
 def test_few_views_say_little_and_the_standard_error_says_so():
-    scan = _scan(**{"angles.n_views": 16})
+    scan = simulate_scan(**{"angles.n_views": 16})
     scores = conjugate_ray_costs(scan.projections, scan.geometry, _candidates(scan), reference="truth")
     assert scores["truth"].n_pairs < 40
     assert abs(scores["jitter"].z) < 2.0

@@ -2,28 +2,14 @@
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 import pytest
 
 from ctpipe.errors import InputError
-from ctpipe.sim.phantoms import load_phantom
-from ctpipe.sim.scan_spec import parse_scan_spec
-from ctpipe.sim.simulator import simulate
 from ctpipe.solve.conjugate import conjugate_pairs, midplane_rows
 from ctpipe.solve.gate import gate_angles, split_bands
 
-SCAN = {
-    "geometry": {"source_to_object_mm": 130.0, "source_to_detector_mm": 300.0, "detector_cols": 128,
-                 "detector_rows": 128, "pixel_pitch_u_mm": 1.6, "pixel_pitch_v_mm": 1.6},
-    "angles": {"n_views": 180, "range_deg": 360.0},
-    "jitter": [{"gaussian": {"sigma_deg": 0.3}}],
-    "noise": {"photons_per_pixel": 100000, "flat_frames": 4, "dark_frames": 2, "dark_counts": 100},
-    "projector": {"kind": "analytic", "supersample": 1, "blur_px": 0.5},
-    "seed": 1,
-}
-
+from conjugate_scans import simulate_scan
 
 def _seen(s) -> np.ndarray:
     first, second = conjugate_pairs(s.nominal_angles_deg, s.geometry, margin_px=4.0)
@@ -39,10 +25,7 @@ def _rms(angles, truth) -> float:
 
 @pytest.fixture(scope="module", params=["full turn", "short scan"])
 def scan(request):
-    spec = copy.deepcopy(SCAN)
-    if request.param == "short scan":
-        spec["angles"]["range_deg"] = 250.0
-    s = simulate(load_phantom("bead-cylinder"), parse_scan_spec(spec), rng=np.random.default_rng(5))
+    s = simulate_scan(**({"angles.range_deg": 250.0} if request.param == "short scan" else {}))
     return s, midplane_rows(s.projections, s.geometry)
 
 
@@ -108,9 +91,7 @@ def test_a_wrong_even_band_does_not_ride_in_on_a_right_odd_one(scan):
 
 
 def test_views_no_conjugate_ray_reaches_keep_their_nominal_angle():
-    spec = copy.deepcopy(SCAN)
-    spec["angles"]["range_deg"] = 250.0
-    s = simulate(load_phantom("bead-cylinder"), parse_scan_spec(spec), rng=np.random.default_rng(5))
+    s = simulate_scan(**{"angles.range_deg": 250.0})
     rows = midplane_rows(s.projections, s.geometry)
     truth, nominal = s.true_angles_deg, s.nominal_angles_deg
     middle = (nominal > 120.0) & (nominal < 140.0)
