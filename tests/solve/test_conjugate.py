@@ -14,7 +14,6 @@ from ctpipe.solve.reprojection import consistency_costs
 from conjugate_scans import simulate_scan
 
 
-
 def _candidates(scan):
     truth, nominal = scan.true_angles_deg, scan.nominal_angles_deg
     theta = np.deg2rad(nominal)
