@@ -26,6 +26,7 @@ from ctpipe.registry import StageRegistry
 from ctpipe.solve.conjugate import midplane_rows
 from ctpipe.solve.gate import GateDecision, gate_angles
 from ctpipe.solve.graph import view_pairs
+from ctpipe.solve.reprojection import as_line_integrals
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner
 
 __all__ = ["Pipeline", "ScanResult", "RefinedGeometry", "TurnCheck", "RefinerChoice", "ClosingView", "AngleErrors",
@@ -819,12 +820,10 @@ def _gate(observations: ScanObservations, solution: ScanSolution) -> GateDecisio
         rows = midplane_rows(projections, observations.geometry)
     except InputError as error:
         return GateDecision("estimate", estimate, False, f"not gated: {error}")
-    border = max(rows.shape[1] // 16, 1)
-    if float(np.median(np.concatenate([rows[:, :border], rows[:, -border:]]))) > float(np.median(rows[:, border:-border])):
-        # Intensities (a bright field around a dark object): line integrals against each row's flat level.
-        flat = np.maximum(np.percentile(rows, 99.5, axis=1, keepdims=True), 1e-30)
-        rows = np.maximum(-np.log(np.maximum(rows, 1e-6 * flat) / flat), 0.0)
-    return gate_angles(rows, observations.geometry, observations.nominal_angles_deg, estimate)
+    # Intensities (a bright field around a dark object) become line integrals, as projection matching takes them.
+    line_integrals, _ = as_line_integrals(rows[:, None, :])
+    return gate_angles(line_integrals[:, 0].astype(np.float64), observations.geometry, observations.nominal_angles_deg,
+                       estimate)
 
 
 class _Placed(NamedTuple):
