@@ -125,6 +125,8 @@ def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, execu
         from ctpipe.evaluate.scoring import score_against_truth
 
         result = score_against_truth(result)
+    if out is not None and not args.no_slices:
+        result = _with_before_after(result, scan.projections if scan is not None else inputs[0])
     report = result.report()
     files = _estimate_files(Path(out), report, result) if out is not None else {}
     if files:
@@ -132,6 +134,17 @@ def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, execu
     summary = result.summary(source=source, written=sorted(path.name for path in files),
                              described=scan is not None and progress and not args.json)
     return report, summary, result.failed_pairs_warning()
+
+
+def _with_before_after(result, projections):
+    """The result with its before/after slices and measure, when it has nominal angles and every view an angle."""
+    from ctpipe.evaluate.before_after import before_after
+
+    estimated = result.estimated_deg
+    if result.nominal_angles_deg is None or not np.all(np.isfinite(estimated)):
+        return result
+    comparison = before_after(projections, result.geometry, result.nominal_angles_deg, estimated)
+    return dataclasses.replace(result, before_after=comparison)
 
 
 def _estimate_batch(args, config, pipeline, sources: list[Path], outs: dict, executor) -> int:
@@ -260,6 +273,12 @@ def _estimate_files(out: Path, report: dict, result) -> dict:
     picture = estimate_angles_png(result)
     if picture is not None:
         blobs["angles.png"] = picture
+    if result.before_after is not None:
+        from ctpipe.evaluate.before_after import before_after_png
+
+        scan = result.scan
+        blobs["before_after.png"] = before_after_png(result.before_after,
+                                                     f"{scan.format} scan {scan.path.name}" if scan is not None else "")
     scan = result.scan
     writer = None if scan is None else _angle_log_writer(scan.format)
     if writer is not None:
@@ -510,7 +529,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--geometry", help="geometry YAML (keys: source_to_object_mm, ...); only for a projection stack")
     p.add_argument("--pipeline", help="pipeline YAML (default: sift, brute-force, ransac-1pt, projection-matching)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
-    p.add_argument("--out", help="folder for result.json, angles.csv, ...; in a batch, one subfolder per scan")
+    p.add_argument("--out", help="folder for result.json, angles.csv, angles.png, before_after.png, ...; in a batch, "
+                                 "one subfolder per scan")
+    p.add_argument("--no-slices", action="store_true",
+                   help="do not make before_after.png (slices reconstructed with the nominal and the returned angles: "
+                        "one more pass over the views)")
     p.add_argument("--dask", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="run on Dask: a LocalCluster on this machine, or the scheduler at ADDRESS "
                         "(tcp://host:8786 or a scheduler file). Needs: pip install 'ctpipe[dask]'")

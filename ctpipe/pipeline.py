@@ -263,6 +263,10 @@ class ScanResult:
         Whether the projections showed the refiner's angles (or one band of their correction)
         better than the nominal angles, and which were returned (:mod:`ctpipe.solve.gate`);
         None when the run had no nominal angles or the pipeline's gate is off.
+    before_after : ctpipe.evaluate.before_after.BeforeAfter or None
+        Slices reconstructed with the nominal and the returned angles and the conjugate-ray
+        measure of each, when made (``ctpipe estimate --out`` makes them; see
+        :func:`ctpipe.evaluate.before_after.before_after`).
     """
 
     pairs: np.ndarray
@@ -287,6 +291,7 @@ class ScanResult:
     pipeline: PipelineConfig | None = None
     angle_errors: AngleErrors | None = None
     gate: GateDecision | None = None
+    before_after: Any = None
 
     @property
     def estimated_deg(self) -> np.ndarray:
@@ -319,7 +324,8 @@ class ScanResult:
         The pipeline and geometry, :meth:`to_dict`, the angles in the nominal frame
         (``estimated_deg``), then as known: the scan, the nominal angles with the estimate's
         difference from them and the :attr:`turn_check`, the :attr:`closing_view`, the
-        scanner's logged angles and the difference from them, the :attr:`angle_errors`.
+        scanner's logged angles and the difference from them, the :attr:`gate`, the
+        :attr:`before_after` measure, the :attr:`angle_errors`.
         Values are plain Python and numpy arrays (:func:`ctpipe.io.outputs.to_jsonable` makes
         it JSON).
         """
@@ -344,6 +350,8 @@ class ScanResult:
             report["against_recorded"] = difference_table(estimated, recorded)
         if self.gate is not None:
             report["gate"] = self.gate.to_dict()
+        if self.before_after is not None:
+            report["before_after"] = self.before_after.to_dict()
         if self.angle_errors is not None:
             report["angle_errors"] = self.angle_errors.to_dict()
         return report
@@ -421,6 +429,8 @@ class ScanResult:
         gate = self.gate
         if gate is not None:
             lines.append(_gate_line(gate))
+        if self.before_after is not None:
+            lines.append(self.before_after.verdict())
         estimated = self.estimated_deg
         for reference, label in ((self.nominal_angles_deg, "nominal angles"),
                                  (self.recorded_angles_deg, "scanner's angle log")):
