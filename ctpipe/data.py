@@ -207,6 +207,9 @@ class ScanSolution:
         refiner estimated it; None where it kept the input geometry's.
     tilt_deg : float or None
         The detector's in-plane tilt, degrees, where the refiner estimated it; None otherwise.
+    angle_se_deg : ndarray of shape (V,) or None
+        Standard error of every view's angle, degrees, where the refiner can tell (e.g. the
+        curvature of projection matching's fit); None otherwise.
     """
 
     angles_rad: np.ndarray
@@ -215,3 +218,4 @@ class ScanSolution:
     u0_px: float | None = None
     v0_px: float | None = None
     tilt_deg: float | None = None
+    angle_se_deg: np.ndarray | None = None

@@ -263,6 +263,10 @@ class ScanResult:
         Whether the projections showed the refiner's angles (or one band of their correction)
         better than the nominal angles, and which were returned (:mod:`ctpipe.solve.gate`);
         None when the run had no nominal angles or the pipeline's gate is off.
+    angle_se_deg : ndarray of shape (V,) or None
+        Standard error of every view's returned angle, degrees: the refiner's own (projection
+        matching: its fit's curvature) and, where the gate kept a band of the correction out,
+        that band's size (``docs/wholescan.md``); None when the refiner gives none.
     before_after : ctpipe.evaluate.before_after.BeforeAfter or None
         Slices reconstructed with the nominal and the returned angles and the conjugate-ray
         measure of each, when made (``ctpipe estimate --out`` makes them; see
@@ -291,6 +295,7 @@ class ScanResult:
     pipeline: PipelineConfig | None = None
     angle_errors: AngleErrors | None = None
     gate: GateDecision | None = None
+    angle_se_deg: np.ndarray | None = None
     before_after: Any = None
 
     @property
@@ -350,6 +355,8 @@ class ScanResult:
             report["against_recorded"] = difference_table(estimated, recorded)
         if self.gate is not None:
             report["gate"] = self.gate.to_dict()
+        if self.angle_se_deg is not None:
+            report["angle_se_deg"] = self.angle_se_deg
         if self.before_after is not None:
             report["before_after"] = self.before_after.to_dict()
         if self.angle_errors is not None:
@@ -359,7 +366,10 @@ class ScanResult:
     def angle_columns(self) -> dict[str, np.ndarray]:
         """The per-view columns of angles.csv after its ``view`` column, by name."""
         estimated = self.estimated_deg
-        columns = {"angle_deg": estimated, "n_keypoints": self.n_keypoints}
+        columns = {"angle_deg": estimated}
+        if self.angle_se_deg is not None:
+            columns["se_deg"] = self.angle_se_deg
+        columns["n_keypoints"] = self.n_keypoints
         nominal = self.nominal_angles_deg
         if nominal is not None:
             columns["nominal_deg"] = nominal
@@ -715,6 +725,7 @@ class Pipeline:
         angles_deg = np.rad2deg(solution.angles_rad)
         if decision is not None and decision.chosen != "estimate":
             angles_deg = decision.angles_deg - decision.angles_deg[0]
+        angle_se_deg = _angle_se_deg(solution.angle_se_deg, decision)
         info = dict(solution.info)
         nominal = observations.nominal_angles_deg
         closing = None
@@ -743,6 +754,7 @@ class Pipeline:
             nominal_angles_deg=nominal,
             turn_check=None if nominal is None else TurnCheck.compute(observations.pairs, pair_angles_deg, nominal),
             closing_view=closing,
+            angle_se_deg=angle_se_deg,
             scan=scan,
             pipeline=self.config,
             gate=decision,
@@ -818,6 +830,23 @@ def _refine_task(refiner: Refiner, observations: ScanObservations, source, featu
     observations = dataclasses.replace(observations, **changes)
     solution = refiner.refine(observations, rng=np.random.default_rng(seed))
     return solution, (_gate(observations, solution) if gate else None)
+
+
+def _angle_se_deg(refiner_se_deg: np.ndarray | None, gate: GateDecision | None) -> np.ndarray | None:
+    """Standard error of every returned angle: the refiner's own, and what the gate left out.
+
+    Where the gate returned the nominal angle for a band of the correction, the returned angle is
+    off by that band's correction if the refiner was right, so its size adds to the error in
+    quadrature; the refiner's own standard error (None: it gives none) covers the rest.
+    """
+    if refiner_se_deg is None:
+        return None
+    se = np.asarray(refiner_se_deg, dtype=np.float64)
+    if gate is None or not gate.decided or gate.chosen == "estimate":
+        return se
+    left_out = wrap_deg(gate.estimate_deg - gate.angles_deg)
+    left_out = wrap_deg(left_out - np.median(left_out))
+    return np.hypot(se, left_out)
 
 
 def _gate(observations: ScanObservations, solution: ScanSolution) -> GateDecision:

@@ -166,7 +166,8 @@ class ProjectionMatchingRefiner(Refiner):
             info["consistency_cost"] = costs
         info["matching"]["seconds"] = time.perf_counter() - begin
         info["chosen"] = chosen
-        return ScanSolution(np.deg2rad(angles - angles[0]), start_solution.pair_estimates, info)
+        return ScanSolution(np.deg2rad(angles - angles[0]), start_solution.pair_estimates, info,
+                            angle_se_deg=result.angle_se_deg if chosen == "matched" else None)
 
 
 @hookimpl

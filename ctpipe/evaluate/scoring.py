@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 
@@ -41,7 +42,7 @@ from ctpipe.errors import InputError
 from ctpipe.model import wrap_deg
 from ctpipe.pipeline import AngleErrors, ScanResult
 
-__all__ = ["error_table", "view_errors_deg", "pair_errors_deg", "score_against_truth", "align_offset", "support_mask",
+__all__ = ["error_table", "view_errors_deg", "se_coverage", "pair_errors_deg", "score_against_truth", "align_offset", "support_mask",
            "volume_metrics", "recovery", "keypoint_agreement"]
 
 
@@ -90,6 +91,29 @@ def view_errors_deg(angles_deg, true_angles_deg) -> np.ndarray:
         raise InputError(f"angles and true angles must be 1-D of one length, got shapes {angles.shape} and {truth.shape}")
     aligned, _ = align_offset(angles, truth)
     return np.where(np.isfinite(angles), aligned - truth, np.nan)
+
+
+def se_coverage(view_errors_deg, se_deg, k: float = 2.0) -> dict[str, Any]:
+    """How many views' errors lie within ``k`` of their standard errors: is an error bar honest?
+
+    Over the views with a finite error and a finite positive standard error. About 95 % within
+    two standard errors is an honest Gaussian error bar; far fewer, too small; all, too large.
+
+    Returns
+    -------
+    dict
+        ``views`` (counted), ``within`` (``|error| <= k se``), ``fraction`` (NaN without views),
+        ``median_se_deg`` and ``k``.
+    """
+    errors = np.asarray(view_errors_deg, dtype=np.float64)
+    se = np.asarray(se_deg, dtype=np.float64)
+    if errors.shape != se.shape:
+        raise InputError(f"view errors and standard errors must be of one shape, got {errors.shape} and {se.shape}")
+    usable = np.isfinite(errors) & np.isfinite(se) & (se > 0)
+    within = int(np.sum(np.abs(errors[usable]) <= k * se[usable]))
+    views = int(usable.sum())
+    return {"views": views, "within": within, "fraction": within / views if views else float("nan"),
+            "median_se_deg": float(np.median(se[usable])) if views else float("nan"), "k": float(k)}
 
 
 def pair_errors_deg(pairs, pair_angles_deg, true_angles_deg) -> np.ndarray:

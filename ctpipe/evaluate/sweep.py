@@ -59,8 +59,8 @@ MAX_SCENARIOS = 10_000
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 #: The columns of ``sweep.csv`` after the drawn keys.
 COLUMNS = ("scenario", "status", "nominal_rms_deg", "estimated_rms_deg", "worse_than_nominal", "gain_db",
-           "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate", "seconds",
-           "reason")
+           "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate", "se_views",
+           "se_within_2", "seconds", "reason")
 #: How far below the nominal angles' PSNR a reconstruction may fall and still count as no worse (dB).
 WORSE_DB = 0.05
 #: The true angles must gain this much PSNR over the nominal ones (against the jitter-free scan) for
@@ -254,6 +254,7 @@ def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> 
         gains = (gain("reference"), gain("phantom"))
         nominal_rms, estimated_rms = float(views["nominal"]["rms_deg"]), float(views["estimated"]["rms_deg"])
         gate = report.pipeline_result.gate
+        coverage = report.se_coverage or {"views": 0, "within": 0}
         row.update({
             "status": "ok",
             "nominal_rms_deg": nominal_rms,
@@ -268,6 +269,8 @@ def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> 
             "recovery_phantom": float(report.recovery["phantom"]),
             "refiner_kept": report.pipeline_result.refiner_info.get("chosen", ""),
             "gate": "" if gate is None else gate.chosen if gate.decided else "undecided",
+            "se_views": coverage["views"],
+            "se_within_2": coverage["within"],
             "reason": "; ".join(report.problems),
         })
     row["seconds"] = time.perf_counter() - start
@@ -293,6 +296,8 @@ class SweepReport:
 
         visible = [r["recovery_reference"] for r in ok if (r.get("visible_db") or 0.0) >= VISIBLE_DB
                    and np.isfinite(r["recovery_reference"])]
+        se_views = sum(r.get("se_views") or 0 for r in ok)
+        se_within = sum(r.get("se_within_2") or 0 for r in ok)
         return {"scenarios": len(self.rows), "ok": len(ok), "failed": len(self.rows) - len(ok),
                 "worse_than_nominal": len(worse),
                 "median_nominal_rms_deg": median("nominal_rms_deg"),
@@ -300,6 +305,8 @@ class SweepReport:
                 "median_recovery_reference": median("recovery_reference"),
                 "visible": len(visible),
                 "median_recovery_visible": float(np.median(visible)) if visible else None,
+                "se_views": se_views, "se_within_2": se_within,
+                "se_coverage": se_within / se_views if se_views else None,
                 "wall_s": self.wall_s}
 
     def summary_line(self) -> str:
@@ -312,7 +319,8 @@ class SweepReport:
                 f"{s['failed']} failed; median per-view RMS {fmt(s['median_estimated_rms_deg'], '.4f')} deg "
                 f"(nominal {fmt(s['median_nominal_rms_deg'], '.4f')}); median recovery "
                 f"{fmt(s['median_recovery_reference'], '.3f')} ({fmt(s['median_recovery_visible'], '.3f')} over the "
-                f"{s['visible']} with visible jitter); {s['wall_s']:.0f} s")
+                f"{s['visible']} with visible jitter); {fmt(s['se_coverage'], '.1%')} of {s['se_views']} views within two "
+                f"standard errors of the truth; {s['wall_s']:.0f} s")
 
     def table_rows(self) -> list[dict]:
         """One flat row per scenario: the drawn keys, then :data:`COLUMNS`."""

@@ -356,9 +356,21 @@ class ValidateReport:
         gate = self.pipeline_result.gate
         if gate is not None:
             lines.append(f"gate: {gate.chosen if gate.decided else 'undecided'}: {gate.reason}")
+        coverage = self.se_coverage
+        if coverage is not None:
+            lines.append(f"standard errors: {coverage['within']}/{coverage['views']} views "
+                         f"({coverage['fraction']:.0%}) within two of the truth; median {coverage['median_se_deg']:.4f} deg")
         lines.append(self.verdict())
         lines.extend(self.notes)
         return lines
+
+    @property
+    def se_coverage(self) -> dict[str, Any] | None:
+        """How the returned angles' standard errors cover their true errors (:func:`~ctpipe.evaluate.scoring.se_coverage`)."""
+        from ctpipe.evaluate.scoring import se_coverage
+
+        se = self.pipeline_result.angle_se_deg
+        return None if se is None else se_coverage(self.view_errors["estimated"], se)
 
     def verdict(self) -> str:
         """One sentence: is the jitter visible, and did the estimated angles help or hurt?
@@ -402,6 +414,7 @@ class ValidateReport:
                          "median_keypoints": float(np.median(result.n_keypoints)),
                          "timings_s": result.timings_s, "refiner": result.refiner_info,
                          "gate": None if result.gate is None else result.gate.to_dict()},
+            "se_coverage": self.se_coverage,
             "estimate_problems": self.problems,
             "timings_s": self.timings_s,
             "verdict": self.verdict(),

@@ -68,11 +68,18 @@ class ProjectionMatchingResult:
         ``seconds``.
     stopped : str
         Empty when every level ran; otherwise why matching stopped early.
+    angle_se_deg : ndarray of shape (V,) or None
+        Each view's standard error from the last iteration's Gauss-Newton fit: the residual
+        left after its step over its curvature, ``sqrt(r / (n_eff J'J))`` with ``n_eff`` the
+        band-passed view's independent samples (its pixels over ``4 pi sigma^2`` of the
+        band-pass's coarse edge, over which its residual is correlated); inf where a view's slope carries no information; None when no iteration ran.
+        Curvature alone: it does not see a warp the reconstruction absorbed (a slow error).
     """
 
     angles_deg: np.ndarray
     history: tuple[dict, ...]
     stopped: str = ""
+    angle_se_deg: np.ndarray | None = None
 
 
 def matching_levels(shape: tuple[int, int], iterations, *, level_px=(128, 256), binning=None) -> list[tuple[int, int]]:
@@ -185,22 +192,31 @@ class _Level:
         self.data_energy = float(np.einsum("vij,vij->", self.filtered, self.filtered, dtype=np.float64))
 
     def steps(self, angles_deg: np.ndarray, *, with_steps: bool = True) -> tuple[np.ndarray, float]:
-        """Gauss-Newton step of every view (degrees) and the relative residual energy."""
+        """Gauss-Newton step of every view (degrees) and the relative residual energy.
+
+        Also keeps, in ``self.last_fit``, each view's residual energy after its step and its
+        curvature (the slope's energy, per degree squared), from which
+        :func:`projection_matching` gives each view's standard error.
+        """
         volume = fdk(self.data, self.geometry, angles_deg, self.grid, filter=self.filter)
         derivative = tangential_derivative(volume, self.grid) if with_steps else None
         numerator = np.zeros(len(angles_deg))
         denominator = np.zeros(len(angles_deg))
+        view_energy = np.zeros(len(angles_deg))
         residual_energy = 0.0
         for start in range(0, len(angles_deg), _CHUNK_VIEWS):
             part = slice(start, min(start + _CHUNK_VIEWS, len(angles_deg)))
             residual = self.filtered[part] - band_pass(self.projector.forward(volume, angles_deg[part]), *self.band_px)
-            residual_energy += float(np.einsum("vij,vij->", residual, residual, dtype=np.float64))
+            view_energy[part] = np.einsum("vij,vij->v", residual, residual, dtype=np.float64)
+            residual_energy += float(view_energy[part].sum())
             if with_steps:
                 slope = band_pass(self.projector.forward(derivative, angles_deg[part]), *self.band_px)
                 numerator[part] = np.einsum("vij,vij->v", slope, residual, dtype=np.float64)
                 denominator[part] = np.einsum("vij,vij->v", slope, slope, dtype=np.float64)
         informative = denominator > 1e-12 * max(float(denominator.max(initial=0.0)), 1e-300)
         step = np.where(informative, numerator / np.where(informative, denominator, 1.0), 0.0)
+        if with_steps:
+            self.last_fit = (np.maximum(view_energy - step * numerator, 0.0), np.where(informative, denominator, 0.0))
         return step, residual_energy / max(self.data_energy, 1e-300)
 
 
@@ -299,6 +315,7 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
     angles = _check(projections, geometry, angles_deg, binning, iterations, band_px, max_voxels, filter, max_step_deg)
     data, _ = as_line_integrals(projections)
     history: list[dict] = []
+    fit = None
     for factor, count in zip(binning, iterations):
         level = _Level(data, geometry, int(factor), int(max_voxels), band_px, filter)
         previous = None
@@ -313,12 +330,24 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
             extra = _extrapolate_slow_modes(step, previous, np.deg2rad(angles)) if previous is not None else 0.0
             previous = step
             angles = angles + step + extra
+            fit = level.last_fit
             history.append({"binning": int(factor), "iteration": iteration, "cost": cost,
                             "step_rms_deg": float(np.sqrt(np.mean(step ** 2))),
                             "step_max_deg": float(np.abs(step).max()), "seconds": time.perf_counter() - start})
             if progress is not None:
                 progress(1)
-    return ProjectionMatchingResult(angles, tuple(history))
+    return ProjectionMatchingResult(angles, tuple(history), angle_se_deg=None if fit is None else _fit_se_deg(*fit, level))
+
+
+def _fit_se_deg(residual_energy: np.ndarray, curvature: np.ndarray, level: "_Level") -> np.ndarray:
+    """Per-view standard error of a Gauss-Newton angle fit (see :class:`ProjectionMatchingResult`)."""
+    rows, cols = level.geometry.shape
+    # The band-passed residual is smooth over about the coarse blur's footprint (4 pi sigma^2
+    # pixels): that many pixels make one independent sample.
+    area = max(4.0 * math.pi * level.band_px[1] ** 2, 1.0)
+    n_eff = max(rows * cols / area, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(curvature > 0, np.sqrt(residual_energy / (n_eff * curvature)), np.inf)
 
 
 def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: dict[str, np.ndarray], *,

@@ -25,7 +25,8 @@ def test_estimate_on_a_nikon_scan_writes_every_output_and_a_readable_angle_file(
     summary = capsys.readouterr().out
     assert summary.startswith(f"nikon scan {folder}: 120 views of 96 x 128 px")
     assert "estimated minus scanner's angle log: RMS" in summary
-    assert "written: angles.csv, angles.png, geometry_vectors.csv, part.ang, result.json" in summary
+    assert ("written: angles.csv, angles.png, before_after.png, geometry_vectors.csv, part.ang, result.json"
+            in summary)
     assert len(summary.splitlines()) < 25
 
     with open(out / "angles.csv", newline="") as handle:
