@@ -86,3 +86,19 @@ def test_the_readme_python_example_runs(tmp_path, monkeypatch):
     assert namespace["result"].angles_deg.shape == (36,)
     assert namespace["volume"].shape == (128, 128, 128)
     assert namespace["graph"].angles_deg.shape == (36,)
+
+
+def test_a_returned_angle_s_standard_error_adds_the_correction_the_gate_left_out():
+    from ctpipe.pipeline import _angle_se_deg
+    from ctpipe.solve.gate import GateDecision
+
+    nominal = np.arange(8) * 45.0
+    correction = np.array([0.1, -0.2, 0.0, 0.3, -0.1, 0.05, 0.0, -0.15])
+    refiner_se = np.full(8, 0.02)
+    # The nominal angles returned (in the estimate's frame: 2 deg off); the estimate had the correction.
+    kept = GateDecision("nominal", nominal + 2.0, True, "no band shown better", estimate_deg=nominal + correction)
+    left_out = correction - np.median(correction)
+    np.testing.assert_allclose(_angle_se_deg(refiner_se, kept), np.hypot(0.02, left_out), rtol=1e-12)
+    returned = GateDecision("estimate", nominal + correction, True, "all bands", estimate_deg=nominal + correction)
+    np.testing.assert_array_equal(_angle_se_deg(refiner_se, returned), refiner_se)
+    assert _angle_se_deg(None, kept) is None

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ctpipe.errors import InputError
-from ctpipe.evaluate.scoring import (align_offset, error_table, pair_errors_deg, recovery, support_mask,
+from ctpipe.evaluate.scoring import (align_offset, error_table, se_coverage, pair_errors_deg, recovery, support_mask,
                                      view_errors_deg, volume_metrics)
 from ctpipe.recon.volume import VolumeGrid
 
@@ -70,3 +70,12 @@ def test_recovery_is_signed():
     assert recovery(30.0, 20.0, 40.0) == pytest.approx(0.5)
     assert recovery(15.0, 20.0, 40.0) == pytest.approx(-0.25)
     assert math.isnan(recovery(30.0, 20.0, 20.0))
+
+
+def test_se_coverage_counts_views_within_two_standard_errors():
+    errors = np.array([0.1, -0.3, 0.05, np.nan, 0.2, 0.0])
+    se = np.array([0.1, 0.1, 0.01, 0.1, np.inf, 0.0])
+    # 0.1 <= 0.2 yes; 0.3 > 0.2 no; 0.05 > 0.02 no; NaN error, infinite and zero SE not counted.
+    assert se_coverage(errors, se) == {"views": 3, "within": 1, "fraction": 1 / 3, "median_se_deg": 0.1, "k": 2.0}
+    with pytest.raises(InputError, match="one shape"):
+        se_coverage(errors, se[:-1])

@@ -102,6 +102,26 @@ def test_projection_matching_recovers_the_jitter_from_the_nominal_angles(scan):
     assert costs["matched"] < costs["nominal"] and costs["nan"] == np.inf
 
 
+def test_the_standard_errors_cover_the_errors_and_grow_with_the_noise(scan):
+    """Most matched views within two standard errors, not all; fewer photons, larger error bars.
+
+    The calibration (SE_CALIBRATION) was set on the 1e5-photon scan; the 300-photon one is not.
+    """
+    from ctpipe.evaluate.scoring import se_coverage
+
+    results = {}
+    for photons in (100000, 300):
+        spec = parse_scan_spec({**SCAN, "noise": {**SCAN["noise"], "photons_per_pixel": photons}})
+        noisy = scan if photons == 100000 else simulate(load_phantom("bead-cylinder"), spec,
+                                                        rng=np.random.default_rng(5))
+        result = projection_matching(noisy.projections, noisy.geometry, noisy.nominal_angles_deg, binning=(2, 1),
+                                     iterations=(3, 2), max_voxels=96)
+        coverage = se_coverage(view_errors_deg(result.angles_deg, noisy.true_angles_deg), result.angle_se_deg)
+        assert coverage["views"] == 120 and 0.85 <= coverage["fraction"] <= 0.99, coverage
+        results[photons] = coverage["median_se_deg"]
+    assert results[300] > 1.3 * results[100000], results
+
+
 def test_projection_matching_says_what_is_wrong_with_its_arguments(scan):
     with pytest.raises(InputError, match="angles_deg: must be 120 finite angles"):
         projection_matching(scan.projections, scan.geometry, scan.nominal_angles_deg[:5])
