@@ -171,8 +171,9 @@ class ConjugateRayScore:
     delta : float
         ``cost - cost(reference)``, over the same pairs.
     delta_se : float
-        Standard error of ``delta``: the pairs are grouped by their first view and the groups'
-        sums taken as independent, since one view's error is shared by all its pairs.
+        Standard error of ``delta``: the pairs are grouped by their first view (one view's
+        error is shared by all its pairs), and neighbouring groups into blocks until the
+        blocks are longer than the correlation of neighbouring views (:func:`_blocked_se`).
     """
 
     cost: float
@@ -220,6 +221,24 @@ def _fit_u0(coefficients, geometry, angles, pairs, search_px: float) -> float:
             b = low + ratio * (high - low)
             fb = cost(b)
     return float(np.clip((low + high) / 2.0, centre - search_px, centre + search_px))
+
+
+def _blocked_se(per_view: np.ndarray, min_blocks: int = 16) -> float:
+    """Standard error of ``per_view.sum()`` for a series whose neighbours are correlated.
+
+    Neighbouring views see nearly the same structures, so their contributions are not
+    independent and the plain ``std * sqrt(n)`` is too small. Flyvbjerg and Petersen's blocking
+    (J. Chem. Phys. 91, 461, 1989): sum neighbours in pairs, again and again, and take the
+    largest ``std * sqrt(n_blocks)`` while at least ``min_blocks`` blocks are left; an
+    independent series gives about the same at every level, a correlated one grows until the
+    blocks are longer than its correlation.
+    """
+    series = np.asarray(per_view, dtype=np.float64)
+    best = float(np.std(series, ddof=1) * math.sqrt(len(series)))
+    while len(series) // 2 >= min_blocks:
+        series = series[: len(series) // 2 * 2].reshape(-1, 2).sum(axis=1)
+        best = max(best, float(np.std(series, ddof=1) * math.sqrt(len(series))))
+    return best
 
 
 def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, np.ndarray], *,
@@ -299,6 +318,6 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
             continue
         diff = sq - squared[reference]
         per_view = np.bincount(groups, weights=diff, minlength=n_views)[np.unique(groups)]
-        se = float(np.std(per_view, ddof=1) * math.sqrt(n_groups) / len(diff)) if n_groups > 1 else math.inf
+        se = _blocked_se(per_view) / len(diff) if n_groups > 1 else math.inf
         scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq), reference, float(np.mean(diff)), se)
     return scores

@@ -128,3 +128,20 @@ def test_bad_input_is_one_clear_error(scan):
     off = Geometry(130.0, 300.0, 128, 128, 1.6, 1.6, v0_px=140.0)
     with pytest.raises(InputError, match="v0_px: the midplane row must be on the detector"):
         midplane_rows(scan.projections, off)
+
+
+def test_blocking_sees_the_correlation_of_neighbouring_views():
+    """A smooth (correlated) series has a much larger SE of its sum than std * sqrt(n) says; white noise not."""
+    from ctpipe.solve.conjugate import _blocked_se
+
+    rng = np.random.default_rng(0)
+    white = rng.normal(size=512)
+    plain = float(np.std(white, ddof=1) * np.sqrt(512))
+    assert plain <= _blocked_se(white) < 1.5 * plain
+    # AR(1) with rho 0.9: the sum's variance is about (1 + rho) / (1 - rho) = 19 times n var.
+    smooth = np.empty(512)
+    smooth[0] = rng.normal()
+    for k in range(1, 512):
+        smooth[k] = 0.9 * smooth[k - 1] + np.sqrt(1 - 0.81) * rng.normal()
+    naive = float(np.std(smooth, ddof=1) * np.sqrt(512))
+    assert _blocked_se(smooth) > 2.5 * naive
