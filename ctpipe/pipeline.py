@@ -438,7 +438,7 @@ class ScanResult:
                          f"{'matched' if choice.chosen is None else choice.chosen} ones")
         gate = self.gate
         if gate is not None:
-            lines.append(_gate_line(gate))
+            lines.append(_gate_line(gate, measured=self.before_after is not None and bool(self.before_after.scores)))
         if self.before_after is not None:
             lines.append(self.before_after.verdict())
         estimated = self.estimated_deg
@@ -474,8 +474,11 @@ class ScanResult:
         return "\n".join(lines)
 
 
-def _gate_line(gate: GateDecision) -> str:
-    """The summary's one line on whether the correction helped, by the projections alone."""
+def _gate_line(gate: GateDecision, *, measured: bool = False) -> str:
+    """The summary's one line on whether the correction helped, by the projections alone.
+
+    With ``measured`` (a before/after line follows with the same measure) it says only what was returned.
+    """
     if not gate.decided:
         return f"gate: {gate.reason}; the refiner's angles are returned unchecked"
     if gate.chosen == "nominal":
@@ -483,6 +486,8 @@ def _gate_line(gate: GateDecision) -> str:
                 f"refiner_deg; gate: off returns them)")
     what = ("the corrected angles" if gate.chosen == "estimate" else
             f"the nominal angles corrected by the {gate.chosen} part{'s' if len(gate.bands) > 1 else ''} of the correction")
+    if measured:
+        return f"gate: returned {what}"
     return (f"gate: the correction helped: {what} agree {gate.improvement:.0%} better than the nominal angles with the "
             f"projections' conjugate rays (z {gate.scores['returned'].z:+.1f})")
 

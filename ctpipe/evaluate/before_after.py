@@ -85,7 +85,7 @@ class BeforeAfter:
     def verdict(self, picture: str | None = "before_after.png") -> str:
         """One line: did the correction help, by how much, by the projections alone (naming ``picture``)."""
         where = "" if picture is None else f"; slices in {picture}"
-        if self.max_change_deg == 0.0:
+        if self.max_change_deg < 1e-9:   # the same angles, but for rounding
             return "before/after: the returned angles are the nominal ones; nothing changed"
         if not self.scores:
             return f"before/after: no truth-free measure ({self.note}){where}"

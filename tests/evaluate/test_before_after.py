@@ -89,6 +89,7 @@ def test_estimate_writes_the_picture_and_the_measure(tmp_path, small_scan_folder
     assert main(["estimate", str(small_scan_folder), "--pipeline", str(pipeline), "--out", str(out)]) == 0
     summary = capsys.readouterr().out
     assert "before/after: " in summary and "before_after.png" in summary
+    assert summary.count("conjugate rays") == 1     # the gate line does not repeat the measure
     assert (out / "before_after.png").read_bytes().startswith(b"\x89PNG")
     report = json.loads((out / "result.json").read_text())
     assert set(report["before_after"]["scores"]) == {"nominal", "corrected"}
