@@ -273,13 +273,12 @@ def _estimate_files(out: Path, report: dict, result) -> dict:
     picture = estimate_angles_png(result)
     if picture is not None:
         blobs["angles.png"] = picture
+    scan = result.scan
     if result.before_after is not None:
         from ctpipe.evaluate.before_after import before_after_png
 
-        scan = result.scan
         blobs["before_after.png"] = before_after_png(result.before_after,
                                                      f"{scan.format} scan {scan.path.name}" if scan is not None else "")
-    scan = result.scan
     writer = None if scan is None else _angle_log_writer(scan.format)
     if writer is not None:
         name, blob = writer(scan, result.estimated_deg)
