@@ -24,7 +24,7 @@ from ctpipe.model import wrap_deg
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
 from ctpipe.solve.conjugate import midplane_rows
-from ctpipe.solve.gate import GateDecision, gate_angles
+from ctpipe.solve.gate import GateDecision, gate_angles, split_bands
 from ctpipe.solve.graph import view_pairs
 from ctpipe.solve.reprojection import as_line_integrals
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner
@@ -730,7 +730,7 @@ class Pipeline:
         angles_deg = np.rad2deg(solution.angles_rad)
         if decision is not None and decision.chosen != "estimate":
             angles_deg = decision.angles_deg - decision.angles_deg[0]
-        angle_se_deg = _angle_se_deg(solution.angle_se_deg, decision)
+        angle_se_deg = _angle_se_deg(solution.angle_se_deg, decision, observations.nominal_angles_deg)
         info = dict(solution.info)
         nominal = observations.nominal_angles_deg
         closing = None
@@ -837,21 +837,25 @@ def _refine_task(refiner: Refiner, observations: ScanObservations, source, featu
     return solution, (_gate(observations, solution) if gate else None)
 
 
-def _angle_se_deg(refiner_se_deg: np.ndarray | None, gate: GateDecision | None) -> np.ndarray | None:
+def _angle_se_deg(refiner_se_deg: np.ndarray | None, gate: GateDecision | None,
+                  nominal_deg: np.ndarray | None = None) -> np.ndarray | None:
     """Standard error of every returned angle: the refiner's own, and what the gate left out.
 
     Where the gate returned the nominal angle for a band of the correction, the returned angle is
-    off by that band's correction if the refiner was right, so its size adds to the error in
-    quadrature; the refiner's own standard error (None: it gives none) covers the rest.
+    off by that band if the refiner was right, so the band's size adds to the error in
+    quadrature: the slow bands view by view (they are smooth), the fast band by its RMS over
+    the views (it says how large the jitter left in may be, not at which view). The refiner's
+    own standard error (None: it gives none) covers the rest.
     """
     if refiner_se_deg is None:
         return None
     se = np.asarray(refiner_se_deg, dtype=np.float64)
-    if gate is None or not gate.decided or gate.chosen == "estimate":
+    if gate is None or not gate.decided or gate.chosen == "estimate" or nominal_deg is None:
         return se
     left_out = wrap_deg(gate.estimate_deg - gate.angles_deg)
-    left_out = wrap_deg(left_out - np.median(left_out))
-    return np.hypot(se, left_out)
+    bands = split_bands(wrap_deg(left_out - np.median(left_out)), nominal_deg, gate.harmonics)
+    fast = float(np.sqrt(np.mean(bands["fast"] ** 2)))
+    return np.sqrt(se**2 + fast**2 + (bands["slow-odd"] + bands["slow-even"]) ** 2)
 
 
 def _gate(observations: ScanObservations, solution: ScanSolution) -> GateDecision:

@@ -4,6 +4,7 @@ import pytest
 from ctpipe.errors import EstimationError, InputError
 from ctpipe.pipeline import Pipeline
 from ctpipe.solve import view_pairs
+from ctpipe.solve.gate import split_bands
 
 
 def test_pipeline_recovers_view_angles_of_a_rendered_bead_scan(bead_scan):
@@ -92,13 +93,20 @@ def test_a_returned_angle_s_standard_error_adds_the_correction_the_gate_left_out
     from ctpipe.pipeline import _angle_se_deg
     from ctpipe.solve.gate import GateDecision
 
-    nominal = np.arange(8) * 45.0
-    correction = np.array([0.1, -0.2, 0.0, 0.3, -0.1, 0.05, 0.0, -0.15])
-    refiner_se = np.full(8, 0.02)
+    nominal = np.arange(16) * 22.5
+    theta = np.deg2rad(nominal)
+    fast = 0.1 * np.array([1, -2, 0, 3, -1, 0.5, 0, -1.5, 2, -0.5, 1, -1, 0.5, 0, -2, 1.0])
+    slow = 0.3 * np.sin(theta)
+    correction = fast + slow
+    refiner_se = np.full(16, 0.02)
     # The nominal angles returned (in the estimate's frame: 2 deg off); the estimate had the correction.
-    kept = GateDecision("nominal", nominal + 2.0, True, "no band shown better", estimate_deg=nominal + correction)
-    left_out = correction - np.median(correction)
-    np.testing.assert_allclose(_angle_se_deg(refiner_se, kept), np.hypot(0.02, left_out), rtol=1e-12)
+    kept = GateDecision("nominal", nominal + 2.0, True, "no band shown better", estimate_deg=nominal + correction,
+                        harmonics=3)
+    bands = split_bands(correction - np.median(correction), nominal, 3)
+    expected = np.sqrt(0.02**2 + np.mean(bands["fast"] ** 2) + (bands["slow-odd"] + bands["slow-even"]) ** 2)
+    np.testing.assert_allclose(_angle_se_deg(refiner_se, kept, nominal), expected, rtol=1e-12)
+    # The slow part is there view by view, the fast part as one RMS for every view.
+    assert np.ptp(_angle_se_deg(refiner_se, kept, nominal)) > 0.2
     returned = GateDecision("estimate", nominal + correction, True, "all bands", estimate_deg=nominal + correction)
-    np.testing.assert_array_equal(_angle_se_deg(refiner_se, returned), refiner_se)
-    assert _angle_se_deg(None, kept) is None
+    np.testing.assert_array_equal(_angle_se_deg(refiner_se, returned, nominal), refiner_se)
+    assert _angle_se_deg(None, kept, nominal) is None
