@@ -138,7 +138,7 @@ def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, execu
 
 def _with_before_after(result, projections):
     """The result with its before/after slices and measure, when it has nominal angles and every view an angle."""
-    from ctpipe.evaluate.before_after import before_after
+    from ctpipe.evaluate.preview import before_after
 
     estimated = result.estimated_deg
     if result.nominal_angles_deg is None or not np.all(np.isfinite(estimated)):
@@ -275,7 +275,7 @@ def _estimate_files(out: Path, report: dict, result) -> dict:
         blobs["angles.png"] = picture
     scan = result.scan
     if result.before_after is not None:
-        from ctpipe.evaluate.before_after import before_after_png
+        from ctpipe.evaluate.preview import before_after_png
 
         blobs["before_after.png"] = before_after_png(result.before_after,
                                                      f"{scan.format} scan {scan.path.name}" if scan is not None else "")

@@ -267,10 +267,10 @@ class ScanResult:
         Standard error of every view's returned angle, degrees: the refiner's own (projection
         matching: its fit's curvature) and, where the gate kept a band of the correction out,
         that band's size (``docs/wholescan.md``); None when the refiner gives none.
-    before_after : ctpipe.evaluate.before_after.BeforeAfter or None
+    before_after : ctpipe.evaluate.preview.BeforeAfter or None
         Slices reconstructed with the nominal and the returned angles and the conjugate-ray
         measure of each, when made (``ctpipe estimate --out`` makes them; see
-        :func:`ctpipe.evaluate.before_after.before_after`).
+        :func:`ctpipe.evaluate.preview.before_after`).
     """
 
     pairs: np.ndarray

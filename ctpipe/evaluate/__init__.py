@@ -6,17 +6,19 @@ true angles and score each; :mod:`~ctpipe.evaluate.experiments` runs the synthet
 ``ctpipe synthetic`` on correspondences drawn from the model (:mod:`~ctpipe.evaluate.synthetic`);
 :mod:`~ctpipe.evaluate.scoring` holds the metrics (angle errors after the common offset, PSNR,
 SSIM, recovery) and :mod:`~ctpipe.evaluate.report` the figures and tables;
+:mod:`~ctpipe.evaluate.preview` the truth-free before/after slices ``ctpipe estimate`` writes;
 :mod:`~ctpipe.evaluate.sweep` is ``ctpipe experiment sweep``, validate on many scenarios drawn
 from distributions over any key of an experiment, one row each. Their built-in defaults are
 ``validate.yaml``, ``synthetic.yaml`` and ``sweep.yaml`` in this folder.
 """
 
+from ctpipe.evaluate.preview import BeforeAfter, before_after, before_after_png
 from ctpipe.evaluate.experiments import (STUDIES, SyntheticReport, SyntheticSettings, load_synthetic_settings,
                                          run_synthetic)
 from ctpipe.evaluate.report import (angle_errors_png, estimate_angles_png, keypoints_png, slices_png, synthetic_table,
                                     write_synthetic_outputs)
 from ctpipe.evaluate.scoring import (align_offset, error_table, keypoint_agreement, pair_errors_deg, recovery,
-                                     score_against_truth, support_mask, view_errors_deg, volume_metrics)
+                                     score_against_truth, se_coverage, support_mask, view_errors_deg, volume_metrics)
 from ctpipe.evaluate.sweep import (DISTRIBUTIONS, SweepReport, SweepSettings, draw_scenario, load_sweep_settings,
                                    parse_sweep, run_scenario, run_sweep, write_sweep_outputs)
 from ctpipe.evaluate.synthetic import Cylinder, cylinder_points, make_correspondences
@@ -31,4 +33,5 @@ __all__ = ["run_validate", "load_validate_settings", "parse_validate", "check_ex
            "recovery", "keypoint_agreement", "synthetic_table", "write_synthetic_outputs", "slices_png",
            "angle_errors_png", "estimate_angles_png", "keypoints_png", "Cylinder", "cylinder_points",
            "make_correspondences", "run_sweep", "load_sweep_settings", "parse_sweep", "draw_scenario", "run_scenario",
-           "write_sweep_outputs", "SweepSettings", "SweepReport", "DISTRIBUTIONS"]
+           "write_sweep_outputs", "SweepSettings", "SweepReport", "DISTRIBUTIONS", "BeforeAfter", "before_after",
+           "before_after_png", "se_coverage"]

@@ -10,7 +10,7 @@ import yaml
 
 from ctpipe.cli import main
 from ctpipe.errors import InputError
-from ctpipe.evaluate.before_after import before_after, before_after_png
+from ctpipe.evaluate.preview import before_after, before_after_png
 from ctpipe.recon import VolumeGrid, fdk
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "solve"))
