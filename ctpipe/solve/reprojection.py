@@ -192,12 +192,10 @@ class _Level:
             self.filtered[start:start + _CHUNK_VIEWS] = band_pass(self.data[start:start + _CHUNK_VIEWS], *band_px)
         self.data_energy = float(np.einsum("vij,vij->", self.filtered, self.filtered, dtype=np.float64))
 
-    def steps(self, angles_deg: np.ndarray, *, with_steps: bool = True) -> tuple[np.ndarray, float]:
-        """Gauss-Newton step of every view (degrees) and the relative residual energy.
-
-        With ``with_steps`` also keeps, in ``self.last_se_deg``, each view's standard error of its
-        step (:func:`_step_variance`).
-        """
+    def steps(self, angles_deg: np.ndarray, *,
+              with_steps: bool = True) -> tuple[np.ndarray, float, np.ndarray | None]:
+        """Gauss-Newton step of every view (degrees), the relative residual energy, and with
+        ``with_steps`` each view's standard error of its step (:func:`_step_variance`; else None)."""
         volume = fdk(self.data, self.geometry, angles_deg, self.grid, filter=self.filter)
         derivative = tangential_derivative(volume, self.grid) if with_steps else None
         numerator = np.zeros(len(angles_deg))
@@ -215,9 +213,8 @@ class _Level:
                 variance[part] = _step_variance(slope, residual, numerator[part], denominator[part])
         informative = denominator > 1e-12 * max(float(denominator.max(initial=0.0)), 1e-300)
         step = np.where(informative, numerator / np.where(informative, denominator, 1.0), 0.0)
-        if with_steps:
-            self.last_se_deg = np.where(informative, SE_CALIBRATION * np.sqrt(variance), np.inf)
-        return step, residual_energy / max(self.data_energy, 1e-300)
+        se = np.where(informative, SE_CALIBRATION * np.sqrt(variance), np.inf) if with_steps else None
+        return step, residual_energy / max(self.data_energy, 1e-300), se
 
 
 #: How much larger a matched view's error is than the spread its residual alone implies. The fit
@@ -356,7 +353,7 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
         for iteration in range(int(count)):
             start = time.perf_counter()
             try:
-                step, cost = level.steps(angles)
+                step, cost, se = level.steps(angles)
             except InputError as exc:
                 return ProjectionMatchingResult(angles, tuple(history), f"binning {factor}, iteration {iteration}: {exc}")
             step = np.clip(step, -max_step_deg, max_step_deg)
@@ -364,7 +361,6 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
             extra = _extrapolate_slow_modes(step, previous, np.deg2rad(angles)) if previous is not None else 0.0
             previous = step
             angles = angles + step + extra
-            se = level.last_se_deg
             history.append({"binning": int(factor), "iteration": iteration, "cost": cost,
                             "step_rms_deg": float(np.sqrt(np.mean(step ** 2))),
                             "step_max_deg": float(np.abs(step).max()), "seconds": time.perf_counter() - start})
