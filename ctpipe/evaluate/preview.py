@@ -30,7 +30,7 @@ from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.model import wrap_deg
 from ctpipe.recon.feldkamp import bin_detector, binned_geometry, fdk
 from ctpipe.recon.volume import VolumeGrid
-from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_ray_costs
+from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_ray_costs, midplane_row
 from ctpipe.solve.reprojection import as_line_integrals
 
 __all__ = ["BeforeAfter", "before_after", "before_after_png"]
@@ -188,8 +188,6 @@ def before_after(projections, geometry: Geometry, nominal_deg, corrected_deg, *,
 def _read(projections, geometry: Geometry, factor: int) -> tuple[np.ndarray, np.ndarray]:
     """The full-resolution midplane row and the ``factor``-binned view of every view, in one pass."""
     g = geometry
-    low = min(int(math.floor(min(max(g.v0_px, 0.0), g.detector_rows - 1))), max(g.detector_rows - 2, 0))
-    frac = min(max(g.v0_px - low, 0.0), 1.0) if g.detector_rows > 1 else 0.0
     coarse = binned_geometry(g, factor)
     midplane = np.empty((len(projections), g.detector_cols), np.float32)
     binned = np.empty((len(projections), coarse.detector_rows, coarse.detector_cols), np.float32)
@@ -197,7 +195,7 @@ def _read(projections, geometry: Geometry, factor: int) -> tuple[np.ndarray, np.
         image = np.asarray(projections[view], dtype=np.float32)
         if image.shape != g.shape:
             raise InputError(f"projections[{view}]: must be {g.detector_rows} x {g.detector_cols}, got {image.shape}")
-        midplane[view] = image[low] if g.detector_rows == 1 else (1.0 - frac) * image[low] + frac * image[low + 1]
+        midplane[view] = midplane_row(image, g)
         binned[view] = bin_detector(image[None], g, factor)[0][0]
     return midplane, binned
 

@@ -19,7 +19,7 @@ figures; the refiner stages that call these are in :mod:`ctpipe.builtin`.
 from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bundle_adjust, solve_bundle
 from ctpipe.solve.camera import pixels_to_rays, project_points
 from ctpipe.solve.conjugate import (ConjugateRayScore, conjugate_pairs, conjugate_ray_costs, conjugate_ray_mismatch,
-                                     midplane_rows)
+                                     midplane_row, midplane_rows)
 from ctpipe.solve.gate import BANDS, GateDecision, gate_angles, split_bands
 from ctpipe.solve.graph import (PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
                                 solve_view_graph, turn_pairs, unwrap_pair_angles_deg, view_pairs)
@@ -35,6 +35,6 @@ __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pai
            "one_to_one", "Tracks", "build_tracks", "extend_tracks", "static_tracks",
            "triangulate_tracks", "bundle_adjust", "solve_bundle", "BundleResult", "BundleSettings", "BundleSolution",
            "projection_matching", "consistency_costs", "matching_levels", "ProjectionMatchingResult",
-           "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "conjugate_pairs",
+           "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "midplane_row", "conjugate_pairs",
            "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "gate_angles", "GateDecision",
            "split_bands", "BANDS"]

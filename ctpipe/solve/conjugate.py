@@ -61,7 +61,7 @@ from scipy.ndimage import map_coordinates, spline_filter
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 
-__all__ = ["midplane_rows", "conjugate_pairs", "conjugate_ray_mismatch", "ConjugateRayScore", "conjugate_ray_costs"]
+__all__ = ["midplane_rows", "midplane_row", "conjugate_pairs", "conjugate_ray_mismatch", "ConjugateRayScore", "conjugate_ray_costs"]
 
 
 def midplane_rows(projections, geometry: Geometry) -> np.ndarray:
@@ -79,15 +79,25 @@ def midplane_rows(projections, geometry: Geometry) -> np.ndarray:
     if not 0.0 <= g.v0_px <= g.detector_rows - 1:
         raise InputError(f"geometry.v0_px: the midplane row must be on the detector (0 to {g.detector_rows - 1}) "
                          f"for conjugate rays, got {g.v0_px:g}")
-    low = min(int(math.floor(g.v0_px)), g.detector_rows - 2) if g.detector_rows > 1 else 0
-    frac = g.v0_px - low
     rows = np.empty((len(projections), g.detector_cols), np.float64)
     for view in range(len(projections)):
         image = np.asarray(projections[view], dtype=np.float64)
         if image.shape != g.shape:
             raise InputError(f"projections[{view}]: must be {g.detector_rows} x {g.detector_cols}, got {image.shape}")
-        rows[view] = image[low] if g.detector_rows == 1 else (1.0 - frac) * image[low] + frac * image[low + 1]
+        rows[view] = midplane_row(image, g)
     return rows
+
+
+def midplane_row(image: np.ndarray, geometry: Geometry) -> np.ndarray:
+    """One view's row through the principal point, shape (cols,): linear between the two rows around
+    ``v0_px`` (clamped to the detector; :func:`midplane_rows` refuses a ``v0_px`` off it)."""
+    g = geometry
+    if g.detector_rows == 1:
+        return image[0]
+    v0 = min(max(g.v0_px, 0.0), g.detector_rows - 1.0)
+    low = min(int(math.floor(v0)), g.detector_rows - 2)
+    frac = v0 - low
+    return (1.0 - frac) * image[low] + frac * image[low + 1]
 
 
 def _common_ray_columns(angles_deg: np.ndarray, geometry: Geometry, i: np.ndarray, j: np.ndarray,
