@@ -184,6 +184,9 @@ class ConjugateRayScore:
         Standard error of ``delta``: the pairs are grouped by their first view (one view's
         error is shared by all its pairs), and neighbouring groups into blocks until the
         blocks are longer than the correlation of neighbouring views (:func:`_blocked_se`).
+    dof : int
+        Degrees of freedom of ``delta_se`` (the blocks it was taken over, less one): it is itself
+        an estimate, so ``z`` is Student-t distributed with ``dof`` degrees of freedom, not normal.
     """
 
     cost: float
@@ -192,6 +195,7 @@ class ConjugateRayScore:
     versus: str = ""
     delta: float = 0.0
     delta_se: float = 0.0
+    dof: int = 0
 
     @property
     def z(self) -> float:
@@ -200,7 +204,7 @@ class ConjugateRayScore:
 
     def to_dict(self) -> dict:
         return {"cost": self.cost, "u0_px": self.u0_px, "n_pairs": self.n_pairs, "versus": self.versus,
-                "delta": self.delta, "delta_se": self.delta_se, "z": self.z}
+                "delta": self.delta, "delta_se": self.delta_se, "dof": self.dof, "z": self.z}
 
 
 def _fit_u0(coefficients, geometry, angles, pairs, search_px: float) -> float:
@@ -233,22 +237,25 @@ def _fit_u0(coefficients, geometry, angles, pairs, search_px: float) -> float:
     return float(np.clip((low + high) / 2.0, centre - search_px, centre + search_px))
 
 
-def _blocked_se(per_view: np.ndarray, min_blocks: int = 16) -> float:
-    """Standard error of ``per_view.sum()`` for a series whose neighbours are correlated.
+def _blocked_se(per_view: np.ndarray, min_blocks: int = 16) -> tuple[float, int]:
+    """Standard error of ``per_view.sum()`` for a series whose neighbours are correlated, and its blocks.
 
     Neighbouring views see nearly the same structures, so their contributions are not
     independent and the plain ``std * sqrt(n)`` is too small. Flyvbjerg and Petersen's blocking
     (J. Chem. Phys. 91, 461, 1989): sum neighbours in pairs, again and again, and take the
     largest ``std * sqrt(n_blocks)`` while at least ``min_blocks`` blocks are left; an
     independent series gives about the same at every level, a correlated one grows until the
-    blocks are longer than its correlation.
+    blocks are longer than its correlation. Returns the standard error and the number of blocks
+    it was taken over (its degrees of freedom are one fewer).
     """
     series = np.asarray(per_view, dtype=np.float64)
-    best = float(np.std(series, ddof=1) * math.sqrt(len(series)))
+    best, blocks = float(np.std(series, ddof=1) * math.sqrt(len(series))), len(series)
     while len(series) // 2 >= min_blocks:
         series = series[: len(series) // 2 * 2].reshape(-1, 2).sum(axis=1)
-        best = max(best, float(np.std(series, ddof=1) * math.sqrt(len(series))))
-    return best
+        se = float(np.std(series, ddof=1) * math.sqrt(len(series)))
+        if se > best:
+            best, blocks = se, len(series)
+    return best, blocks
 
 
 def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, np.ndarray], *,
@@ -328,6 +335,7 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
             continue
         diff = sq - squared[reference]
         per_view = np.bincount(groups, weights=diff, minlength=n_views)[np.unique(groups)]
-        se = _blocked_se(per_view) / len(diff) if n_groups > 1 else math.inf
-        scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq), reference, float(np.mean(diff)), se)
+        se, blocks = _blocked_se(per_view) if n_groups > 1 else (math.inf, 1)
+        scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq), reference, float(np.mean(diff)),
+                                         se / len(diff), blocks - 1)
     return scores

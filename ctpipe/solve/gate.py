@@ -11,11 +11,19 @@ The correction (``estimate - nominal``, its median removed) is split into three 
 jumps, slips), ``slow-odd`` (odd harmonics: an eccentric table, a scale error) and
 ``slow-even`` (even harmonics, which conjugate rays see only weakly). Starting from the nominal
 angles, bands are added one at a time (forward selection): of the bands not yet added, the one
-whose addition lowers the conjugate-ray cost most is added if it lowers it by more than ``z``
-standard errors (:class:`~ctpipe.solve.conjugate.ConjugateRayScore`), and the search stops when
-none does. Every band must earn its place on its own evidence, so a wrong slow part cannot ride
-into the result on a right fast part: on the sweep's scenarios that is what returned angles
-worse than the nominal ones when the estimate was judged as a whole or in two bands.
+whose addition lowers the conjugate-ray cost most is added if it lowers it by more than the
+standard errors it needs (:class:`~ctpipe.solve.conjugate.ConjugateRayScore`), and the search
+stops when none does. Every band must earn its place on its own evidence, so a wrong slow part
+cannot ride into the result on a right fast part: on the sweep's scenarios that is what returned
+angles worse than the nominal ones when the estimate was judged as a whole or in two bands.
+
+``z`` is what one band tested alone against an exactly known standard error needs (2: a false
+gain passes 2.3 % of the time). Each round takes the best of the ``m`` bands it tests, and the
+standard error is itself estimated from a few dozen blocks of views, so at ``z`` a band that
+changes nothing would pass several times as often. Each round's threshold therefore keeps the
+same false-pass rate: Bonferroni's ``alpha / m`` over the bands tested, on Student's t with the
+score's degrees of freedom (:func:`needed_z`). On the sweep, bands passed at a plain z of -2.3
+to -2.5 with a cost change of 0.4 % made two scenarios worse than their nominal angles.
 
 Views that no pair of conjugate rays reaches (the middle of a short scan) are not seen by the
 measure at all, so they keep their nominal angles whatever the bands.
@@ -37,7 +45,7 @@ from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.model import wrap_deg
 from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_pairs, conjugate_ray_costs
 
-__all__ = ["GateDecision", "split_bands", "gate_angles", "BANDS"]
+__all__ = ["GateDecision", "split_bands", "gate_angles", "needed_z", "BANDS"]
 
 #: The bands of a correction, in the order they are reported.
 BANDS = ("fast", "slow-odd", "slow-even")
@@ -73,6 +81,20 @@ def split_bands(correction_deg: np.ndarray, nominal_deg: np.ndarray, harmonics: 
             "slow-even": parts["slow-even"]}
 
 
+def needed_z(z: float, tests: int, dof: int) -> float:
+    """The z a band needs when ``tests`` bands are tried at once on a standard error with ``dof`` degrees of freedom.
+
+    Keeps the one-sided false-pass rate of a single test at ``z`` on an exact standard error,
+    ``alpha = P(N(0, 1) < -z)``, for the best of ``tests`` candidates (Bonferroni: ``alpha /
+    tests`` each), with ``z`` Student-t distributed; ``needed_z(z, 1, inf) == z``.
+    """
+    from scipy import stats
+
+    alpha = float(stats.norm.sf(z)) / max(int(tests), 1)
+    return float(stats.norm.isf(alpha)) if not dof or not math.isfinite(dof) or dof > 10_000 else \
+        float(stats.t.isf(alpha, max(int(dof), 1)))
+
+
 @dataclass(frozen=True)
 class GateDecision:
     """What the gate returned and why.
@@ -94,6 +116,9 @@ class GateDecision:
     steps : tuple of dict
         One entry per round of the selection: each remaining band's ``z`` against the angles of
         that round.
+    needed : tuple of dict
+        One entry per round: the ``z`` below whose negative each band would have been added
+        (:func:`needed_z`).
     scores : dict of str to ConjugateRayScore
         ``nominal`` and the returned angles (``returned``), the latter against the former; and
         the whole ``estimate`` against the nominal angles, for the record.
@@ -102,7 +127,8 @@ class GateDecision:
     harmonics : int
         Harmonics of the turn in the slow bands.
     z : float
-        Standard errors of gain a band needs to be added.
+        Standard errors of gain one band tested alone on an exact standard error needs; each
+        round asks more (``needed``).
     estimate_deg : ndarray of shape (V,) or None
         The refiner's angles as they came, in the nominal angles' frame (their median offset
         from them removed); None when the gate could not decide.
@@ -114,6 +140,7 @@ class GateDecision:
     reason: str
     bands: tuple[str, ...] = ()
     steps: tuple[dict, ...] = ()
+    needed: tuple[dict, ...] = ()
     scores: dict[str, ConjugateRayScore] = field(default_factory=dict)
     views_seen: int = 0
     harmonics: int = 3
@@ -130,7 +157,8 @@ class GateDecision:
 
     def to_dict(self) -> dict:
         return {"chosen": self.chosen, "decided": self.decided, "reason": self.reason, "bands": list(self.bands),
-                "steps": [dict(step) for step in self.steps], "views_seen": self.views_seen,
+                "steps": [dict(step) for step in self.steps],
+                "needed": [dict(step) for step in self.needed], "views_seen": self.views_seen,
                 "harmonics": self.harmonics, "z": self.z, "improvement": self.improvement,
                 "scores": {name: score.to_dict() for name, score in self.scores.items()}}
 
@@ -148,7 +176,9 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         Degrees, any common offset (the estimate is compared in the nominal frame; whole turns
         between them do not count).
     z : float
-        Standard errors of gain a band needs to be added.
+        Standard errors of gain a single band on an exact standard error would need; each round
+        asks for more, for the bands it tries and the standard error's own uncertainty
+        (:func:`needed_z`).
     harmonics : int
         Harmonics of the turn in the slow bands.
     fit_u0_px : float, optional
@@ -184,13 +214,15 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     def scored(candidates: dict, reference: str) -> dict[str, ConjugateRayScore]:
         return conjugate_ray_costs(None, g, candidates, reference=reference, fit_u0_px=search, rows=rows)
 
-    current, added, steps = nominal, [], []
+    current, added, steps, needed = nominal, [], [], []
     remaining = [name for name in BANDS if np.any(parts[name] != 0.0)]
     while remaining:
         scores = scored({"current": current, **{name: current + parts[name] for name in remaining}}, "current")
         steps.append({name: scores[name].z for name in remaining})
-        best = min(remaining, key=lambda name: scores[name].z)
-        if not scores[best].z < -z:
+        needed.append({name: needed_z(z, len(remaining), scores[name].dof) for name in remaining})
+        # The band furthest past its own threshold (they differ only by their degrees of freedom).
+        best = min(remaining, key=lambda name: scores[name].z + needed[-1][name])
+        if not scores[best].z < -needed[-1][best]:
             break
         current = current + parts[best]
         added.append(best)
@@ -199,7 +231,7 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     if not added:
         chosen = "nominal"
         reason = (f"no band of the correction is shown better than the nominal angles by the projections' conjugate rays "
-                  f"(best z {min(steps[0].values()):+.1f}; needs z < {-z:g})" if steps else
+                  f"(best z {min(steps[0].values()):+.1f}; needs z < {-min(needed[0].values()):.1f})" if steps else
                   "the estimate is the nominal angles")
     else:
         chosen = "estimate" if len(added) == len(BANDS) and seen.all() else " + ".join(added)
@@ -208,5 +240,5 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
                   f"{'s' if len(added) > 1 else ''} of the correction"
                   + ("" if seen.all() else f"; {int((~seen).sum())} views no pair reaches keep their nominal angle"))
     angles = estimate if chosen == "estimate" else current + shift
-    return GateDecision(chosen, angles, True, reason, tuple(added), tuple(steps), record, int(seen.sum()), harmonics, z,
-                        nominal + correction)
+    return GateDecision(chosen, angles, True, reason, tuple(added), tuple(steps), tuple(needed), record,
+                        int(seen.sum()), harmonics, z, nominal + correction)

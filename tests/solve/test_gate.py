@@ -7,7 +7,7 @@ import pytest
 
 from ctpipe.errors import InputError
 from ctpipe.solve.conjugate import conjugate_pairs, midplane_rows
-from ctpipe.solve.gate import gate_angles, split_bands
+from ctpipe.solve.gate import gate_angles, needed_z, split_bands
 
 from conjugate_scans import simulate_scan
 
@@ -39,6 +39,18 @@ def test_the_bands_add_up_and_split_where_they_should():
     np.testing.assert_allclose(sum(parts.values()), odd + even + fast, atol=1e-12)
     for name, truth in (("fast", fast), ("slow-odd", odd), ("slow-even", even)):
         np.testing.assert_allclose(parts[name], truth, atol=1e-9, err_msg=name)
+
+
+def test_a_round_that_tries_several_bands_on_an_estimated_error_asks_for_more():
+    assert needed_z(2.0, 1, 0) == pytest.approx(2.0)              # one band, exact standard error
+    assert needed_z(2.0, 3, 0) == pytest.approx(2.43, abs=0.01)   # Bonferroni over three
+    assert needed_z(2.0, 3, 15) > needed_z(2.0, 3, 63) > needed_z(2.0, 3, 0)
+    # Null bands (pure noise) pass at the single-test rate (at z 2 alone: 9 %), with 16 blocks.
+    rng = np.random.default_rng(0)
+    blocks = rng.normal(size=(20000, 3, 16))
+    z = blocks.mean(axis=2) / (blocks.std(axis=2, ddof=1) / 4.0)
+    passed = (z.min(axis=1) < -needed_z(2.0, 3, 15)).mean()
+    assert 0.015 < passed < 0.03
 
 
 def test_a_good_estimate_is_kept(scan):
