@@ -65,6 +65,9 @@ class ProjectionMatchingRefiner(Refiner):
     better (a reconstruct-and-reproject residual, :func:`~ctpipe.solve.reprojection.consistency_costs`),
     and of nominal, start and matched angles the most consistent is returned, so a scan the
     matching cannot handle keeps the better of its start and its nominal angles.
+    With ``shifts`` each view's detector shift is fitted with its angle, so a detector or source
+    that drifts during the scan is not taken for angle errors; the shifts are in
+    ``info["matching"]["shifts_px"]``.
     Needs the projections (``ScanObservations.projections``); without them it returns the start.
     """
 
@@ -84,6 +87,8 @@ class ProjectionMatchingRefiner(Refiner):
     max_voxels: int = param(192, doc="largest edge of the reconstruction grid", ge=16, le=1024)
     filter: Filter = param("ram-lak", doc="FDK ramp-filter window for the reference volume")
     max_step_deg: float = param(1.0, doc="largest change of one view's angle per iteration", gt=0, le=45)
+    shifts: bool = param(True, doc="fit each view's detector shift (a drifting detector or source) with its angle, so "
+                         "the drift is not taken for angle errors")
     select: bool = param(True, doc="keep whichever of nominal, start and matched angles fits the projections best")
     min_views: int = param(32, doc="fewest views worth reconstructing a reference from; fewer keep the start",
                            ge=8, le=100000)
@@ -139,12 +144,12 @@ class ProjectionMatchingRefiner(Refiner):
         candidates = {"start": start_deg}
         if nominal is not None:
             candidates["nominal"] = np.asarray(nominal, dtype=np.float64)
-        def cost_the_rest() -> None:
+        def cost_the_rest(shifts_px=None) -> None:
             """Consistency cost of every candidate not costed yet, in one reconstruct-and-reproject pass."""
             costs.update(consistency_costs(projections, geometry,
                                            {name: a for name, a in candidates.items() if name not in costs},
                                            binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
-                                           filter=self.filter))
+                                           filter=self.filter, shifts_px=shifts_px))
 
         if self.select and len(candidates) > 1:
             # Match from whichever explains the projections better: a feature start that went
@@ -153,14 +158,25 @@ class ProjectionMatchingRefiner(Refiner):
         origin = min(candidates, key=lambda name: (costs.get(name, 0.0), name != "start"))
         result = projection_matching(projections, geometry, candidates[origin],
                                      binning=[b for b, _ in levels], iterations=[n for _, n in levels], band_px=band,
-                                     max_voxels=self.max_voxels, filter=self.filter, max_step_deg=self.max_step_deg)
+                                     max_voxels=self.max_voxels, filter=self.filter, max_step_deg=self.max_step_deg,
+                                     shifts=self.shifts)
         info["matching"] = {"from": origin, "levels": [{"binning": b * prebin, "iterations": n} for b, n in levels],
-                            "history": [{**h, "binning": h["binning"] * prebin} for h in result.history],
+                            "history": [{**h, "binning": h["binning"] * prebin,
+                                         **({"shift_rms_px": h["shift_rms_px"] * prebin} if "shift_rms_px" in h else {})}
+                                        for h in result.history],
                             "stopped": result.stopped}
+        shifts_px = None if result.shifts_px is None else result.shifts_px * prebin
+        if shifts_px is not None:
+            # Each view's detector shift, in the scan's own pixels (columns, rows), without the
+            # common and once-per-turn part an object's place on the table explains.
+            info["matching"]["shifts_px"] = shifts_px.round(4).tolist()
+            info["matching"]["shift_rms_px"] = float(np.sqrt(np.mean(shifts_px ** 2)))
         chosen, angles = "matched", result.angles_deg
         if self.select:
             candidates["matched"] = result.angles_deg
-            cost_the_rest()
+            if result.shifts_px is not None:
+                costs.clear()    # all judged again on the views with the drift taken out
+            cost_the_rest(result.shifts_px)
             chosen = min(costs, key=lambda name: (costs[name], name != "matched"))
             angles = candidates[chosen]
             info["consistency_cost"] = costs

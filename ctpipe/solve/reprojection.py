@@ -25,6 +25,19 @@ the volume. The steps are capped (``max_step_deg``) and their mean is removed (a
 all views only turns the volume). Levels run coarse to fine: a coarse binning has the capture
 range for slips of a degree or more, a fine one the precision.
 
+A detector or source spot that drifts during the scan moves each projection as a whole, and
+matching the angle alone takes that shift for a turn. With ``shifts``, every view's column and
+row shift is fitted with its angle (the reprojection's own gradients are the shifts' slopes;
+three unknowns a view), the views are moved back by the shifts found before the next
+reconstruction, and what an object's place on the table explains as well (a common shift, a
+once-per-turn column shift) is left out. The angle's step and standard error are those of its
+slope with the shifts' part projected out, so a view whose turn looks like a shift says so. On
+a 120-view bead scan with a 0.1 px-a-view walk and two 1 px jumps, the shifts are found to
+0.05 px RMS (correlation 0.98 and 1.00 with the truth) and the angles' RMS falls from 0.39 to
+0.18 deg; without drift it costs nothing (0.063 and 0.065 deg). On the default scan (no drift)
+the angles come out at 0.024 instead of 0.033 deg: the shifts also take up some of what the
+volume gets wrong in each view, which otherwise leaks into its angle.
+
 Measured on ``ctpipe validate``'s default scan (360 views, 0.2 deg jitter plus three 1 deg
 jumps, per-view RMS 0.57 deg from the nominal angles): 0.05 deg after three iterations at
 binning 4, 0.033 deg after three more at binning 2. At the true angles a step moves the views by
@@ -75,12 +88,16 @@ class ProjectionMatchingResult:
         no information; None when no iteration ran. It does not see a slow warp of the angles
         that the reconstruction absorbed: such errors it leaves to the gate
         (``docs/wholescan.md``).
+    shifts_px : ndarray of shape (V, 2) or None
+        With ``shifts``: each view's detector shift found (columns, rows; unbinned pixels),
+        without its common and once-per-turn column part (:func:`_shift_gauge`); else None.
     """
 
     angles_deg: np.ndarray
     history: tuple[dict, ...]
     stopped: str = ""
     angle_se_deg: np.ndarray | None = None
+    shifts_px: np.ndarray | None = None
 
 
 def matching_levels(shape: tuple[int, int], iterations, *, level_px=(128, 256), binning=None) -> list[tuple[int, int]]:
@@ -180,41 +197,96 @@ class _Level:
         from ctpipe.sim.projectors import VoxelProjector
 
         self.binning = binning
-        self.data, self.geometry = bin_detector(projections, geometry, binning)
-        self.data = np.ascontiguousarray(self.data, dtype=np.float32)
+        raw, self.geometry = bin_detector(projections, geometry, binning)
+        self.raw = np.ascontiguousarray(raw, dtype=np.float32)
         self.grid = reconstruction_grid(self.geometry, max_voxels)
         self.projector = VoxelProjector(self.geometry, self.grid)
         self.band_px = band_px
         self.filter = filter
+        self.shift_to(None)
+
+    def shift_to(self, shifts_px: np.ndarray | None) -> None:
+        """Take the views moved back by ``shifts_px`` (V, 2: columns, rows; binned pixels) as the data.
+
+        A view whose detector (or source) moved by ``(du, dv)`` shows ``P(u - du, v - dv)``; it is
+        resampled to ``P(u, v)`` (linear interpolation, edges continued) before it is reconstructed
+        and matched. ``None`` takes the views as they are.
+        """
+        if shifts_px is None or not np.any(shifts_px):
+            self.data = self.raw
+        else:
+            from scipy.ndimage import shift as resample
+
+            self.data = np.empty_like(self.raw)
+            for k, (du, dv) in enumerate(np.asarray(shifts_px, dtype=np.float64)):
+                self.data[k] = resample(self.raw[k], (-dv, -du), order=1, mode="nearest")
         # Band-pass a chunk of views at a time: the filter's temporaries stay a few views' worth.
         self.filtered = np.empty_like(self.data)
         for start in range(0, len(self.data), _CHUNK_VIEWS):
-            self.filtered[start:start + _CHUNK_VIEWS] = band_pass(self.data[start:start + _CHUNK_VIEWS], *band_px)
+            self.filtered[start:start + _CHUNK_VIEWS] = band_pass(self.data[start:start + _CHUNK_VIEWS], *self.band_px)
         self.data_energy = float(np.einsum("vij,vij->", self.filtered, self.filtered, dtype=np.float64))
 
-    def steps(self, angles_deg: np.ndarray, *,
-              with_steps: bool = True) -> tuple[np.ndarray, float, np.ndarray | None]:
-        """Gauss-Newton step of every view (degrees), the relative residual energy, and with
-        ``with_steps`` each view's standard error of its step (:func:`_step_variance`; else None)."""
+    def steps(self, angles_deg: np.ndarray, *, with_steps: bool = True,
+              with_shifts: bool = False) -> tuple[np.ndarray, float, np.ndarray | None, np.ndarray | None]:
+        """Gauss-Newton step of every view (degrees), the relative residual energy, with
+        ``with_steps`` each view's standard error of its step (:func:`_step_variance`; else None),
+        and with ``with_shifts`` each view's detector shift step (V, 2: columns, rows; binned
+        pixels; else None).
+
+        With shifts, the angle and the two shifts are fitted together, view by view: the
+        reprojection's own column and row gradients are the shifts' slopes. The angle's step and
+        standard error are those of its slope with the shifts' part projected out (Frisch-Waugh-
+        Lovell: the same step as the joint fit), so a view whose turn looks like a shift gets the
+        larger error it has.
+        """
         volume = fdk(self.data, self.geometry, angles_deg, self.grid, filter=self.filter)
         derivative = tangential_derivative(volume, self.grid) if with_steps else None
         numerator = np.zeros(len(angles_deg))
         denominator = np.zeros(len(angles_deg))
         variance = np.zeros(len(angles_deg))
+        shifts = np.zeros((len(angles_deg), 2)) if with_steps and with_shifts else None
         residual_energy = 0.0
         for start in range(0, len(angles_deg), _CHUNK_VIEWS):
             part = slice(start, min(start + _CHUNK_VIEWS, len(angles_deg)))
-            residual = self.filtered[part] - band_pass(self.projector.forward(volume, angles_deg[part]), *self.band_px)
+            model = band_pass(self.projector.forward(volume, angles_deg[part]), *self.band_px)
+            residual = self.filtered[part] - model
             residual_energy += float(np.einsum("vij,vij->", residual, residual, dtype=np.float64))
             if with_steps:
                 slope = band_pass(self.projector.forward(derivative, angles_deg[part]), *self.band_px)
+                if shifts is not None:
+                    # A view shifted by +d shows model(u - d) = model - d * d(model)/du.
+                    moved = np.stack([-np.gradient(model, axis=2), -np.gradient(model, axis=1)], axis=1)
+                    slope, shift_step = _project_out(slope, moved, residual)
+                    shifts[part] = shift_step
                 numerator[part] = np.einsum("vij,vij->v", slope, residual, dtype=np.float64)
                 denominator[part] = np.einsum("vij,vij->v", slope, slope, dtype=np.float64)
                 variance[part] = _step_variance(slope, residual, numerator[part], denominator[part])
         informative = denominator > 1e-12 * max(float(denominator.max(initial=0.0)), 1e-300)
         step = np.where(informative, numerator / np.where(informative, denominator, 1.0), 0.0)
         se = np.where(informative, SE_CALIBRATION * np.sqrt(variance), np.inf) if with_steps else None
-        return step, residual_energy / max(self.data_energy, 1e-300), se
+        return step, residual_energy / max(self.data_energy, 1e-300), se, shifts
+
+
+def _project_out(slope: np.ndarray, moved: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The angle slope with the shift slopes' span removed, and the shifts' own least-squares step.
+
+    ``slope`` (v, rows, cols), ``moved`` (v, 2, rows, cols). Returns the residualised slope (its
+    Gauss-Newton step on ``residual`` is the joint fit's angle step) and the shifts' step (v, 2)
+    of the joint fit of ``residual`` on the angle and the two shifts.
+    """
+    gram = np.einsum("vaij,vbij->vab", moved, moved, dtype=np.float64)
+    ridge = 1e-9 * np.trace(gram, axis1=1, axis2=2)[:, None, None] * np.eye(2) + 1e-300 * np.eye(2)
+    gram = gram + ridge
+    cross = np.einsum("vaij,vij->va", moved, slope, dtype=np.float64)
+    along = np.linalg.solve(gram, cross[..., None])[..., 0]
+    lone = slope - np.einsum("va,vaij->vij", along.astype(np.float32), moved)
+    # Joint fit: angle step from the residualised slope, then the shifts on what it leaves.
+    den = np.einsum("vij,vij->v", lone, lone, dtype=np.float64)
+    num = np.einsum("vij,vij->v", lone, residual, dtype=np.float64)
+    angle = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    rest = residual - angle[:, None, None].astype(np.float32) * slope
+    shift = np.linalg.solve(gram, np.einsum("vaij,vij->va", moved, rest, dtype=np.float64)[..., None])[..., 0]
+    return lone, shift
 
 
 #: How much larger a matched view's error is than the spread its residual alone implies. The fit
@@ -310,7 +382,7 @@ def _check(projections, geometry, angles_deg, binning, iterations, band_px, max_
 
 def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg, *, binning=(4, 2),
                         iterations=(3, 2), band_px: tuple[float, float] = (0.7, 4.0), max_voxels: int = 192,
-                        filter: str = "ram-lak", max_step_deg: float = 1.0,
+                        filter: str = "ram-lak", max_step_deg: float = 1.0, shifts: bool = False,
                         progress: Callable[[int], object] | None = None) -> ProjectionMatchingResult:
     """Refine every view's angle against the scan's own reconstruction (see the module docstring).
 
@@ -333,6 +405,11 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
         FDK ramp-filter window (:data:`ctpipe.recon.feldkamp.FILTERS`); the sharp ``ram-lak`` matches best.
     max_step_deg : float
         Largest change of a view's angle in one iteration.
+    shifts : bool
+        Fit each view's detector shift (columns, rows) with its angle, for a detector or source
+        that drifts during the scan; the data are moved back by the shifts found before each
+        reconstruction. Shifts an object on the table explains (common, once per turn) are left
+        out (:func:`_shift_gauge`).
     progress : callable, optional
         Called with 1 after every iteration.
 
@@ -347,31 +424,56 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
     data, _ = as_line_integrals(projections)
     history: list[dict] = []
     se = None
+    shifts_px = np.zeros((len(angles), 2)) if shifts else None
     for factor, count in zip(binning, iterations):
         level = _Level(data, geometry, int(factor), int(max_voxels), band_px, filter)
+        if shifts:
+            level.shift_to(shifts_px / factor)
         previous = None
         for iteration in range(int(count)):
             start = time.perf_counter()
             try:
-                step, cost, se = level.steps(angles)
+                step, cost, se, shift_step = level.steps(angles, with_shifts=shifts)
             except InputError as exc:
-                return ProjectionMatchingResult(angles, tuple(history), f"binning {factor}, iteration {iteration}: {exc}")
+                return ProjectionMatchingResult(angles, tuple(history), f"binning {factor}, iteration {iteration}: {exc}",
+                                                shifts_px=shifts_px)
             step = np.clip(step, -max_step_deg, max_step_deg)
             step -= step.mean()
             extra = _extrapolate_slow_modes(step, previous, np.deg2rad(angles)) if previous is not None else 0.0
             previous = step
             angles = angles + step + extra
-            history.append({"binning": int(factor), "iteration": iteration, "cost": cost,
-                            "step_rms_deg": float(np.sqrt(np.mean(step ** 2))),
-                            "step_max_deg": float(np.abs(step).max()), "seconds": time.perf_counter() - start})
+            entry = {"binning": int(factor), "iteration": iteration, "cost": cost,
+                     "step_rms_deg": float(np.sqrt(np.mean(step ** 2))), "step_max_deg": float(np.abs(step).max())}
+            if shifts:
+                shifts_px = shifts_px + _shift_gauge(np.clip(shift_step, -2.0, 2.0) * factor, np.deg2rad(angles))
+                shifts_px = _shift_gauge(shifts_px, np.deg2rad(angles))
+                level.shift_to(shifts_px / factor)
+                entry["shift_rms_px"] = float(np.sqrt(np.mean(shifts_px ** 2)))
+            history.append({**entry, "seconds": time.perf_counter() - start})
             if progress is not None:
                 progress(1)
-    return ProjectionMatchingResult(angles, tuple(history), angle_se_deg=se)
+    return ProjectionMatchingResult(angles, tuple(history), angle_se_deg=se, shifts_px=shifts_px)
+
+
+def _shift_gauge(shifts_px: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
+    """Per-view detector shifts (V, 2) without what moving the object would explain as well.
+
+    A common shift of every view is an axis or a height the reconstruction takes up, and a
+    once-per-turn column shift ``a cos(theta) + b sin(theta)`` is the object sitting elsewhere on
+    the table: neither is a drift, so both are removed (the column's constant and first harmonic,
+    the row's constant).
+    """
+    out = np.array(shifts_px, dtype=np.float64)
+    basis = np.stack([np.ones_like(theta_rad), np.cos(theta_rad), np.sin(theta_rad)], axis=1)
+    coeffs, *_ = np.linalg.lstsq(basis, out[:, 0], rcond=None)
+    out[:, 0] -= basis @ coeffs
+    out[:, 1] -= out[:, 1].mean()
+    return out
 
 
 def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: dict[str, np.ndarray], *,
                       binning: int = 4, band_px: tuple[float, float] = (0.7, 4.0), max_voxels: int = 192,
-                      filter: str = "ram-lak") -> dict[str, float]:
+                      filter: str = "ram-lak", shifts_px: np.ndarray | None = None) -> dict[str, float]:
     """How well each candidate set of angles explains the projections: reconstruct, reproject, compare.
 
     The band-passed residual energy relative to the data's (0 for perfectly consistent data),
@@ -384,6 +486,10 @@ def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: d
     ----------
     candidates : dict of str to ndarray of shape (V,)
         Angle sets in degrees, by name.
+    shifts_px : ndarray of shape (V, 2), optional
+        Detector shifts of every view (columns, rows; unbinned pixels), e.g. those projection
+        matching found (:attr:`ProjectionMatchingResult.shifts_px`): the views are moved back by
+        them before every candidate is costed, so all are judged on the same corrected data.
 
     Returns
     -------
@@ -391,6 +497,8 @@ def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: d
     """
     data, _ = as_line_integrals(projections)
     level = _Level(data, geometry, int(binning), int(max_voxels), band_px, filter)
+    if shifts_px is not None:
+        level.shift_to(np.asarray(shifts_px, dtype=np.float64) / int(binning))
     costs = {}
     for name, angles in candidates.items():
         angles = np.asarray(angles, dtype=np.float64)
