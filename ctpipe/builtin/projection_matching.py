@@ -144,12 +144,12 @@ class ProjectionMatchingRefiner(Refiner):
         candidates = {"start": start_deg}
         if nominal is not None:
             candidates["nominal"] = np.asarray(nominal, dtype=np.float64)
-        def cost_the_rest(shifts_px=None) -> None:
+        def cost_the_rest() -> None:
             """Consistency cost of every candidate not costed yet, in one reconstruct-and-reproject pass."""
             costs.update(consistency_costs(projections, geometry,
                                            {name: a for name, a in candidates.items() if name not in costs},
                                            binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
-                                           filter=self.filter, shifts_px=shifts_px))
+                                           filter=self.filter))
 
         if self.select and len(candidates) > 1:
             # Match from whichever explains the projections better: a feature start that went
@@ -174,9 +174,10 @@ class ProjectionMatchingRefiner(Refiner):
         chosen, angles = "matched", result.angles_deg
         if self.select:
             candidates["matched"] = result.angles_deg
-            if result.shifts_px is not None:
-                costs.clear()    # all judged again on the views with the drift taken out
-            cost_the_rest(result.shifts_px)
+            # All on the views as they came: the shifts were fitted with the matched angles, and
+            # costing the others on views moved by them favoured the matched ones (on a sweep
+            # scenario with a holder, angles 6 deg off were kept).
+            cost_the_rest()
             chosen = min(costs, key=lambda name: (costs[name], name != "matched"))
             angles = candidates[chosen]
             info["consistency_cost"] = costs

@@ -473,7 +473,7 @@ def _shift_gauge(shifts_px: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
 
 def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: dict[str, np.ndarray], *,
                       binning: int = 4, band_px: tuple[float, float] = (0.7, 4.0), max_voxels: int = 192,
-                      filter: str = "ram-lak", shifts_px: np.ndarray | None = None) -> dict[str, float]:
+                      filter: str = "ram-lak") -> dict[str, float]:
     """How well each candidate set of angles explains the projections: reconstruct, reproject, compare.
 
     The band-passed residual energy relative to the data's (0 for perfectly consistent data),
@@ -486,10 +486,6 @@ def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: d
     ----------
     candidates : dict of str to ndarray of shape (V,)
         Angle sets in degrees, by name.
-    shifts_px : ndarray of shape (V, 2), optional
-        Detector shifts of every view (columns, rows; unbinned pixels), e.g. those projection
-        matching found (:attr:`ProjectionMatchingResult.shifts_px`): the views are moved back by
-        them before every candidate is costed, so all are judged on the same corrected data.
 
     Returns
     -------
@@ -497,8 +493,6 @@ def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: d
     """
     data, _ = as_line_integrals(projections)
     level = _Level(data, geometry, int(binning), int(max_voxels), band_px, filter)
-    if shifts_px is not None:
-        level.shift_to(np.asarray(shifts_px, dtype=np.float64) / int(binning))
     costs = {}
     for name, angles in candidates.items():
         angles = np.asarray(angles, dtype=np.float64)
