@@ -865,13 +865,15 @@ def _gate(observations: ScanObservations, solution: ScanSolution) -> GateDecisio
     if projections is None:
         return GateDecision("estimate", estimate, False, "not gated: no projections to check the angles against")
     try:
-        rows = midplane_rows(projections, observations.geometry)
+        rows, slopes = midplane_rows(projections, observations.geometry, slopes=True)
     except InputError as error:
         return GateDecision("estimate", estimate, False, f"not gated: {error}")
     # Intensities (a bright field around a dark object) become line integrals, as projection matching takes them.
-    line_integrals, _ = as_line_integrals(rows[:, None, :])
+    line_integrals, converted = as_line_integrals(rows[:, None, :])
+    if converted:   # d(-log I)/dv = -(dI/dv) / I
+        slopes = -slopes / np.maximum(rows, 1e-30)
     return gate_angles(line_integrals[:, 0].astype(np.float64), observations.geometry, observations.nominal_angles_deg,
-                       estimate)
+                       estimate, slopes=slopes)
 
 
 class _Placed(NamedTuple):

@@ -64,11 +64,14 @@ from ctpipe.geometry import Geometry, check_geometry
 __all__ = ["midplane_rows", "midplane_row", "conjugate_pairs", "conjugate_ray_mismatch", "ConjugateRayScore", "conjugate_ray_costs"]
 
 
-def midplane_rows(projections, geometry: Geometry) -> np.ndarray:
+def midplane_rows(projections, geometry: Geometry, *, slopes: bool = False):
     """The row of every view through the principal point, shape (V, cols), float64.
 
     Interpolated linearly between the two detector rows around ``v0_px``; ``projections`` are
     line integrals (an array or a :class:`~ctpipe.io.scans.ViewStack`, read one view at a time).
+    With ``slopes``, also each row's derivative along the detector rows (per row, central
+    differences of the interpolated rows one row either side, clamped to the detector), in the
+    same pass: ``(rows, slopes)``, which let :func:`conjugate_ray_costs` fit a detector tilt.
 
     Raises
     ------
@@ -80,24 +83,32 @@ def midplane_rows(projections, geometry: Geometry) -> np.ndarray:
         raise InputError(f"geometry.v0_px: the midplane row must be on the detector (0 to {g.detector_rows - 1}) "
                          f"for conjugate rays, got {g.v0_px:g}")
     rows = np.empty((len(projections), g.detector_cols), np.float64)
+    derivative = np.zeros_like(rows) if slopes else None
+    above, below = min(g.v0_px + 1.0, g.detector_rows - 1.0), max(g.v0_px - 1.0, 0.0)
     for view in range(len(projections)):
         image = np.asarray(projections[view], dtype=np.float64)
         if image.shape != g.shape:
             raise InputError(f"projections[{view}]: must be {g.detector_rows} x {g.detector_cols}, got {image.shape}")
         rows[view] = midplane_row(image, g)
-    return rows
+        if slopes and above > below:
+            derivative[view] = (_row_at(image, above) - _row_at(image, below)) / (above - below)
+    return (rows, derivative) if slopes else rows
+
+
+def _row_at(image: np.ndarray, v: float) -> np.ndarray:
+    """The detector row at (fractional) row ``v``, linear between its two neighbours, clamped to the detector."""
+    if image.shape[0] == 1:
+        return image[0]
+    v = min(max(v, 0.0), image.shape[0] - 1.0)
+    low = min(int(math.floor(v)), image.shape[0] - 2)
+    frac = v - low
+    return (1.0 - frac) * image[low] + frac * image[low + 1]
 
 
 def midplane_row(image: np.ndarray, geometry: Geometry) -> np.ndarray:
     """One view's row through the principal point, shape (cols,): linear between the two rows around
     ``v0_px`` (clamped to the detector; :func:`midplane_rows` refuses a ``v0_px`` off it)."""
-    g = geometry
-    if g.detector_rows == 1:
-        return image[0]
-    v0 = min(max(g.v0_px, 0.0), g.detector_rows - 1.0)
-    low = min(int(math.floor(v0)), g.detector_rows - 2)
-    frac = v0 - low
-    return (1.0 - frac) * image[low] + frac * image[low + 1]
+    return _row_at(image, geometry.v0_px)
 
 
 def _common_ray_columns(angles_deg: np.ndarray, geometry: Geometry, i: np.ndarray, j: np.ndarray,
@@ -136,12 +147,27 @@ def _spline(rows: np.ndarray) -> np.ndarray:
 
 
 def _mismatch(coefficients: np.ndarray, geometry: Geometry, angles: np.ndarray, i: np.ndarray, j: np.ndarray,
-              u0_px: float) -> np.ndarray:
+              u0_px: float, tilt: tuple[np.ndarray, float] | None = None) -> np.ndarray:
+    """Measured minus conjugate line integral of each pair's common ray (NaN off a detector).
+
+    ``tilt``: the spline coefficients of the rows' derivatives along the rows and ``tan`` of the
+    detector's in-plane tilt. The source plane then crosses the detector along a slanted line,
+    ``row = v0 + tan(tilt) (col - u0) pitch_u / pitch_v``, sampled to first order as ``row(col) +
+    offset * slope(col)``.
+    """
     col_i, col_j = _common_ray_columns(angles, geometry, i, j, u0_px)
     last = geometry.detector_cols - 1
-    sample = lambda views, cols: map_coordinates(coefficients, [views.astype(np.float64), np.clip(cols, 0.0, last)],
-                                                 order=3, mode="nearest", prefilter=False)
+
+    def sample(views, cols, coeffs=coefficients):
+        return map_coordinates(coeffs, [views.astype(np.float64), np.clip(cols, 0.0, last)], order=3, mode="nearest",
+                               prefilter=False)
+
     mismatch = sample(i, col_i) - sample(j, col_j)
+    if tilt is not None and tilt[1] != 0.0:
+        slope_coefficients, tan_tilt = tilt
+        factor = tan_tilt * geometry.pixel_pitch_u_mm / geometry.pixel_pitch_v_mm
+        mismatch += factor * ((col_i - u0_px) * sample(i, col_i, slope_coefficients)
+                              - (col_j - u0_px) * sample(j, col_j, slope_coefficients))
     # A ray the angles put off either detector was not measured there: NaN, not the edge's value
     # (the edges are often air on both sides, which would agree and reward angles that push rays off).
     off = (col_i < 0.0) | (col_i > last) | (col_j < 0.0) | (col_j > last) | ~np.isfinite(col_i) | ~np.isfinite(col_j)
@@ -187,6 +213,8 @@ class ConjugateRayScore:
     dof : int
         Degrees of freedom of ``delta_se`` (the blocks it was taken over, less one): it is itself
         an estimate, so ``z`` is Student-t distributed with ``dof`` degrees of freedom, not normal.
+    tilt_deg : float
+        The detector's in-plane tilt used (fitted when asked, else 0).
     """
 
     cost: float
@@ -196,6 +224,7 @@ class ConjugateRayScore:
     delta: float = 0.0
     delta_se: float = 0.0
     dof: int = 0
+    tilt_deg: float = 0.0
 
     @property
     def z(self) -> float:
@@ -204,16 +233,56 @@ class ConjugateRayScore:
 
     def to_dict(self) -> dict:
         return {"cost": self.cost, "u0_px": self.u0_px, "n_pairs": self.n_pairs, "versus": self.versus,
-                "delta": self.delta, "delta_se": self.delta_se, "dof": self.dof, "z": self.z}
+                "delta": self.delta, "delta_se": self.delta_se, "dof": self.dof, "tilt_deg": self.tilt_deg, "z": self.z}
 
 
-def _fit_u0(coefficients, geometry, angles, pairs, search_px: float) -> float:
+def _fit_u0_tilt(coefficients, geometry, angles, pairs, search_px: float, slope_coefficients,
+                 max_tilt_deg: float) -> tuple[float, float]:
+    """The ``u0_px`` and the detector tilt (deg, within ``max_tilt_deg``) that make the common rays agree best.
+
+    By coordinates: the axis column without a tilt (:func:`_fit_u0`), the tilt at that column (a
+    grid of nine over the range, then a golden-section search on the cell around the best; a
+    column moves the samples along the rows, a tilt across them, so the two hardly interact),
+    then the column again at that tilt.
+    """
+    u0 = _fit_u0(coefficients, geometry, angles, pairs, search_px) if search_px > 0 else geometry.u0_px
+
+    def cost(tilt_deg):
+        squared = _mismatch(coefficients, geometry, angles, *pairs, u0,
+                            (slope_coefficients, math.tan(math.radians(tilt_deg)))) ** 2
+        checked = np.isfinite(squared)
+        return float(np.mean(squared[checked])) if checked.any() else math.inf
+
+    grid = np.linspace(-max_tilt_deg, max_tilt_deg, 9)
+    best = float(grid[int(np.argmin([cost(t) for t in grid]))])
+    step = float(grid[1] - grid[0])
+    low, high = max(best - step, -max_tilt_deg), min(best + step, max_tilt_deg)
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = high - ratio * (high - low), low + ratio * (high - low)
+    fa, fb = cost(a), cost(b)
+    for _ in range(16):
+        if fa < fb:
+            high, b, fb = b, a, fa
+            a = high - ratio * (high - low)
+            fa = cost(a)
+        else:
+            low, a, fa = a, b, fb
+            b = low + ratio * (high - low)
+            fb = cost(b)
+    tilt_deg = 0.5 * (low + high)
+    if search_px > 0:
+        u0 = _fit_u0(coefficients, geometry, angles, pairs, search_px,
+                     (slope_coefficients, math.tan(math.radians(tilt_deg))))
+    return u0, tilt_deg
+
+
+def _fit_u0(coefficients, geometry, angles, pairs, search_px: float, tilt=None) -> float:
     """The ``u0_px`` within ``search_px`` of the geometry's that makes the common rays agree best.
 
     A grid of half-pixel steps, then a golden-section search on the cell around its best.
     """
     def cost(u0):
-        squared = _mismatch(coefficients, geometry, angles, *pairs, u0) ** 2
+        squared = _mismatch(coefficients, geometry, angles, *pairs, u0, tilt) ** 2
         checked = np.isfinite(squared)
         # Rays off the detector cannot be checked; an axis that leaves none checkable is no fit.
         return float(np.mean(squared[checked])) if checked.any() else math.inf
@@ -260,7 +329,8 @@ def _blocked_se(per_view: np.ndarray, min_blocks: int = 16) -> tuple[float, int]
 
 def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, np.ndarray], *,
                         reference: str | None = None, fit_u0_px: float = 0.0,
-                        rows: np.ndarray | None = None) -> dict[str, ConjugateRayScore]:
+                        rows: np.ndarray | None = None, slopes: np.ndarray | None = None,
+                        fit_tilt_deg: float = 0.0) -> dict[str, ConjugateRayScore]:
     """Score candidate angle sets by their conjugate rays, each against a reference, without the truth.
 
     Parameters
@@ -279,6 +349,16 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
         disagree, and the best angles then are the ones that hide it best.
     rows : ndarray of shape (V, cols), optional
         :func:`midplane_rows` of the projections, if already read.
+    slopes : ndarray of shape (V, cols), optional
+        Their derivatives along the detector rows (``midplane_rows(..., slopes=True)``); read
+        with the rows when ``fit_tilt_deg`` is set and they are not given.
+    fit_tilt_deg : float
+        Fit the detector's in-plane tilt within this many degrees either way with the
+        reference's angles, and compare every candidate at that tilt (0: no tilt). A tilted detector crosses the source plane along a
+        slanted line; read along the straight midplane row, conjugate rays disagree by the
+        rows' vertical change, which angle errors can partly hide. The tilt is taken to first
+        order (a row offset times the row's slope), right for offsets up to a row or two at the
+        detector's edge.
 
     Returns
     -------
@@ -298,7 +378,10 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
     if not candidates:
         raise InputError("candidates: must name at least one set of angles")
     if rows is None:
-        rows = midplane_rows(projections, g)
+        rows, slopes = midplane_rows(projections, g, slopes=True) if fit_tilt_deg > 0 else (midplane_rows(projections, g),
+                                                                                            None)
+    if fit_tilt_deg > 0 and (slopes is None or np.shape(slopes) != np.shape(rows)):
+        raise InputError(f"slopes: fitting a tilt needs the rows' slopes, one per row, shape {np.shape(rows)}")
     n_views = rows.shape[0]
     sets = {}
     for name, angles in candidates.items():
@@ -317,12 +400,21 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
                          "so conjugate rays cannot check the angles (a scan must cover 180 deg plus the fan angle)")
     scale = float(np.mean(rows ** 2)) or 1.0
     coefficients = _spline(rows)
+    slope_coefficients = _spline(slopes) if fit_tilt_deg > 0 else None
     squared = {}
-    u0s = {}
+    u0s, tilts = {}, {}
     for name in [reference, *(n for n in sets if n != reference)]:
         angles = sets[name]
-        u0s[name] = _fit_u0(coefficients, g, angles, pairs, fit_u0_px) if fit_u0_px > 0 else g.u0_px
-        value = _mismatch(coefficients, g, angles, *pairs, u0s[name]) ** 2 / scale
+        if fit_tilt_deg > 0 and name == reference:
+            u0s[name], tilts[name] = _fit_u0_tilt(coefficients, g, angles, pairs, fit_u0_px, slope_coefficients,
+                                                  fit_tilt_deg)
+        else:
+            # The tilt is the scanner's, not the angles': fitted with the reference, kept for the others.
+            tilts[name] = tilts[reference] if fit_tilt_deg > 0 else 0.0
+            tilt = (slope_coefficients, math.tan(math.radians(tilts[name]))) if fit_tilt_deg > 0 else None
+            u0s[name] = _fit_u0(coefficients, g, angles, pairs, fit_u0_px, tilt) if fit_u0_px > 0 else g.u0_px
+        tilt = (slope_coefficients, math.tan(math.radians(tilts[name]))) if fit_tilt_deg > 0 else None
+        value = _mismatch(coefficients, g, angles, *pairs, u0s[name], tilt) ** 2 / scale
         # A ray a candidate puts off a detector cannot be checked: it counts as the reference has it.
         squared[name] = value if name == reference else np.where(np.isnan(value), squared[reference], value)
     squared = {name: squared[name] for name in sets}
@@ -331,11 +423,11 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
     scores = {}
     for name, sq in squared.items():
         if name == reference:
-            scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq))
+            scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq), tilt_deg=tilts[name])
             continue
         diff = sq - squared[reference]
         per_view = np.bincount(groups, weights=diff, minlength=n_views)[np.unique(groups)]
         se, blocks = _blocked_se(per_view) if n_groups > 1 else (math.inf, 1)
         scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq), reference, float(np.mean(diff)),
-                                         se / len(diff), blocks - 1)
+                                         se / len(diff), blocks - 1, tilts[name])
     return scores

@@ -164,7 +164,8 @@ class GateDecision:
 
 
 def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg, *, z: float = 2.0,
-                harmonics: int = 3, fit_u0_px: float | None = None) -> GateDecision:
+                harmonics: int = 3, fit_u0_px: float | None = None, slopes: np.ndarray | None = None,
+                fit_tilt_deg: float = 1.0) -> GateDecision:
     """The nominal angles plus those bands of the correction that the conjugate rays show better.
 
     Parameters
@@ -184,6 +185,12 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     fit_u0_px : float, optional
         Search for the axis column this far either side of ``geometry.u0_px`` (default: 2 % of
         the detector width, at least 3 px), for every candidate.
+    slopes : ndarray of shape (V, cols), optional
+        The rows' derivatives along the detector rows (``midplane_rows(..., slopes=True)``): with
+        them the detector's in-plane tilt is fitted for every candidate, within ``fit_tilt_deg``
+        either way (a tilt read as a straight row makes conjugate rays disagree in a way a wrong
+        slow band of the angles can partly hide; on a sweep scenario with a 0.3 deg tilt a
+        twice-per-turn band 0.4 deg off passed without it).
     """
     g = check_geometry(geometry)
     nominal = np.asarray(nominal_deg, dtype=np.float64)
@@ -212,7 +219,8 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     parts = {name: np.where(seen, part, 0.0) for name, part in split_bands(correction, nominal, harmonics, seen).items()}
 
     def scored(candidates: dict, reference: str) -> dict[str, ConjugateRayScore]:
-        return conjugate_ray_costs(None, g, candidates, reference=reference, fit_u0_px=search, rows=rows)
+        return conjugate_ray_costs(None, g, candidates, reference=reference, fit_u0_px=search, rows=rows,
+                                   slopes=slopes, fit_tilt_deg=fit_tilt_deg if slopes is not None else 0.0)
 
     current, added, steps, needed = nominal, [], [], []
     remaining = [name for name in BANDS if np.any(parts[name] != 0.0)]
