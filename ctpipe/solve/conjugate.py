@@ -37,6 +37,12 @@ What it sees and what it does not:
   180 deg plus the fan angle has them for its first fan-angle's worth of views), and its power
   grows with the number of such pairs; at a few dozen views it says little, and
   :class:`ConjugateRayScore` carries the standard error that says how little;
+- a detector turned in its own plane crosses the midplane along a slanted line, so reading the
+  straight row makes conjugate rays disagree by the rows' vertical change, which a wrong slow
+  band of the angles can partly hide; :func:`conjugate_ray_costs` fits the tilt (``slopes``,
+  ``fit_tilt_deg``) to first order in the rows' slopes, right for an offset of a row or two at
+  the detector's edge (0.3 deg on a 192-column detector is half a row; on a 2,048-column one,
+  five rows, past what first order holds);
 - a projection that is shifted as a whole (a drifting source spot or detector, see
   :mod:`ctpipe.sim.drift`) moves its samples as an angle error does: a random walk of 0.05 px a
   view hides a 0.3 deg once-per-turn error from it, so on drifting scans it says "no evidence"
