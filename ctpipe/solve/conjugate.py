@@ -242,6 +242,32 @@ class ConjugateRayScore:
                 "delta": self.delta, "delta_se": self.delta_se, "dof": self.dof, "tilt_deg": self.tilt_deg, "z": self.z}
 
 
+def _grid_then_golden(cost, grid: np.ndarray, cell: float, iterations: int) -> float:
+    """The minimiser of ``cost``: the best of ``grid``, then a golden-section search ``cell`` either side of it."""
+    best = float(grid[int(np.argmin([cost(x) for x in grid]))])
+    low, high = max(best - cell, float(grid[0])), min(best + cell, float(grid[-1]))
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = high - ratio * (high - low), low + ratio * (high - low)
+    fa, fb = cost(a), cost(b)
+    for _ in range(iterations):
+        if fa < fb:
+            high, b, fb = b, a, fa
+            a = high - ratio * (high - low)
+            fa = cost(a)
+        else:
+            low, a, fa = a, b, fb
+            b = low + ratio * (high - low)
+            fb = cost(b)
+    return 0.5 * (low + high)
+
+
+def _mean_squared_mismatch(coefficients, geometry, angles, pairs, u0_px: float, tilt=None) -> float:
+    squared = _mismatch(coefficients, geometry, angles, *pairs, u0_px, tilt) ** 2
+    checked = np.isfinite(squared)
+    # Rays off the detector cannot be checked; an axis that leaves none checkable is no fit.
+    return float(np.mean(squared[checked])) if checked.any() else math.inf
+
+
 def _fit_u0_tilt(coefficients, geometry, angles, pairs, search_px: float, slope_coefficients,
                  max_tilt_deg: float) -> tuple[float, float]:
     """The ``u0_px`` and the detector tilt (deg, within ``max_tilt_deg``) that make the common rays agree best.
@@ -253,32 +279,14 @@ def _fit_u0_tilt(coefficients, geometry, angles, pairs, search_px: float, slope_
     """
     u0 = _fit_u0(coefficients, geometry, angles, pairs, search_px) if search_px > 0 else geometry.u0_px
 
-    def cost(tilt_deg):
-        squared = _mismatch(coefficients, geometry, angles, *pairs, u0,
-                            (slope_coefficients, math.tan(math.radians(tilt_deg)))) ** 2
-        checked = np.isfinite(squared)
-        return float(np.mean(squared[checked])) if checked.any() else math.inf
+    def tilted(tilt_deg):
+        return slope_coefficients, math.tan(math.radians(tilt_deg))
 
     grid = np.linspace(-max_tilt_deg, max_tilt_deg, 9)
-    best = float(grid[int(np.argmin([cost(t) for t in grid]))])
-    step = float(grid[1] - grid[0])
-    low, high = max(best - step, -max_tilt_deg), min(best + step, max_tilt_deg)
-    ratio = (math.sqrt(5.0) - 1.0) / 2.0
-    a, b = high - ratio * (high - low), low + ratio * (high - low)
-    fa, fb = cost(a), cost(b)
-    for _ in range(16):
-        if fa < fb:
-            high, b, fb = b, a, fa
-            a = high - ratio * (high - low)
-            fa = cost(a)
-        else:
-            low, a, fa = a, b, fb
-            b = low + ratio * (high - low)
-            fb = cost(b)
-    tilt_deg = 0.5 * (low + high)
+    tilt_deg = _grid_then_golden(lambda t: _mean_squared_mismatch(coefficients, geometry, angles, pairs, u0, tilted(t)),
+                                 grid, float(grid[1] - grid[0]), 16)
     if search_px > 0:
-        u0 = _fit_u0(coefficients, geometry, angles, pairs, search_px,
-                     (slope_coefficients, math.tan(math.radians(tilt_deg))))
+        u0 = _fit_u0(coefficients, geometry, angles, pairs, search_px, tilted(tilt_deg))
     return u0, tilt_deg
 
 
@@ -287,29 +295,11 @@ def _fit_u0(coefficients, geometry, angles, pairs, search_px: float, tilt=None) 
 
     A grid of half-pixel steps, then a golden-section search on the cell around its best.
     """
-    def cost(u0):
-        squared = _mismatch(coefficients, geometry, angles, *pairs, u0, tilt) ** 2
-        checked = np.isfinite(squared)
-        # Rays off the detector cannot be checked; an axis that leaves none checkable is no fit.
-        return float(np.mean(squared[checked])) if checked.any() else math.inf
-
     centre = geometry.u0_px
     grid = centre + np.linspace(-search_px, search_px, int(2 * math.ceil(search_px / 0.5)) + 1)
-    best = float(grid[int(np.argmin([cost(u) for u in grid]))])
-    low, high = best - 0.5, best + 0.5
-    ratio = (math.sqrt(5.0) - 1.0) / 2.0
-    a, b = high - ratio * (high - low), low + ratio * (high - low)
-    fa, fb = cost(a), cost(b)
-    for _ in range(14):
-        if fa < fb:
-            high, b, fb = b, a, fa
-            a = high - ratio * (high - low)
-            fa = cost(a)
-        else:
-            low, a, fa = a, b, fb
-            b = low + ratio * (high - low)
-            fb = cost(b)
-    return float(np.clip((low + high) / 2.0, centre - search_px, centre + search_px))
+    u0 = _grid_then_golden(lambda u: _mean_squared_mismatch(coefficients, geometry, angles, pairs, u, tilt),
+                           grid, 0.5, 14)
+    return float(np.clip(u0, centre - search_px, centre + search_px))
 
 
 def _blocked_se(per_view: np.ndarray, min_blocks: int = 16) -> tuple[float, int]:
