@@ -445,8 +445,7 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
             entry = {"binning": int(factor), "iteration": iteration, "cost": cost,
                      "step_rms_deg": float(np.sqrt(np.mean(step ** 2))), "step_max_deg": float(np.abs(step).max())}
             if shifts:
-                shifts_px = shifts_px + _shift_gauge(np.clip(shift_step, -2.0, 2.0) * factor, np.deg2rad(angles))
-                shifts_px = _shift_gauge(shifts_px, np.deg2rad(angles))
+                shifts_px = _shift_gauge(shifts_px + np.clip(shift_step, -2.0, 2.0) * factor, np.deg2rad(angles))
                 level.shift_to(shifts_px / factor)
                 entry["shift_rms_px"] = float(np.sqrt(np.mean(shifts_px ** 2)))
             history.append({**entry, "seconds": time.perf_counter() - start})
