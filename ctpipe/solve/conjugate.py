@@ -350,11 +350,11 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
         with the rows when ``fit_tilt_deg`` is set and they are not given.
     fit_tilt_deg : float
         Fit the detector's in-plane tilt within this many degrees either way with the
-        reference's angles, and compare every candidate at that tilt (0: no tilt). A tilted detector crosses the source plane along a
-        slanted line; read along the straight midplane row, conjugate rays disagree by the
-        rows' vertical change, which angle errors can partly hide. The tilt is taken to first
-        order (a row offset times the row's slope), right for offsets up to a row or two at the
-        detector's edge.
+        reference's angles, and compare every candidate at that tilt (0: no tilt). A tilted
+        detector crosses the source plane along a slanted line; read along the straight midplane
+        row, conjugate rays disagree by the rows' vertical change, which angle errors can partly
+        hide. The tilt is taken to first order (a row offset times the row's slope), right for
+        offsets up to a row or two at the detector's edge.
 
     Returns
     -------
@@ -404,12 +404,11 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
         if fit_tilt_deg > 0 and name == reference:
             u0s[name], tilts[name] = _fit_u0_tilt(coefficients, g, angles, pairs, fit_u0_px, slope_coefficients,
                                                   fit_tilt_deg)
-        else:
-            # The tilt is the scanner's, not the angles': fitted with the reference, kept for the others.
-            tilts[name] = tilts[reference] if fit_tilt_deg > 0 else 0.0
-            tilt = (slope_coefficients, math.tan(math.radians(tilts[name]))) if fit_tilt_deg > 0 else None
-            u0s[name] = _fit_u0(coefficients, g, angles, pairs, fit_u0_px, tilt) if fit_u0_px > 0 else g.u0_px
+        # The tilt is the scanner's, not the angles': fitted with the reference, kept for the others.
+        tilts.setdefault(name, tilts[reference] if fit_tilt_deg > 0 else 0.0)
         tilt = (slope_coefficients, math.tan(math.radians(tilts[name]))) if fit_tilt_deg > 0 else None
+        if name not in u0s:
+            u0s[name] = _fit_u0(coefficients, g, angles, pairs, fit_u0_px, tilt) if fit_u0_px > 0 else g.u0_px
         value = _mismatch(coefficients, g, angles, *pairs, u0s[name], tilt) ** 2 / scale
         # A ray a candidate puts off a detector cannot be checked: it counts as the reference has it.
         squared[name] = value if name == reference else np.where(np.isnan(value), squared[reference], value)

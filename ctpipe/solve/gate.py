@@ -187,10 +187,13 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         the detector width, at least 3 px), for every candidate.
     slopes : ndarray of shape (V, cols), optional
         The rows' derivatives along the detector rows (``midplane_rows(..., slopes=True)``): with
-        them the detector's in-plane tilt is fitted for every candidate, within ``fit_tilt_deg``
-        either way (a tilt read as a straight row makes conjugate rays disagree in a way a wrong
-        slow band of the angles can partly hide; on a sweep scenario with a 0.3 deg tilt a
-        twice-per-turn band 0.4 deg off passed without it).
+        them the detector's in-plane tilt is fitted in every comparison, with its reference's
+        angles, within ``fit_tilt_deg`` either way (a tilt read as a straight row makes conjugate
+        rays disagree in a way a wrong slow band of the angles can partly hide; on a sweep
+        scenario with a 0.3 deg tilt, a twice-per-turn band that took the angles from 0.41 to
+        0.56 deg RMS passed without it).
+    fit_tilt_deg : float
+        The largest tilt searched, degrees (used only with ``slopes``).
     """
     g = check_geometry(geometry)
     nominal = np.asarray(nominal_deg, dtype=np.float64)
