@@ -23,7 +23,7 @@ validate scenarios/NNN.yaml`` runs again.
 
 Each scenario runs as ``ctpipe validate`` would, as a task on the execution layer (a thread
 pool, or Dask workers), and becomes one row: its draw, the nominal and estimated per-view RMS
-angle errors, the PSNR gains of the estimated angles over the nominal ones against the
+angle errors (and the refiner's own, ``ungated_rms_deg``, before the gate), the PSNR gains of the estimated angles over the nominal ones against the
 jitter-free scan and the phantom, how much the true angles gain (``visible_db``), the
 recoveries, what the refiner kept and what the gate returned (:mod:`ctpipe.solve.gate`), seconds.
 A scenario is *worse than nominal* when its per-view RMS is above the nominal angles' or either
@@ -58,8 +58,8 @@ DISTRIBUTIONS = ("choice", "uniform", "loguniform", "integer", "log_integer")
 MAX_SCENARIOS = 10_000
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 #: The columns of ``sweep.csv`` after the drawn keys.
-COLUMNS = ("scenario", "status", "nominal_rms_deg", "estimated_rms_deg", "worse_than_nominal", "gain_db",
-           "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate", "se_views",
+COLUMNS = ("scenario", "status", "nominal_rms_deg", "estimated_rms_deg", "ungated_rms_deg", "worse_than_nominal",
+           "gain_db", "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate", "se_views",
            "se_within_2", "seconds", "reason")
 #: How far below the nominal angles' PSNR a reconstruction may fall and still count as no worse (dB).
 WORSE_DB = 0.05
@@ -259,6 +259,8 @@ def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> 
             "status": "ok",
             "nominal_rms_deg": nominal_rms,
             "estimated_rms_deg": estimated_rms,
+            # The refiner's angles before the gate: how close the estimate came, where the gate held it back.
+            "ungated_rms_deg": float(views.get("before the gate", views["estimated"])["rms_deg"]),
             "gain_db": gains[0],
             "gain_phantom_db": gains[1],
             "visible_db": gain("reference", "true"),

@@ -334,7 +334,7 @@ class ValidateReport:
         lines = []
         t = self.angle_tables
         lines.append("angle error per view (deg, common offset removed):")
-        for label in VIEW_LABELS:
+        for label in (*VIEW_LABELS, *(["before the gate"] if "before the gate" in t["views"] else [])):
             s = t["views"][label]
             lines.append(f"  {label:<12}  {s['estimated']}/{s['total']} views  RMS {s['rms_deg']:.4f}  "
                          f"MAE {s['mae_deg']:.4f}  median {s['median_deg']:.4f}  max {s['max_deg']:.4f}")
@@ -491,6 +491,9 @@ def _run_validate(settings: ValidateSettings, registry: StageRegistry, progress)
                    "pair-chained": view_errors_deg(pair_chained_deg(result.pairs, result.pair_angles_deg, nominal),
                                                    truth),
                    "estimated": view_errors_deg(estimated_rel, truth)}
+    if gate is not None and gate.decided and gate.chosen != "estimate":
+        # What the gate held back: the refiner's angles, scored as if they had been returned.
+        view_errors["before the gate"] = view_errors_deg(gate.estimate_deg, truth)
     pair_truth_errors = pair_errors_deg(result.pairs, result.pair_angles_deg, truth)
     nominal_pairs = nominal[result.pairs[:, 1]] - nominal[result.pairs[:, 0]]
     angle_tables = {
