@@ -35,7 +35,7 @@ so it is the exact transpose of :meth:`VoxelProjector.forward` (up to float32 ro
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, Iterator
 
 import numba
 import numpy as np
@@ -436,6 +436,86 @@ def _forward(out, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, o
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
+def _to_pair_layouts(first, second, vol_x, vol_z, vol_y, with_y):
+    """:func:`_to_layouts` of two volumes at once, interleaved on a last axis of 2: a ray's four
+    neighbours in both volumes then come in the same cache lines."""
+    n_y, n_z, n_x = first.shape
+    for iy in prange(n_y):
+        for iz in range(n_z):
+            for ix in range(n_x):
+                a = first[iy, iz, ix]
+                b = second[iy, iz, ix]
+                vol_x[iy + 1, iz + 1, ix, 0] = a
+                vol_x[iy + 1, iz + 1, ix, 1] = b
+                vol_z[iy + 1, ix + 1, iz, 0] = a
+                vol_z[iy + 1, ix + 1, iz, 1] = b
+    if with_y:
+        for iz in prange(n_z):
+            for ix in range(n_x):
+                for iy in range(n_y):
+                    vol_y[iz + 1, ix + 1, iy, 0] = first[iy, iz, ix]
+                    vol_y[iz + 1, ix + 1, iy, 1] = second[iy, iz, ix]
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _ray_sum_pair(vol, k0, k1, p0, dp, q0, dq, n_p, n_q):
+    """:func:`_ray_sum` of both volumes of a pair layout, with the weights computed once."""
+    acc_a = np.float32(0.0)
+    acc_b = np.float32(0.0)
+    for k in range(k0, k1):
+        p = p0 + k * dp
+        q = q0 + k * dq
+        ip = min(max(int(p), 0), n_p)
+        iq = min(max(int(q), 0), n_q)
+        fp = np.float32(p - ip)
+        fq = np.float32(q - iq)
+        a00 = vol[ip, iq, k, 0]
+        b00 = vol[ip, iq, k, 1]
+        a01 = vol[ip, iq + 1, k, 0]
+        b01 = vol[ip, iq + 1, k, 1]
+        a10 = vol[ip + 1, iq, k, 0]
+        b10 = vol[ip + 1, iq, k, 1]
+        a11 = vol[ip + 1, iq + 1, k, 0]
+        b11 = vol[ip + 1, iq + 1, k, 1]
+        lo = a00 + fq * (a01 - a00)
+        hi = a10 + fq * (a11 - a10)
+        acc_a += lo + fp * (hi - lo)
+        lo = b00 + fq * (b01 - b00)
+        hi = b10 + fq * (b11 - b10)
+        acc_b += lo + fp * (hi - lo)
+    return acc_a, acc_b
+
+
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
+def _forward_pair(out_a, out_b, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y,
+                  n_z):
+    """:func:`_forward` of the two volumes of a pair layout into ``out_a`` and ``out_b``."""
+    n_views, n_rows, n_cols = out_a.shape
+    for v in prange(n_views):
+        c = cos_t[v]
+        s = sin_t[v]
+        for row in range(n_rows):
+            for col in range(n_cols):
+                s_x, s_y, s_z, d_x, d_y, d_z, norm = _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel,
+                                                               row, col)
+                ax, ay, az = abs(d_x), abs(d_y), abs(d_z)
+                if ax >= az and ax >= ay:
+                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_x, s_y, s_z, d_x, d_y, d_z, n_x, n_y, n_z, norm,
+                                                              voxel)
+                    total_a, total_b = _ray_sum_pair(vol_x, k0, k1, p0, dp, q0, dq, n_y, n_z)
+                elif az >= ay:
+                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_z, s_y, s_x, d_z, d_y, d_x, n_z, n_y, n_x, norm,
+                                                              voxel)
+                    total_a, total_b = _ray_sum_pair(vol_z, k0, k1, p0, dp, q0, dq, n_y, n_x)
+                else:
+                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_y, s_z, s_x, d_y, d_z, d_x, n_y, n_z, n_x, norm,
+                                                              voxel)
+                    total_a, total_b = _ray_sum_pair(vol_y, k0, k1, p0, dp, q0, dq, n_z, n_x)
+                out_a[v, row, col] = total_a * np.float32(step)
+                out_b[v, row, col] = total_b * np.float32(step)
+
+
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _back(buf_x, buf_z, buf_y, proj, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y, n_z):
     """Scatter every view with the weights of :func:`_forward`; buffer ``b`` takes views b, b + B, ..."""
     n_views, n_rows, n_cols = proj.shape
@@ -549,6 +629,57 @@ class VoxelProjector:
         out = np.empty((common[0].size, *self._geometry.shape), dtype=np.float32)
         _forward(out, vol_x, vol_z, vol_y, *common)
         return out
+
+    def forward_pair(self, first: np.ndarray, second: np.ndarray, angles_deg, *,
+                     chunk_views: int = 32) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
+        """Line integrals of two volumes along the same rays, a chunk of views at a time.
+
+        One pass for both: each ray's plane range and interpolation weights are computed once
+        and both volumes are read from one interleaved layout, built once for all the chunks.
+        This is what projection matching needs every iteration (a reconstruction and its
+        derivative with respect to the turntable angle), at about 60 % of two :meth:`forward` calls.
+
+        Parameters
+        ----------
+        first, second : ndarray of shape grid.shape = (n_y, n_z, n_x), float
+        angles_deg : array_like of shape (V,)
+            Turntable angles, degrees.
+        chunk_views : int
+            Views per chunk: memory is the pair layout plus two chunks of views.
+
+        Yields
+        ------
+        views : slice
+            The chunk's views (indices into ``angles_deg``).
+        projected_first, projected_second : ndarray of shape (chunk, detector_rows, detector_cols), float32
+            The same as ``forward(first, angles_deg[views])`` and ``forward(second, angles_deg[views])``.
+        """
+        first = _check_array("first", first, self._grid.shape, "grid.shape (n_y, n_z, n_x)")
+        second = _check_array("second", second, self._grid.shape, "grid.shape (n_y, n_z, n_x)")
+        chunk_views = _check_int("chunk_views", chunk_views, 1)
+        common = self._common(angles_deg)
+        shape_x, shape_z, shape_y = (shape[1:] + (2,) for shape in self._layout_shapes(1))
+        n_chunk = min(chunk_views, common[0].size)
+        check_fits(f"projecting two {self._grid.n_x} x {self._grid.n_y} x {self._grid.n_z} volumes into "
+                   f"{self._geometry.detector_rows} x {self._geometry.detector_cols} views",
+                   4 * (2 * n_chunk * self._geometry.shape[0] * self._geometry.shape[1]
+                        + sum(math.prod(shape) for shape in (shape_x, shape_z, shape_y))),
+                   hint="use a smaller grid")
+        vol_x = np.zeros(shape_x, dtype=np.float32)
+        vol_z = np.zeros(shape_z, dtype=np.float32)
+        vol_y = np.zeros(shape_y, dtype=np.float32)
+        _to_pair_layouts(first, second, vol_x, vol_z, vol_y, self._with_y)
+        # Checked and laid out now, projected as the chunks are asked for.
+        return self._pair_chunks((vol_x, vol_z, vol_y), common, n_chunk)
+
+    def _pair_chunks(self, layouts, common, n_chunk: int) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
+        cos_t, sin_t, rest = common[0], common[1], common[2:]
+        for start in range(0, cos_t.size, n_chunk):
+            views = slice(start, min(start + n_chunk, cos_t.size))
+            out_a = np.empty((views.stop - start, *self._geometry.shape), dtype=np.float32)
+            out_b = np.empty_like(out_a)
+            _forward_pair(out_a, out_b, *layouts, cos_t[views], sin_t[views], *rest)
+            yield views, out_a, out_b
 
     def back(self, projections: np.ndarray, angles_deg) -> np.ndarray:
         """The adjoint of :meth:`forward`: scatter every line integral back along its ray.

@@ -246,13 +246,18 @@ class _Level:
         variance = np.zeros(len(angles_deg))
         shifts = np.zeros((len(angles_deg), 2)) if with_steps and with_shifts else None
         residual_energy = 0.0
-        for start in range(0, len(angles_deg), _CHUNK_VIEWS):
-            part = slice(start, min(start + _CHUNK_VIEWS, len(angles_deg)))
-            model = band_pass(self.projector.forward(volume, angles_deg[part]), *self.band_px)
+        # The volume and its derivative along the same rays in one pass (the derivative's
+        # projection is the slope of every pixel with the view's angle).
+        chunks = (self.projector.forward_pair(volume, derivative, angles_deg, chunk_views=_CHUNK_VIEWS) if with_steps
+                  else ((part, self.projector.forward(volume, angles_deg[part]), None)
+                        for part in (slice(start, min(start + _CHUNK_VIEWS, len(angles_deg)))
+                                     for start in range(0, len(angles_deg), _CHUNK_VIEWS))))
+        for part, projected, projected_slope in chunks:
+            model = band_pass(projected, *self.band_px)
             residual = self.filtered[part] - model
             residual_energy += float(np.einsum("vij,vij->", residual, residual, dtype=np.float64))
             if with_steps:
-                slope = band_pass(self.projector.forward(derivative, angles_deg[part]), *self.band_px)
+                slope = band_pass(projected_slope, *self.band_px)
                 if shifts is not None:
                     # A view shifted by +d shows model(u - d) = model - d * d(model)/du.
                     moved = np.stack([-np.gradient(model, axis=2), -np.gradient(model, axis=1)], axis=1)
