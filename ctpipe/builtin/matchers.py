@@ -15,6 +15,7 @@ import numpy as np
 from ctpipe.builtin import _opencv
 from ctpipe.data import Features, Matches
 from ctpipe.errors import InputError
+from ctpipe.features.nearest import l2_neighbours
 from ctpipe.hookspecs import hookimpl
 from ctpipe.stages import Matcher, param
 
@@ -23,6 +24,11 @@ class _NearestNeighbourMatcher(Matcher):
     def _knn(self, a: Features, b: Features, k: int) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
+    def _knn_and_back(self, a: Features, b: Features, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``_knn(a, b, k)`` and, with ``mutual``, each of ``b``'s nearest in ``a`` (else None)."""
+        index, distance = self._knn(a, b, k)
+        return index, distance, self._knn(b, a, 1)[0][:, 0] if self.mutual else None
+
     def match(self, features_a: Features, features_b: Features) -> Matches:
         if features_a.norm != features_b.norm or features_a.descriptors.shape[1] != features_b.descriptors.shape[1]:
             raise InputError(
@@ -30,15 +36,14 @@ class _NearestNeighbourMatcher(Matcher):
                 f"{features_b.norm} descriptors of width {features_b.descriptors.shape[1]}; use one detector for both views"
             )
         k = 2 if self.ratio is not None else 1
-        index, distance = self._knn(features_a, features_b, k)
+        index, distance, back = self._knn_and_back(features_a, features_b, k)
         keep = index[:, 0] >= 0
         if self.ratio is not None:
             # A missing second neighbour (inf) means the nearest one is unambiguous.
             keep &= distance[:, 0] < self.ratio * distance[:, 1]
         if self.mutual and keep.any():
-            back, _ = self._knn(features_b, features_a, 1)
             forward = np.where(keep, index[:, 0], 0)
-            keep &= back[forward, 0] == np.arange(len(index))
+            keep &= back[forward] == np.arange(len(index))
         rows = np.flatnonzero(keep)
         return Matches(
             index_ab=np.stack([rows, index[rows, 0]], axis=1).astype(np.int64).reshape(-1, 2),
@@ -48,13 +53,24 @@ class _NearestNeighbourMatcher(Matcher):
 
 @dataclass(frozen=True)
 class BruteForceMatcher(_NearestNeighbourMatcher):
-    """Brute-force nearest neighbour with Lowe's ratio test and/or a mutual check."""
+    """Brute-force nearest neighbour with Lowe's ratio test and/or a mutual check.
+
+    Exact; float (``L2``) descriptors are matched both ways from one matrix product
+    (:mod:`ctpipe.features.nearest`), binary ones by OpenCV.
+    """
 
     ratio: float | None = param(0.8, doc="keep a match if d1 < ratio * d2 (null: no ratio test)", gt=0, le=1)
     mutual: bool = param(False, doc="keep only pairs that are each other's nearest neighbour")
 
     def _knn(self, a: Features, b: Features, k: int):
         return _opencv.knn_match(a.descriptors, b.descriptors, a.norm, k)
+
+    def _knn_and_back(self, a: Features, b: Features, k: int):
+        if a.norm != "L2":
+            return super()._knn_and_back(a, b, k)
+        # Float descriptors: both directions from one matrix product (ctpipe.features.nearest).
+        index, distance, back = l2_neighbours(a.descriptors, b.descriptors, k)
+        return index, distance, back if self.mutual else None
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,8 @@ Plain functions on arrays, no stages and no configuration: SURF as OpenCV comput
 (:mod:`ctpipe.features.surf`: integral image, fast-Hessian keypoints, orientations and
 descriptors in numba) and the ball finder of calibration phantoms (:mod:`ctpipe.features.balls`:
 noise and defects, scale-space candidates, sub-pixel fits of a blurred disc model, crowds of
-overlapping balls). The detector stages of :mod:`ctpipe.builtin` are thin adapters that call
+overlapping balls), and exact nearest neighbours of float descriptors both ways in one pass
+(:mod:`ctpipe.features.nearest`, for matching). The detector stages of :mod:`ctpipe.builtin` are thin adapters that call
 these functions and pack their output as :class:`ctpipe.data.Features`; a new detector's
 numerics belong here, its stage there.
 """
@@ -18,6 +19,7 @@ from ctpipe._shared.lazy import lazy_exports
 _EXPORTS = {
     "compute_surf": "surf", "fast_hessian": "surf", "integral_image": "surf", "surf_descriptors": "surf",
     "find_balls": "balls", "noise_sigma": "balls", "despike": "balls", "render_ball_model": "balls",
+    "l2_neighbours": "nearest",
 }
 
 __all__ = list(_EXPORTS)
