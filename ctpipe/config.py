@@ -13,8 +13,13 @@ A pipeline file::
     #   refiner: {name: projection-matching, start: {name: bundle-adjustment, loss_scale_px: 0.7}}
     pairs: {baselines: [1], loop_closure: true}   # view offsets: (i, i + k) for every k; a full
                                     # turn (known from the nominal angles) also pairs across its seam
-    preprocess: {static_background: auto}   # detect on views less their per-pixel median
-                                    # (auto: when the nominal angles span >= 180 deg); on, off
+    preprocess: {static_background: auto, detect_max_px: 1024}
+                                    # static_background: detect on views less their per-pixel
+                                    # median (auto: when the nominal angles span >= 180 deg); on, off
+                                    # detect_max_px: a multi-scale keypoint detector (SIFT, SURF,
+                                    # ORB, AKAZE, BRISK, KAZE) works on views binned to at most this
+                                    # many pixels a side, keypoints in the full view's pixels
+                                    # (null: the full views; the ball finder always is)
     gate: auto                      # return corrected angles only where the projections show them
                                     # better than the nominal ones (ctpipe.solve.gate); off
     # a kind left out gets DEFAULT_STAGES[kind]
@@ -277,18 +282,22 @@ class PipelineConfig:
     loop_closure: bool = True
     static_background: str = "auto"
     gate: str = "auto"
+    detect_max_px: int | None = 1024
 
     def to_dict(self) -> dict:
         return {"detector": self.detector.to_dict(), "matcher": self.matcher.to_dict(),
                 "estimator": self.estimator.to_dict(), "refiner": self.refiner.to_dict(),
                 "pairs": {"baselines": list(self.baselines), "loop_closure": self.loop_closure},
-                "preprocess": {"static_background": self.static_background}, "gate": self.gate, "seed": self.seed}
+                "preprocess": {"static_background": self.static_background, "detect_max_px": self.detect_max_px}, "gate": self.gate, "seed": self.seed}
 
 
 _PAIRS_BASELINES = ParamSpec("baselines", tuple[int, ...], (1,), "view offsets", ge=1)
 _PAIRS_LOOP_CLOSURE = ParamSpec("loop_closure", bool, True, "pair the last views of a full turn with the first")
 _STATIC_BACKGROUND = ParamSpec("static_background", Literal["auto", "on", "off"], "auto",
                                "subtract the per-pixel median over the views before detection")
+_DETECT_MAX_PX = ParamSpec("detect_max_px", int | None, 1024,
+                           "detect on views binned to at most this many pixels a side, when the detector's keypoints "
+                           "hold at a working resolution (null: the full views)", ge=64, le=65536)
 _SEED = ParamSpec("seed", int | None, 0, "random seed", ge=0)
 _GATE = ParamSpec("gate", Literal["auto", "off"], "auto",
                   "return corrected angles only where the projections show them better than the nominal ones "
@@ -311,14 +320,15 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
     pairs = check_keys(mapping.get("pairs", {}), f"{path}.pairs", allowed=("baselines", "loop_closure"))
     baselines = check_value(_PAIRS_BASELINES, pairs.get("baselines", [1]), f"{path}.pairs.baselines")
     loop_closure = check_value(_PAIRS_LOOP_CLOSURE, pairs.get("loop_closure", True), f"{path}.pairs.loop_closure")
-    preprocess = check_keys(mapping.get("preprocess", {}) or {}, f"{path}.preprocess", allowed=("static_background",))
+    preprocess = check_keys(mapping.get("preprocess", {}) or {}, f"{path}.preprocess", allowed=("static_background", "detect_max_px"))
     # YAML 1.1 reads a bare on/off as a boolean: take it as the word the user wrote.
     static_background = check_value(_STATIC_BACKGROUND, _on_off(preprocess.get("static_background", "auto"), "on"),
                                     f"{path}.preprocess.static_background")
+    detect_max_px = check_value(_DETECT_MAX_PX, preprocess.get("detect_max_px", 1024), f"{path}.preprocess.detect_max_px")
     seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
     gate = check_value(_GATE, _on_off(mapping.get("gate", "auto"), "auto"), f"{path}.gate")
     return PipelineConfig(**stages, baselines=tuple(sorted(set(baselines))), seed=seed, loop_closure=loop_closure,
-                          static_background=static_background, gate=gate)
+                          static_background=static_background, gate=gate, detect_max_px=detect_max_px)
 
 
 _GEOMETRY_FIELDS = {name: ParamSpec(name, annotation, None, "", **bounds)

@@ -173,6 +173,9 @@ class ScanObservations:
         Seconds spent detecting, matching and estimating.
     static_background_removed : bool
         Whether features were detected on the views less the scan's static part.
+    detect_binning : int
+        The binning of the views the features were detected on (keypoints are in the full
+        views' pixels either way; see ``Pipeline.detect_binning``).
     """
 
     geometry: Geometry
@@ -187,6 +190,7 @@ class ScanObservations:
     projections: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
     static_background_removed: bool = False
+    detect_binning: int = 1
 
 
 @dataclass(frozen=True, eq=False)

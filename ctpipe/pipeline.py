@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -239,6 +240,8 @@ class ScanResult:
         :attr:`refined_geometry` and :attr:`refiner_choice` hold what of it a user acts on.
     static_background_removed : bool
         Whether features were detected on the views less the scan's static part.
+    detect_binning : int
+        The binning of the views the features were detected on (1: the full views).
     geometry : Geometry or None
         The geometry the run was given.
     refined_geometry : RefinedGeometry or None
@@ -285,6 +288,7 @@ class ScanResult:
     timings_s: dict[str, float]
     refiner_info: dict[str, Any] = field(default_factory=dict)
     static_background_removed: bool = False
+    detect_binning: int = 1
     geometry: Geometry | None = None
     refined_geometry: RefinedGeometry | None = None
     refiner_choice: RefinerChoice = field(default_factory=RefinerChoice)
@@ -321,6 +325,7 @@ class ScanResult:
             "timings_s": self.timings_s,
             "refiner": self.refiner_info,
             "static_background_removed": self.static_background_removed,
+            "detect_binning": self.detect_binning,
         }
 
     def report(self) -> dict[str, Any]:
@@ -528,6 +533,7 @@ class Pipeline:
     loop_closure: bool = True
     static_background: str = "auto"
     gate: str = "auto"
+    detect_max_px: int | None = 1024
     config: PipelineConfig | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -538,6 +544,11 @@ class Pipeline:
                                  f"Pipeline.from_config), got {type(stage).__name__} {short_repr(stage)}")
         if self.static_background not in ("auto", "on", "off"):
             raise InputError(f"static_background: must be one of 'auto', 'on', 'off', got {self.static_background!r}")
+        if self.detect_max_px is not None and not (isinstance(self.detect_max_px, (int, np.integer))
+                                                   and not isinstance(self.detect_max_px, bool)
+                                                   and 64 <= self.detect_max_px <= 65536):
+            raise InputError(f"detect_max_px: must be an integer from 64 to 65536 (pixels a side) or None (the full "
+                             f"views), got {self.detect_max_px!r}")
         if self.gate not in ("auto", "off"):
             raise InputError(f"gate: must be 'auto' (return corrected angles only where the projections show them "
                              f"better than the nominal ones) or 'off', got {self.gate!r}")
@@ -562,7 +573,8 @@ class Pipeline:
             config = parse_pipeline(config, registry)
         return cls(*(build_stage(getattr(config, kind), registry) for kind in ("detector", "matcher", "estimator", "refiner")),
                    baselines=config.baselines, seed=config.seed, loop_closure=config.loop_closure,
-                   static_background=config.static_background, gate=config.gate, config=config)
+                   static_background=config.static_background, gate=config.gate,
+                   detect_max_px=config.detect_max_px, config=config)
 
     def run(self, projections: np.ndarray | ViewStack | ScanFiles, geometry: Geometry | None = None, *,
             nominal_angles_deg=None, pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None,
@@ -657,7 +669,8 @@ class Pipeline:
             views = self._background_views(projections, nominal)
             background = None if views is None else run_on.submit(_median_background, source, views,
                                                                    name="background")
-            detected = [run_on.submit(_detect_view, self.detector, source, background, index, name="detect")
+            factor = self.detect_binning(geometry.shape)
+            detected = [run_on.submit(_detect_view, self.detector, source, background, index, factor, name="detect")
                         for index in range(n_views)]
             features = tuple(run_on.gather(detected, progress=progress))
             timings["detect"] = time.perf_counter() - start
@@ -686,7 +699,7 @@ class Pipeline:
         observations = ScanObservations(geometry=geometry, n_views=n_views, features=features, pairs=pairs,
                                         matches=matches, points_a=points_a, points_b=points_b, estimates=estimates,
                                         nominal_angles_deg=nominal, projections=projections, timings_s=timings,
-                                        static_background_removed=views is not None)
+                                        static_background_removed=views is not None, detect_binning=factor)
         return observations, _Placed(source, detected)
 
     def refine(self, observations: ScanObservations, *, executor: Executor | None = None) -> ScanResult:
@@ -753,6 +766,7 @@ class Pipeline:
             timings_s=timings,
             refiner_info=info,
             static_background_removed=observations.static_background_removed,
+            detect_binning=observations.detect_binning,
             geometry=observations.geometry,
             refined_geometry=RefinedGeometry.from_solution(observations.geometry, solution),
             refiner_choice=RefinerChoice.from_info(info),
@@ -764,6 +778,17 @@ class Pipeline:
             pipeline=self.config,
             gate=decision,
         )
+
+    def detect_binning(self, shape: tuple[int, int]) -> int:
+        """The binning of the views detection works on: 1 (the full views) unless the detector's
+        keypoints hold at a working resolution (``Detector.working_resolution``) and the larger
+        side of ``shape`` (rows, cols) exceeds ``detect_max_px``; then the least factor that brings
+        it within. A 2,048^2 flat panel is detected at 1,024^2: about 4x faster for SIFT, and the
+        refiner (projection matching) works at 256^2 at most whatever the detection did.
+        """
+        if self.detect_max_px is None or not self.detector.working_resolution:
+            return 1
+        return max(1, math.ceil(max(shape) / self.detect_max_px))
 
     def _background_views(self, projections, nominal: np.ndarray | None) -> np.ndarray | None:
         """Which views make the static background to remove before detection, or None (see ``static_background``).
@@ -806,9 +831,19 @@ def _median_background(source, views: np.ndarray) -> np.ndarray:
     return np.median(np.asarray(_views(source)[views], dtype=np.float32), axis=0)
 
 
-def _detect_view(detector: Detector, source, background: np.ndarray | None, index: int) -> Features:
+def _detect_view(detector: Detector, source, background: np.ndarray | None, index: int, factor: int = 1) -> Features:
     image = _views(source)[index]
-    return detector.detect(image if background is None else image - background)
+    image = image if background is None else image - background
+    if factor == 1:
+        return detector.detect(image)
+    # Detect on the view binned factor x factor (the block means), and put the keypoints back in
+    # the view's own pixels: a binned pixel's centre k is the view's (k + 0.5) factor - 0.5.
+    rows, cols = (n // factor for n in image.shape)
+    binned = np.asarray(image[:rows * factor, :cols * factor], dtype=np.float32).reshape(
+        rows, factor, cols, factor).mean(axis=(1, 3))
+    found = detector.detect(binned)
+    return dataclasses.replace(found, xy=(found.xy + np.float32(0.5)) * np.float32(factor) - np.float32(0.5),
+                               size=found.size * np.float32(factor))
 
 
 def _match_pairs(matcher: Matcher, geometry: Geometry, features: list[Features], pairs: np.ndarray) -> list:

@@ -259,6 +259,10 @@ class Detector(Stage):
     """Finds keypoints and computes descriptors on one 2-D image."""
 
     kind = "detector"
+    #: Whether keypoints found on a binned copy of a view stand for the view's own (multi-scale
+    #: keypoint detectors: yes; a ball finder fitting sub-pixel discs: no). A pipeline with
+    #: ``preprocess.detect_max_px`` detects on such a copy when the detector is larger.
+    working_resolution: ClassVar[bool] = False
 
     def detect(self, image: np.ndarray):  # pragma: no cover - interface
         """Return the :class:`~ctpipe.data.Features` of ``image`` (2-D, uint8 or float)."""

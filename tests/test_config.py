@@ -79,3 +79,18 @@ def test_paper_real_data_config_has_the_papers_settings():
     config = parse_pipeline(load_yaml(Path(__file__).parents[1] / "configs" / "paper-real-data.yaml"), REGISTRY)
     assert config.estimator.params == {"probability": 0.999, "outlier_fraction": 0.05, "sampson_threshold": 8e-4,
                                        "min_consensus": 0.6, "noise_scale_factor": None}
+
+
+def test_detect_max_px_is_read_checked_and_written_back():
+    from ctpipe.config import parse_pipeline
+    from ctpipe.errors import ConfigError
+    from ctpipe.plugins import get_registry
+
+    registry = get_registry()
+    assert parse_pipeline({}, registry).detect_max_px == 1024
+    config = parse_pipeline({"preprocess": {"detect_max_px": None}}, registry)
+    assert config.detect_max_px is None and config.to_dict()["preprocess"]["detect_max_px"] is None
+    assert parse_pipeline({"preprocess": {"detect_max_px": 2048}}, registry).detect_max_px == 2048
+    for bad in (10, "big", 1.5, True):
+        with pytest.raises(ConfigError, match=r"pipeline\.preprocess\.detect_max_px"):
+            parse_pipeline({"preprocess": {"detect_max_px": bad}}, registry)

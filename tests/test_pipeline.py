@@ -110,3 +110,32 @@ def test_a_returned_angle_s_standard_error_adds_the_correction_the_gate_left_out
     returned = GateDecision("estimate", nominal + correction, True, "all bands", estimate_deg=nominal + correction)
     np.testing.assert_array_equal(_angle_se_deg(refiner_se, returned, nominal), refiner_se)
     assert _angle_se_deg(None, kept, nominal) is None
+
+
+def test_detection_binning_follows_the_detector_and_the_detector_size():
+    sift = Pipeline.from_config({"detector": {"name": "sift"}})
+    assert sift.detect_max_px == 1024
+    assert [sift.detect_binning(shape) for shape in [(512, 512), (1024, 1024), (2048, 2048), (2000, 3000)]] == [1, 1, 2, 3]
+    # A ball finder fits sub-pixel discs on the full views; null keeps every detector at full size.
+    assert Pipeline.from_config({"detector": {"name": "beads"}}).detect_binning((4096, 4096)) == 1
+    full = Pipeline.from_config({"detector": {"name": "sift"}, "preprocess": {"detect_max_px": None}})
+    assert full.detect_binning((4096, 4096)) == 1
+    with pytest.raises(InputError, match="detect_max_px: must be an integer from 64 to 65536"):
+        Pipeline(sift.detector, sift.matcher, sift.estimator, sift.refiner, detect_max_px=10)
+
+
+def test_keypoints_found_on_binned_views_are_in_the_full_views_pixels():
+    from ctpipe.pipeline import _detect_view
+
+    rng = np.random.default_rng(5)
+    from scipy.ndimage import gaussian_filter
+    small = gaussian_filter(rng.random((160, 200)), 2.0).astype(np.float32)
+    detector = Pipeline.from_config({"detector": {"name": "sift"}}).detector
+    # Each pixel repeated 2 x 2: binning by 2 gives the small image back exactly.
+    large = np.kron(small, np.ones((2, 2), np.float32))[None]
+    direct = detector.detect(small)
+    binned = _detect_view(detector, large, None, 0, 2)
+    assert len(direct) > 20 and len(binned) == len(direct)
+    np.testing.assert_allclose(binned.xy, (direct.xy + 0.5) * 2 - 0.5, atol=1e-4)
+    np.testing.assert_allclose(binned.size, direct.size * 2, rtol=1e-6)
+    np.testing.assert_array_equal(binned.descriptors, direct.descriptors)

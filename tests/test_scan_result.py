@@ -51,7 +51,7 @@ def test_a_run_on_an_opened_scan_carries_its_geometry_turn_check_and_report(scan
 
     report = result.report()
     assert list(report) == ["pipeline", "geometry", "angles_deg", "n_keypoints", "pairs", "timings_s", "refiner",
-                            "static_background_removed", "estimated_deg", "scan", "nominal_deg", "against_nominal",
+                            "static_background_removed", "detect_binning", "estimated_deg", "scan", "nominal_deg", "against_nominal",
                             "turn_check", "gate"]
     assert report["gate"] == result.gate.to_dict() and report["pipeline"]["gate"] == "auto"
     assert report["pipeline"]["refiner"]["name"] == "least-squares"

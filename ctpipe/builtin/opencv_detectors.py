@@ -21,6 +21,8 @@ from ctpipe.stages import Detector, param
 
 class _OpenCVDetector(Detector):
     _opencv_name = ""
+    # Multi-scale keypoints (scale-space or image pyramids): a binned view keeps them.
+    working_resolution = True
 
     def detect(self, image: np.ndarray) -> Features:
         return Features.build(**_opencv.detect_and_compute(self._opencv_name, self.params(), to_uint8(image)))

@@ -65,6 +65,8 @@ class SurfDetector(Detector):
     n_octave_layers: int = param(3, doc="layers per octave searched for maxima", ge=1, le=8)
     extended: bool = param(False, doc="128-float descriptors instead of 64")
     upright: bool = param(False, doc="skip the orientation (faster, not rotation invariant; angle 270)")
+    # Multi-scale (box-filter scale space): a binned view keeps its keypoints.
+    working_resolution = True
 
     def detect(self, image: np.ndarray) -> Features:
         return surf(image, **self.params())
