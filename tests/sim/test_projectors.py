@@ -167,6 +167,23 @@ def test_adjoint_identity():
     assert lhs > 0 and lhs == pytest.approx(rhs, rel=1e-3)
 
 
+def test_forward_pair_is_two_forwards_in_chunks():
+    # The wide cone of the adjoint test: rays along all three axes, each layout read in pairs.
+    geometry = Geometry(100.0, 150.0, 40, 48, 3.0, 5.0, u0_px=21.2, v0_px=22.7)
+    grid = VolumeGrid(24, 20, 22, 1.5, centre_mm=(1.0, -2.0, 0.5))
+    projector = VoxelProjector(geometry, grid)
+    rng = np.random.default_rng(8)
+    first, second = (rng.normal(size=grid.shape).astype(np.float32) for _ in range(2))
+    angles = rng.uniform(0, 360, 7)
+    chunks = list(projector.forward_pair(first, second, angles, chunk_views=3))
+    assert [part for part, _, _ in chunks] == [slice(0, 3), slice(3, 6), slice(6, 7)]
+    np.testing.assert_array_equal(np.concatenate([a for _, a, _ in chunks]), projector.forward(first, angles))
+    np.testing.assert_array_equal(np.concatenate([b for _, _, b in chunks]), projector.forward(second, angles))
+    # Checked when called, not when first iterated.
+    with pytest.raises(InputError, match="second: must have shape"):
+        projector.forward_pair(first, second[:2], angles)
+
+
 @pytest.mark.parametrize("call, message", [
     (lambda p: p.forward(np.zeros((4, 4, 4), np.float32), [0.0]), "volume: must have shape"),
     (lambda p: p.forward(np.zeros((8, 8, 8), np.int32), [0.0]), "volume: must be a float array"),
