@@ -432,7 +432,9 @@ class ScanResult:
         if self.pipeline is not None:
             stages = self.pipeline.to_dict()
             lines.append("pipeline: " + " -> ".join(stages[k]["name"] for k in ("detector", "matcher", "estimator",
-                                                                                  "refiner")))
+                                                                                  "refiner"))
+                         + (f" (keypoints found on views binned {self.detect_binning} x {self.detect_binning})"
+                            if self.detect_binning > 1 else ""))
         failed = sum(s != "ok" for s in self.pair_status)
         lines.append(f"pairs: {len(self.pairs) - failed}/{len(self.pairs)} estimated, median "
                      f"{np.median(self.n_inliers):.0f} inliers of {np.median(self.n_matches):.0f} matches; "

@@ -139,3 +139,14 @@ def test_keypoints_found_on_binned_views_are_in_the_full_views_pixels():
     np.testing.assert_allclose(binned.xy, (direct.xy + 0.5) * 2 - 0.5, atol=1e-4)
     np.testing.assert_allclose(binned.size, direct.size * 2, rtol=1e-6)
     np.testing.assert_array_equal(binned.descriptors, direct.descriptors)
+
+
+def test_a_binned_detection_still_recovers_the_angles_and_says_so(bead_scan):
+    projections, geometry, truth = bead_scan
+    config = {"matcher": {"name": "brute-force", "ratio": 0.8, "mutual": True}, "preprocess": {"detect_max_px": 128}}
+    result = Pipeline.from_config(config).run(projections, geometry)
+    assert result.detect_binning == 2 and result.report()["detect_binning"] == 2
+    assert "(keypoints found on views binned 2 x 2)" in result.summary()
+    # The keypoints are in the full views' pixels: the angles hold, a little less sharply.
+    assert result.pair_status == ("ok",) * 4
+    np.testing.assert_allclose(result.angles_deg, truth, atol=0.3)
