@@ -288,7 +288,8 @@ class PipelineConfig:
         return {"detector": self.detector.to_dict(), "matcher": self.matcher.to_dict(),
                 "estimator": self.estimator.to_dict(), "refiner": self.refiner.to_dict(),
                 "pairs": {"baselines": list(self.baselines), "loop_closure": self.loop_closure},
-                "preprocess": {"static_background": self.static_background, "detect_max_px": self.detect_max_px}, "gate": self.gate, "seed": self.seed}
+                "preprocess": {"static_background": self.static_background, "detect_max_px": self.detect_max_px},
+                "gate": self.gate, "seed": self.seed}
 
 
 _PAIRS_BASELINES = ParamSpec("baselines", tuple[int, ...], (1,), "view offsets", ge=1)
@@ -320,11 +321,13 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
     pairs = check_keys(mapping.get("pairs", {}), f"{path}.pairs", allowed=("baselines", "loop_closure"))
     baselines = check_value(_PAIRS_BASELINES, pairs.get("baselines", [1]), f"{path}.pairs.baselines")
     loop_closure = check_value(_PAIRS_LOOP_CLOSURE, pairs.get("loop_closure", True), f"{path}.pairs.loop_closure")
-    preprocess = check_keys(mapping.get("preprocess", {}) or {}, f"{path}.preprocess", allowed=("static_background", "detect_max_px"))
+    preprocess = check_keys(mapping.get("preprocess", {}) or {}, f"{path}.preprocess",
+                            allowed=("static_background", "detect_max_px"))
     # YAML 1.1 reads a bare on/off as a boolean: take it as the word the user wrote.
     static_background = check_value(_STATIC_BACKGROUND, _on_off(preprocess.get("static_background", "auto"), "on"),
                                     f"{path}.preprocess.static_background")
-    detect_max_px = check_value(_DETECT_MAX_PX, preprocess.get("detect_max_px", 1024), f"{path}.preprocess.detect_max_px")
+    detect_max_px = check_value(_DETECT_MAX_PX, preprocess.get("detect_max_px", 1024),
+                                f"{path}.preprocess.detect_max_px")
     seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
     gate = check_value(_GATE, _on_off(mapping.get("gate", "auto"), "auto"), f"{path}.gate")
     return PipelineConfig(**stages, baselines=tuple(sorted(set(baselines))), seed=seed, loop_closure=loop_closure,

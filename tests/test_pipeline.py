@@ -115,7 +115,8 @@ def test_a_returned_angle_s_standard_error_adds_the_correction_the_gate_left_out
 def test_detection_binning_follows_the_detector_and_the_detector_size():
     sift = Pipeline.from_config({"detector": {"name": "sift"}})
     assert sift.detect_max_px == 1024
-    assert [sift.detect_binning(shape) for shape in [(512, 512), (1024, 1024), (2048, 2048), (2000, 3000)]] == [1, 1, 2, 3]
+    shapes = [(512, 512), (1024, 1024), (2048, 2048), (2000, 3000)]
+    assert [sift.detect_binning(shape) for shape in shapes] == [1, 1, 2, 3]
     # A ball finder fits sub-pixel discs on the full views; null keeps every detector at full size.
     assert Pipeline.from_config({"detector": {"name": "beads"}}).detect_binning((4096, 4096)) == 1
     full = Pipeline.from_config({"detector": {"name": "sift"}, "preprocess": {"detect_max_px": None}})

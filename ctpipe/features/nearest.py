@@ -22,7 +22,8 @@ __all__ = ["l2_neighbours"]
 
 @njit(cache=True)
 def _two_nearest_and_back(dot, norms_a, norms_b, index, back):
-    """From ``dot = a b^T``: each row's two nearest columns into ``index`` (-1 when missing), each column's nearest row into ``back``."""
+    """From ``dot = a b^T``: each row's two nearest columns into ``index`` (-1 when missing), and
+    each column's nearest row into ``back``."""
     n_a, n_b = dot.shape
     best_back = np.full(n_b, np.inf, dtype=np.float32)
     for i in range(n_a):
