@@ -23,9 +23,10 @@ validate scenarios/NNN.yaml`` runs again.
 
 Each scenario runs as ``ctpipe validate`` would, as a task on the execution layer (a thread
 pool, or Dask workers), and becomes one row: its draw, the nominal and estimated per-view RMS
-angle errors (and the refiner's own, ``ungated_rms_deg``, before the gate), the PSNR gains of the estimated angles over the nominal ones against the
-jitter-free scan and the phantom, how much the true angles gain (``visible_db``), the
-recoveries, what the refiner kept and what the gate returned (:mod:`ctpipe.solve.gate`), seconds.
+angle errors (and the refiner's own, ``ungated_rms_deg``, before the gate), the PSNR gains of
+the estimated angles over the nominal ones against the jitter-free scan and the phantom, how much
+the true angles gain (``visible_db``), the recoveries, what the refiner kept and what the gate
+returned (:mod:`ctpipe.solve.gate`), seconds.
 A scenario is *worse than nominal* when its per-view RMS is above the nominal angles' or either
 reconstruction falls more than :data:`WORSE_DB` below theirs. A scenario that the experiment refuses or that fails is a row with its
 reason, never the end of the sweep.
@@ -59,8 +60,8 @@ MAX_SCENARIOS = 10_000
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 #: The columns of ``sweep.csv`` after the drawn keys.
 COLUMNS = ("scenario", "status", "nominal_rms_deg", "estimated_rms_deg", "ungated_rms_deg", "worse_than_nominal",
-           "gain_db", "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate", "se_views",
-           "se_within_2", "seconds", "reason")
+           "gain_db", "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate",
+           "se_views", "se_within_2", "seconds", "reason")
 #: How far below the nominal angles' PSNR a reconstruction may fall and still count as no worse (dB).
 WORSE_DB = 0.05
 #: The true angles must gain this much PSNR over the nominal ones (against the jitter-free scan) for

@@ -334,7 +334,7 @@ class ValidateReport:
         lines = []
         t = self.angle_tables
         lines.append("angle error per view (deg, common offset removed):")
-        for label in (*VIEW_LABELS, *(["before the gate"] if "before the gate" in t["views"] else [])):
+        for label in [label for label in (*VIEW_LABELS, "before the gate") if label in t["views"]]:
             s = t["views"][label]
             lines.append(f"  {label:<12}  {s['estimated']}/{s['total']} views  RMS {s['rms_deg']:.4f}  "
                          f"MAE {s['mae_deg']:.4f}  median {s['median_deg']:.4f}  max {s['max_deg']:.4f}")

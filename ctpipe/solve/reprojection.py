@@ -246,12 +246,13 @@ class _Level:
         variance = np.zeros(len(angles_deg))
         shifts = np.zeros((len(angles_deg), 2)) if with_steps and with_shifts else None
         residual_energy = 0.0
-        # The volume and its derivative along the same rays in one pass (the derivative's
-        # projection is the slope of every pixel with the view's angle).
-        chunks = (self.projector.forward_pair(volume, derivative, angles_deg, chunk_views=_CHUNK_VIEWS) if with_steps
-                  else ((part, self.projector.forward(volume, angles_deg[part]), None)
-                        for part in (slice(start, min(start + _CHUNK_VIEWS, len(angles_deg)))
-                                     for start in range(0, len(angles_deg), _CHUNK_VIEWS))))
+        if with_steps:
+            # The volume and its derivative along the same rays in one pass (the derivative's
+            # projection is the slope of every pixel with the view's angle).
+            chunks = self.projector.forward_pair(volume, derivative, angles_deg, chunk_views=_CHUNK_VIEWS)
+        else:
+            parts = (slice(start, start + _CHUNK_VIEWS) for start in range(0, len(angles_deg), _CHUNK_VIEWS))
+            chunks = ((part, self.projector.forward(volume, angles_deg[part]), None) for part in parts)
         for part, projected, projected_slope in chunks:
             model = band_pass(projected, *self.band_px)
             residual = self.filtered[part] - model
