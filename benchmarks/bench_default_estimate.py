@@ -34,11 +34,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_streaming import N_VIEWS, write_scan_once  # noqa: E402
+from bench_streaming import subset, write_scan_once  # noqa: E402
 
 STAGES = ("open", "detect", "match", "estimate", "refine", "preview")
 
@@ -90,24 +88,6 @@ print(json.dumps({"seconds": seconds, "peak_mb": {k: v / 2**20 for k, v in peaks
                   "ungated_rms_deg": rms(gate.estimate_deg) if gate is not None else None,
                   "gate": None if gate is None else gate.chosen, "detect_binning": result.detect_binning}))
 """
-
-
-def subset(full: Path, n_views: int) -> Path:
-    """A scan folder of ``n_views`` views of ``full`` evenly spaced over its full turn."""
-    if n_views == N_VIEWS:
-        return full
-    folder = full.parent / f"{full.name}-{n_views}views"
-    if (folder / "scan.yaml").is_file():
-        return folder
-    folder.mkdir(exist_ok=True)
-    document = yaml.safe_load((full / "scan.yaml").read_text())
-    keep = np.round(np.arange(n_views) * N_VIEWS / n_views).astype(int).tolist()
-    document["angles"] = {k: [v[i] for i in keep] for k, v in document["angles"].items()}
-    document["projections"] = {"values": "intensities", "files": [f"../{full.name}/projections/proj_{i:05d}.tif"
-                                                                  for i in keep]}
-    document["flats"] = {"files": [f"../{full.name}/flats/flat_{i}.tif" for i in range(4)]}
-    (folder / "scan.yaml").write_text(yaml.safe_dump(document, default_flow_style=None, width=100))
-    return folder
 
 
 def run(folder: Path, config: dict) -> dict:

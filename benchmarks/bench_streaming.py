@@ -96,14 +96,17 @@ def write_scan_once(folder: Path, pixels: int) -> Path:
 
 
 def subset(full: Path, n_views: int) -> Path:
-    """A scan folder of every (2000 / n_views)-th view of ``full``, listing its files."""
+    """A scan folder of ``n_views`` views of ``full`` evenly spaced over its full turn, listing its files.
+
+    250 and 1,000 views are every 8th and every 2nd view; a count that does not divide 2,000
+    (360) still spans the whole turn.
+    """
     if n_views == N_VIEWS:
         return full
-    stride = N_VIEWS // n_views
-    folder = full.parent / f"{full.name}-every{stride}"
+    folder = full.parent / f"{full.name}-{n_views}views"
     folder.mkdir(exist_ok=True)
     document = yaml.safe_load((full / "scan.yaml").read_text())
-    keep = list(range(0, N_VIEWS, stride))[:n_views]
+    keep = np.round(np.arange(n_views) * N_VIEWS / n_views).astype(int).tolist()
     document["angles"] = {k: [v[i] for i in keep] for k, v in document["angles"].items()}
     document["projections"] = {"values": "intensities", "files": [f"../{full.name}/projections/proj_{i:05d}.tif"
                                                                   for i in keep]}
