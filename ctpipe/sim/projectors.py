@@ -408,6 +408,25 @@ def _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel, row, col):
     return s_x, s_y, s_z, d_x * inv, d_y * inv, d_z * inv, norm
 
 
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _pixel_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y, n_z, row, col):
+    """The ray of pixel ``(row, col)`` stepped along its dominant axis.
+
+    Returns the layout it reads (0: ``vol_x``, 1: ``vol_z``, 2: ``vol_y``), :func:`_ray_setup`'s
+    plane range, positions and step, and the sizes ``(n_p, n_q)`` of the layout's other two axes.
+    """
+    s_x, s_y, s_z, d_x, d_y, d_z, norm = _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel, row, col)
+    ax, ay, az = abs(d_x), abs(d_y), abs(d_z)
+    if ax >= az and ax >= ay:
+        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_x, s_y, s_z, d_x, d_y, d_z, n_x, n_y, n_z, norm, voxel)
+        return 0, k0, k1, p0, dp, q0, dq, step, n_y, n_z
+    if az >= ay:
+        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_z, s_y, s_x, d_z, d_y, d_x, n_z, n_y, n_x, norm, voxel)
+        return 1, k0, k1, p0, dp, q0, dq, step, n_y, n_x
+    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_y, s_z, s_x, d_y, d_z, d_x, n_y, n_z, n_x, norm, voxel)
+    return 2, k0, k1, p0, dp, q0, dq, step, n_z, n_x
+
+
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _forward(out, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y, n_z):
     """Joseph line integrals of every pixel of every view into ``out`` (V, rows, cols); a view per thread."""
@@ -417,22 +436,10 @@ def _forward(out, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, o
         s = sin_t[v]
         for row in range(n_rows):
             for col in range(n_cols):
-                s_x, s_y, s_z, d_x, d_y, d_z, norm = _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel,
-                                                               row, col)
-                ax, ay, az = abs(d_x), abs(d_y), abs(d_z)
-                if ax >= az and ax >= ay:
-                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_x, s_y, s_z, d_x, d_y, d_z, n_x, n_y, n_z, norm,
-                                                              voxel)
-                    total = _ray_sum(vol_x, k0, k1, p0, dp, q0, dq, n_y, n_z)
-                elif az >= ay:
-                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_z, s_y, s_x, d_z, d_y, d_x, n_z, n_y, n_x, norm,
-                                                              voxel)
-                    total = _ray_sum(vol_z, k0, k1, p0, dp, q0, dq, n_y, n_x)
-                else:
-                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_y, s_z, s_x, d_y, d_z, d_x, n_y, n_z, n_x, norm,
-                                                              voxel)
-                    total = _ray_sum(vol_y, k0, k1, p0, dp, q0, dq, n_z, n_x)
-                out[v, row, col] = total * np.float32(step)
+                axis, k0, k1, p0, dp, q0, dq, step, n_p, n_q = _pixel_ray(c, s, sod, sdd, pu, pv, u0, v0, origin,
+                                                                          voxel, n_x, n_y, n_z, row, col)
+                vol = vol_x if axis == 0 else vol_z if axis == 1 else vol_y
+                out[v, row, col] = _ray_sum(vol, k0, k1, p0, dp, q0, dq, n_p, n_q) * np.float32(step)
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
@@ -496,21 +503,10 @@ def _forward_pair(out_a, out_b, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu,
         s = sin_t[v]
         for row in range(n_rows):
             for col in range(n_cols):
-                s_x, s_y, s_z, d_x, d_y, d_z, norm = _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel,
-                                                               row, col)
-                ax, ay, az = abs(d_x), abs(d_y), abs(d_z)
-                if ax >= az and ax >= ay:
-                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_x, s_y, s_z, d_x, d_y, d_z, n_x, n_y, n_z, norm,
-                                                              voxel)
-                    total_a, total_b = _ray_sum_pair(vol_x, k0, k1, p0, dp, q0, dq, n_y, n_z)
-                elif az >= ay:
-                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_z, s_y, s_x, d_z, d_y, d_x, n_z, n_y, n_x, norm,
-                                                              voxel)
-                    total_a, total_b = _ray_sum_pair(vol_z, k0, k1, p0, dp, q0, dq, n_y, n_x)
-                else:
-                    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_y, s_z, s_x, d_y, d_z, d_x, n_y, n_z, n_x, norm,
-                                                              voxel)
-                    total_a, total_b = _ray_sum_pair(vol_y, k0, k1, p0, dp, q0, dq, n_z, n_x)
+                axis, k0, k1, p0, dp, q0, dq, step, n_p, n_q = _pixel_ray(c, s, sod, sdd, pu, pv, u0, v0, origin,
+                                                                          voxel, n_x, n_y, n_z, row, col)
+                vol = vol_x if axis == 0 else vol_z if axis == 1 else vol_y
+                total_a, total_b = _ray_sum_pair(vol, k0, k1, p0, dp, q0, dq, n_p, n_q)
                 out_a[v, row, col] = total_a * np.float32(step)
                 out_b[v, row, col] = total_b * np.float32(step)
 
@@ -532,21 +528,10 @@ def _back(buf_x, buf_z, buf_y, proj, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, ori
                     value = proj[v, row, col]
                     if value == 0.0:
                         continue
-                    s_x, s_y, s_z, d_x, d_y, d_z, norm = _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel,
-                                                                   row, col)
-                    ax, ay, az = abs(d_x), abs(d_y), abs(d_z)
-                    if ax >= az and ax >= ay:
-                        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_x, s_y, s_z, d_x, d_y, d_z, n_x, n_y, n_z,
-                                                                  norm, voxel)
-                        _ray_scatter(bx, value * np.float32(step), k0, k1, p0, dp, q0, dq, n_y, n_z)
-                    elif az >= ay:
-                        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_z, s_y, s_x, d_z, d_y, d_x, n_z, n_y, n_x,
-                                                                  norm, voxel)
-                        _ray_scatter(bz, value * np.float32(step), k0, k1, p0, dp, q0, dq, n_y, n_x)
-                    else:
-                        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_y, s_z, s_x, d_y, d_z, d_x, n_y, n_z, n_x,
-                                                                  norm, voxel)
-                        _ray_scatter(by, value * np.float32(step), k0, k1, p0, dp, q0, dq, n_z, n_x)
+                    axis, k0, k1, p0, dp, q0, dq, step, n_p, n_q = _pixel_ray(c, s, sod, sdd, pu, pv, u0, v0,
+                                                                              origin, voxel, n_x, n_y, n_z, row, col)
+                    buf = bx if axis == 0 else bz if axis == 1 else by
+                    _ray_scatter(buf, value * np.float32(step), k0, k1, p0, dp, q0, dq, n_p, n_q)
 
 
 class VoxelProjector:
