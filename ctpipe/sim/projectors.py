@@ -47,7 +47,7 @@ from ctpipe._shared.resources import check_fits
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
-from ctpipe.sim.primitives import Primitives, local_maps, unit_interval
+from ctpipe.sim.primitives import KINDS, Primitives, local_maps, unit_interval
 
 __all__ = ["project_analytic", "VoxelProjector"]
 
@@ -75,6 +75,55 @@ def _check_int(name: str, value, low: int) -> int:
 
 
 # --------------------------------------------------------------------------- analytic projector
+
+@njit(cache=True, fastmath=False)
+def _ellipse_conic(a0, a1, a2, pa0, pa1, pa2, pb0, pb1, pb2, pz0, pz1, pz2):
+    """The image of the unit ball seen from ``a``: the sub-ray ``b = pa au + pb bv + pz`` hits it iff
+    ``q00 au^2 + 2 q01 au bv + 2 q02 au + q11 bv^2 + 2 q12 bv + q22 < 0``.
+
+    That form is ``|b|^2 (|a|^2 - 1) - (a . b)^2``, the negative discriminant of ``|a + t b|^2 = 1``.
+    ``q00 > 0`` exactly when the line through the source along ``pa`` misses the ball, which holds
+    for a ball wholly in front of the source; the set is then an ellipse.
+    """
+    k = a0 * a0 + a1 * a1 + a2 * a2 - 1.0
+    da = a0 * pa0 + a1 * pa1 + a2 * pa2
+    db = a0 * pb0 + a1 * pb1 + a2 * pb2
+    dz = a0 * pz0 + a1 * pz1 + a2 * pz2
+    q00 = k * (pa0 * pa0 + pa1 * pa1 + pa2 * pa2) - da * da
+    q01 = k * (pa0 * pb0 + pa1 * pb1 + pa2 * pb2) - da * db
+    q02 = k * (pa0 * pz0 + pa1 * pz1 + pa2 * pz2) - da * dz
+    q11 = k * (pb0 * pb0 + pb1 * pb1 + pb2 * pb2) - db * db
+    q12 = k * (pb0 * pz0 + pb1 * pz1 + pb2 * pz2) - db * dz
+    q22 = k * (pz0 * pz0 + pz1 * pz1 + pz2 * pz2) - dz * dz
+    return q00, q01, q02, q11, q12, q22
+
+
+@njit(cache=True, fastmath=False)
+def _ellipse_columns(q00, q01, q02, q11, q12, q22, r, v0, u0, pu, pv, ss):
+    """Inclusive column span of pixel row ``r`` whose sub-rays can hit the ellipse (``q00 > 0``);
+    empty (``lo > hi``) when none can.
+
+    The span of every sub-row is solved exactly and widened by 0.01 px (and the discriminant
+    by a relative 1e-9), so rounding never drops a sub-ray that grazes the ellipse.
+    """
+    lo = math.inf
+    hi = -math.inf
+    for jv in range(ss):
+        bv = (r + (jv + 0.5) / ss - 0.5 - v0) * pv
+        half_b = q01 * bv + q02
+        c = (q11 * bv + 2.0 * q12) * bv + q22
+        disc = half_b * half_b - q00 * c
+        if disc <= -1e-9 * (half_b * half_b + abs(q00 * c)):
+            continue
+        root = math.sqrt(max(disc, 0.0))
+        lo = min(lo, (-half_b - root) / q00)
+        hi = max(hi, (-half_b + root) / q00)
+    if lo > hi:
+        return 1, 0
+    # Sub-ray columns sit at col + (ju + 0.5) / ss - 0.5, within half a pixel of the centre.
+    reach = 0.5 - 0.5 / ss + 0.01
+    return int(math.ceil(lo / pu + u0 - reach)), int(math.floor(hi / pu + u0 + reach))
+
 
 @njit(parallel=True, fastmath=False, cache=True)
 def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density, sod, sdd, pu, pv, u0_v, v0_v,
@@ -156,8 +205,28 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
             az2 = (m[2, 0] * s + m[2, 2] * c) * sdd
             k_n = kind[n]
             rho = density[n] * inv_ss2
+            # An ellipsoid in front of the source images to an ellipse: its rows give tighter
+            # column spans than the box corners (every sub-ray outside them misses).
+            tight = k_n == 0 and not behind
+            if tight:
+                # Sub-ray of pixel offsets (au, bv): b = pa au + pb bv + pz (detector tilt folded in).
+                pa0 = ax0 * cos_tilt + ay0 * sin_tilt
+                pa1 = ax1 * cos_tilt + ay1 * sin_tilt
+                pa2 = ax2 * cos_tilt + ay2 * sin_tilt
+                pb0 = ay0 * cos_tilt - ax0 * sin_tilt
+                pb1 = ay1 * cos_tilt - ax1 * sin_tilt
+                pb2 = ay2 * cos_tilt - ax2 * sin_tilt
+                q00, q01, q02, q11, q12, q22 = _ellipse_conic(a0, a1, a2, pa0, pa1, pa2, pb0, pb1, pb2,
+                                                              az0, az1, az2)
+                tight = q00 > 0.0
             for r in range(r0, r1 + 1):
-                for col in range(c0, c1 + 1):
+                cr0 = c0
+                cr1 = c1
+                if tight:
+                    cr0, cr1 = _ellipse_columns(q00, q01, q02, q11, q12, q22, r, v0, u0, pu, pv, ss)
+                    cr0 = max(cr0, c0)
+                    cr1 = min(cr1, c1)
+                for col in range(cr0, cr1 + 1):
                     total = 0.0
                     for jv in range(ss):
                         bv = (r + (jv + 0.5) / ss - 0.5 - v0) * pv
@@ -240,16 +309,23 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
                hint="use fewer views or a smaller detector")
     out = np.zeros((angles.size, geometry.detector_rows, geometry.detector_cols), dtype=np.float32)
     theta = np.deg2rad(angles)
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-    # corner = centre + rotation @ (sign * half_size), shape (N, 8, 3).
-    corners = primitives.centre_mm[:, None, :] + np.einsum(
-        "nij,nkj->nki", primitives.rotation, signs[None, :, :] * primitives.half_size_mm[:, None, :])
-    args = (primitives.kind, primitives.centre_mm, local_maps(primitives), np.ascontiguousarray(corners),
-            primitives.density_per_mm, float(geometry.source_to_object_mm), float(geometry.source_to_detector_mm),
-            float(geometry.pixel_pitch_u_mm), float(geometry.pixel_pitch_v_mm))
+    # A shape that the turntable maps onto itself projects the same in every view that shares the
+    # detector: project it once and add that image to every view.
+    shared_detector = np.all(u0_v == u0_v[0]) and np.all(v0_v == v0_v[0])
+    still = _turn_invariant(primitives) if shared_detector else np.zeros(len(primitives), bool)
+    moving = primitives.subset(~still) if still.any() else primitives
+    constants = (float(geometry.source_to_object_mm), float(geometry.source_to_detector_mm),
+                 float(geometry.pixel_pitch_u_mm), float(geometry.pixel_pitch_v_mm))
+    if still.any():
+        image = np.zeros((1, *out.shape[1:]), np.float32)
+        _project_primitives(image, np.ones(1), np.zeros(1), *_kernel_shapes(primitives.subset(still)), *constants,
+                            u0_v[:1], v0_v[:1], cos_tilt, sin_tilt, supersample)
+    args = (*_kernel_shapes(moving), *constants)
     for start in range(0, angles.size, _CHUNK_VIEWS):
         stop = min(start + _CHUNK_VIEWS, angles.size)
-        if len(primitives):
+        if still.any():
+            out[start:stop] = image
+        if len(moving):
             _project_primitives(out[start:stop], np.cos(theta[start:stop]), np.sin(theta[start:stop]), *args,
                                 u0_v[start:stop], v0_v[start:stop], cos_tilt, sin_tilt, supersample)
         if blur_px > 0:
@@ -260,6 +336,31 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         if progress is not None:
             progress(stop)
     return out
+
+
+def _kernel_shapes(primitives: Primitives) -> tuple:
+    """The per-primitive arrays :func:`_project_primitives` takes: kind, centre, unit maps, box corners, density."""
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    # corner = centre + rotation @ (sign * half_size), shape (N, 8, 3).
+    corners = primitives.centre_mm[:, None, :] + np.einsum(
+        "nij,nkj->nki", primitives.rotation, signs[None, :, :] * primitives.half_size_mm[:, None, :])
+    return (primitives.kind, primitives.centre_mm, local_maps(primitives), np.ascontiguousarray(corners),
+            primitives.density_per_mm)
+
+
+def _turn_invariant(primitives: Primitives) -> np.ndarray:
+    """Bool (N,): primitives that every turntable rotation maps onto themselves.
+
+    An ellipsoid or cylinder whose own ``y`` axis is the turntable axis (object ``y``), with equal
+    half sizes across it and its centre on the axis: a container, a sample tube, a round holder.
+    Tolerances of 1e-9 (relative, and mm for the centre) leave only rounding-level differences.
+    """
+    axis = primitives.rotation[:, :, 1]  # the object-frame direction of each local y axis
+    half = primitives.half_size_mm
+    return (np.isin(primitives.kind, (KINDS.index("ellipsoid"), KINDS.index("cylinder")))
+            & (np.abs(np.abs(axis[:, 1]) - 1.0) <= 1e-9)
+            & (np.abs(half[:, 0] - half[:, 2]) <= 1e-9 * half[:, 0])
+            & np.all(np.abs(primitives.centre_mm[:, [0, 2]]) <= 1e-9, axis=1))
 
 
 def _principal_points(geometry: Geometry, n_views: int, offsets_px) -> tuple[np.ndarray, np.ndarray]:
