@@ -7,7 +7,10 @@ sees, in one frame::
     F = Poisson(I0)         + Poisson(dark_counts)      (a flat field: no object)
     D =                       Poisson(dark_counts)      (a dark field: no beam)
 
-with ``I0 = photons_per_pixel``, the unattenuated photons a pixel counts in one frame. The
+with ``I0 = photons_per_pixel``, the unattenuated photons a pixel counts in one frame. Two
+independent Poisson counts add up to one Poisson count of the summed mean, so a projection or
+flat pixel is drawn once, as ``Poisson(I0 exp(-p) + dark_counts)``: the same distribution at half
+the draws. The
 reconstruction starts from the flat/dark-corrected line integrals of
 :func:`ctpipe.io.flatfield.log_transform`, the correction every real scan needs too.
 
@@ -122,10 +125,7 @@ def acquire(line_integrals, noise: NoiseModel, rng: np.random.Generator
     shape = p.shape[1:]
 
     def frame(mean: np.ndarray | float) -> np.ndarray:
-        counts = rng.poisson(mean, size=shape).astype(np.float64)
-        if dark > 0:
-            counts += rng.poisson(dark, size=shape)
-        return counts.astype(np.float32)
+        return rng.poisson(mean + dark, size=shape).astype(np.float32)
 
     intensities = np.empty(p.shape, np.float32)
     for v in range(len(p)):
