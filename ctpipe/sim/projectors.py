@@ -256,7 +256,10 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     ``supersample x supersample`` sub-rays spread evenly over the pixel) through each primitive in
     closed form: the ray is mapped into the primitive's unit frame, where the chord is the
     parameter gap ``t_out - t_in`` times the ray length. A primitive only visits the pixels inside
-    the perspective image of its oriented bounding box, so the cost is the pixels it covers.
+    the perspective image of its oriented bounding box, and an ellipsoid, row by row, only those
+    its image ellipse reaches, so the cost is the pixels it covers. A shape the turntable maps onto
+    itself (an ellipsoid or cylinder centred on the axis, round across it: a container) is
+    projected once and added to every view, when all views share the detector.
 
     Parameters
     ----------
