@@ -24,6 +24,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
 import numpy as np
 
 from ctpipe.config import check_keys
@@ -31,6 +34,9 @@ from ctpipe.errors import InputError
 from ctpipe.stages import ParamSpec, check_value
 
 __all__ = ["NoiseModel", "parse_noise", "beer_lambert", "acquire"]
+
+# Views drawn from one spawned stream (a fixed split, so the counts do not depend on the threads).
+_CHUNK_VIEWS = 16
 
 
 @dataclass(frozen=True)
@@ -110,7 +116,8 @@ def acquire(line_integrals, noise: NoiseModel, rng: np.random.Generator
         Exact line integrals at the true angles.
     noise : NoiseModel
     rng : numpy.random.Generator
-        Draws the projections view by view, then the flats, then the darks.
+        Spawns one stream per 16 views for the projections (drawn on threads), then draws the
+        flats, then the darks.
 
     Returns
     -------
@@ -128,8 +135,16 @@ def acquire(line_integrals, noise: NoiseModel, rng: np.random.Generator
         return rng.poisson(mean + dark, size=shape).astype(np.float32)
 
     intensities = np.empty(p.shape, np.float32)
-    for v in range(len(p)):
-        intensities[v] = frame(i0 * np.exp(-p[v].astype(np.float64)))
+
+    def draw(start: int, stream: np.random.Generator) -> None:
+        for v in range(start, min(start + _CHUNK_VIEWS, len(p))):
+            intensities[v] = stream.poisson(i0 * np.exp(-p[v].astype(np.float64)) + dark).astype(np.float32)
+
+    # Fixed chunks, each with its own stream spawned from rng: the draws do not depend on the
+    # threads, which share the work (numpy's samplers release the GIL).
+    starts = range(0, len(p), _CHUNK_VIEWS)
+    with ThreadPoolExecutor(max_workers=numba.get_num_threads(), thread_name_prefix="ctpipe-acquire") as pool:
+        list(pool.map(draw, starts, rng.spawn(len(starts))))
     flats = np.stack([frame(i0) for _ in range(noise.flat_frames)])
     darks = None
     if noise.dark_frames:
