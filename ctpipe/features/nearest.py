@@ -56,7 +56,7 @@ def l2_neighbours(a: np.ndarray, b: np.ndarray, k: int) -> tuple[np.ndarray, np.
     Parameters
     ----------
     a, b : ndarray of shape (N_a, D), (N_b, D)
-        Float descriptors (Euclidean distance).
+        Float or whole-number uint8 descriptors (Euclidean distance, computed in float32).
     k : int
         1 or 2.
 

@@ -250,8 +250,9 @@ def write_keypoints(path: str | Path, features, *, detector: str, params: dict) 
     The keys are ``pt`` (N, 2) float32 (x=col, y=row), ``size`` (N,) float32, ``angle`` (N,)
     float32 in degrees with -1 where the detector assigns no orientation (OpenCV's marker;
     :class:`~ctpipe.data.Features` holds NaN there), ``response`` (N,) float32, ``octave`` and
-    ``class_id`` (N,) int32, ``descriptors`` (N, D) float32 or uint8, ``norm`` (the distance the
-    descriptors are compared with, e.g. ``"L2"``), ``detector`` and ``params``. Strings are
+    ``class_id`` (N,) int32, ``descriptors`` (N, D) float32 for float norms (also SIFT's, which
+    :class:`~ctpipe.data.Features` holds as uint8) or uint8 for binary ones, ``norm`` (the distance
+    the descriptors are compared with, e.g. ``"L2"``), ``detector`` and ``params``. Strings are
     stored as 0-d unicode arrays, so ``np.load`` needs no pickle.
     """
     return atomic_write(path, keypoints_writer(features, detector=detector, params=params))
@@ -267,7 +268,9 @@ def keypoints_writer(features, *, detector: str, params: dict) -> Callable[[io.B
         "response": np.asarray(features.response, dtype=np.float32),
         "octave": np.asarray(features.octave, dtype=np.int32),
         "class_id": np.asarray(features.class_id, dtype=np.int32),
-        "descriptors": np.asarray(features.descriptors),
+        # Float norms are written as float32 whatever the Features hold (OpenCV's reference files' type).
+        "descriptors": np.asarray(features.descriptors,
+                                  dtype=np.uint8 if features.norm.startswith("HAMMING") else np.float32),
         "norm": np.array(features.norm),
         "detector": np.array(detector),
         "params": np.array(json.dumps(to_jsonable(params), sort_keys=True)),

@@ -129,7 +129,8 @@ def synthetic_scan(n_views: int, n_points: int, *, rng: np.random.Generator | in
         if n_wrong:
             wrong = rng.choice(len(index), n_wrong, replace=False)
             index[wrong, 1] = rng.integers(0, len(features[j]), n_wrong)
-        distance = np.linalg.norm(features[i].descriptors[index[:, 0]] - features[j].descriptors[index[:, 1]], axis=1)
+        distance = np.linalg.norm(features[i].descriptors[index[:, 0]].astype(np.float64)
+                                  - features[j].descriptors[index[:, 1]], axis=1)
         q_a = geometry.pixels_to_normalised(features[i].xy[index[:, 0]])
         q_b = geometry.pixels_to_normalised(features[j].xy[index[:, 1]])
         mask = np.ones(len(index), bool)
