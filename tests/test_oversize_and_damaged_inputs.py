@@ -226,6 +226,22 @@ def test_cli_simulate_and_validate_refuse_sizes_beyond_memory(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_cli_simulate_refuses_projections_that_would_run_for_hours(tmp_path):
+    # 20,000 grains filling the cone, 2,000 views of 1,024^2 at supersample 3: 4e11 intersections,
+    # 350 times the default scan's work, refused before anything is projected or written.
+    phantom = {"objects": [{"grains": {"container": {"radius_mm": 60, "height_mm": 120, "density_per_mm": 0.01},
+                                       "count": 20_000, "size_mm": [2, 4], "density_per_mm": [0.02, 0.04],
+                                       "min_gap_mm": 0.0, "seed": 1}}]}
+    scan = {"geometry": {**SMALL, "detector_rows": 1024, "detector_cols": 1024, "pixel_pitch_u_mm": 0.4,
+                         "pixel_pitch_v_mm": 0.4}, "angles": {"n_views": 2000}, "projector": {"supersample": 3}}
+    (tmp_path / "grains.yaml").write_text(yaml.safe_dump(phantom))
+    (tmp_path / "scan.yaml").write_text(yaml.safe_dump(scan))
+    result = run_cli("simulate", "grains.yaml", "--scan", "scan.yaml", "--out", "out", cwd=tmp_path)
+    assert_one_line_error(result, "projecting 20001 primitives into 2000 views of 1024 x 1024 at supersample 3",
+                          "ray-primitive intersections, more than the 2e+11")
+    assert not (tmp_path / "out").exists()
+
+
 def test_validate_short_scan_message_names_the_experiment_setting():
     from ctpipe.evaluate.validate import parse_validate
     from ctpipe.plugins import get_registry

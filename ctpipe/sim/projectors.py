@@ -44,7 +44,7 @@ from numba import njit, prange
 from ctpipe._shared.checks import as_angles_deg
 from ctpipe._shared.jit import FASTMATH
 from ctpipe._shared.resources import check_fits
-from ctpipe.errors import InputError
+from ctpipe.errors import InputError, ResourceError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
 from ctpipe.sim.primitives import KINDS, Primitives, local_maps, unit_interval
@@ -53,6 +53,12 @@ __all__ = ["project_analytic", "VoxelProjector"]
 
 # Views per call of the analytic kernel: paces ``progress`` without starving the threads.
 _CHUNK_VIEWS = 16
+
+#: The most sub-ray/primitive intersections :func:`project_analytic` takes on (counted on the
+#: pixel boxes it visits, an upper bound). The default validate scan needs 1.2e9 (360 views at
+#: supersample 2), 4-8 s on two cores; 2e11, 160 times that, takes 10-20 minutes. Larger
+#: requests are refused before any work.
+MAX_SUB_RAYS = 2e11
 
 
 # --------------------------------------------------------------------------- validation
@@ -155,6 +161,7 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
             row_lo = np.inf
             row_hi = -np.inf
             behind = False
+            n_behind = 0
             for k in range(8):
                 x = corners[n, k, 0]
                 y = corners[n, k, 1]
@@ -162,7 +169,8 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
                 depth = s * x + c * z + sod
                 if depth <= 1e-9 * sod:
                     behind = True
-                    break
+                    n_behind += 1
+                    continue
                 xd = (c * x - s * z) / depth * sdd
                 yd = y / depth * sdd
                 uu = u0 + (cos_tilt * xd + sin_tilt * yd) / pu
@@ -171,6 +179,9 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
                 col_hi = max(col_hi, uu)
                 row_lo = min(row_lo, vv)
                 row_hi = max(row_hi, vv)
+            if n_behind == 8:
+                # Wholly behind the source: no ray from the source to the detector reaches it.
+                continue
             if behind:
                 c0, c1, r0, r1 = 0, n_cols - 1, 0, n_rows - 1
             else:
@@ -310,13 +321,22 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     check_fits(f"projecting {angles.size} views of {geometry.detector_rows} x {geometry.detector_cols}",
                angles.size * geometry.detector_rows * geometry.detector_cols * 4 * (2 if blur_px > 0 else 1),
                hint="use fewer views or a smaller detector")
-    out = np.zeros((angles.size, geometry.detector_rows, geometry.detector_cols), dtype=np.float32)
     theta = np.deg2rad(angles)
     # A shape that the turntable maps onto itself projects the same in every view that shares the
     # detector: project it once and add that image to every view.
     shared_detector = np.all(u0_v == u0_v[0]) and np.all(v0_v == v0_v[0])
     still = _turn_invariant(primitives) if shared_detector else np.zeros(len(primitives), bool)
     moving = primitives.subset(~still) if still.any() else primitives
+    work = (_sub_rays(_kernel_shapes(moving)[3], geometry, theta, u0_v, v0_v, cos_tilt, sin_tilt)
+            + _sub_rays(_kernel_shapes(primitives.subset(still))[3], geometry, theta[:1], u0_v, v0_v, cos_tilt,
+                        sin_tilt)) * supersample ** 2
+    if work > MAX_SUB_RAYS:
+        raise ResourceError(
+            f"projecting {len(primitives)} primitives into {angles.size} views of {geometry.detector_rows} x "
+            f"{geometry.detector_cols} at supersample {supersample} needs about {work:.1e} ray-primitive "
+            f"intersections, more than the {MAX_SUB_RAYS:.0e} (10-20 minutes on two cores) ctpipe takes on; use "
+            "fewer views, a smaller detector or supersample, or fewer primitives in the cone of rays")
+    out = np.zeros((angles.size, geometry.detector_rows, geometry.detector_cols), dtype=np.float32)
     constants = (float(geometry.source_to_object_mm), float(geometry.source_to_detector_mm),
                  float(geometry.pixel_pitch_u_mm), float(geometry.pixel_pitch_v_mm))
     if still.any():
@@ -349,6 +369,42 @@ def _kernel_shapes(primitives: Primitives) -> tuple:
         "nij,nkj->nki", primitives.rotation, signs[None, :, :] * primitives.half_size_mm[:, None, :])
     return (primitives.kind, primitives.centre_mm, local_maps(primitives), np.ascontiguousarray(corners),
             primitives.density_per_mm)
+
+
+def _sub_rays(corners: np.ndarray, geometry: Geometry, theta: np.ndarray, u0_v: np.ndarray, v0_v: np.ndarray,
+              cos_tilt: float, sin_tilt: float) -> float:
+    """Pixels the kernel visits for boxes ``corners`` (N, 8, 3) over the views ``theta``, as it bounds them.
+
+    Counted at up to 8 views spread over the scan and scaled to all of them: a box wholly
+    behind the source visits none, one across the source plane the whole detector, any other the
+    pixel rectangle of its corners' images (an ellipsoid visits fewer: this is an upper bound).
+    """
+    if len(corners) == 0 or len(theta) == 0:
+        return 0.0
+    rows, cols = geometry.detector_rows, geometry.detector_cols
+    sod, sdd = geometry.source_to_object_mm, geometry.source_to_detector_mm
+    picks = np.unique(np.linspace(0, len(theta) - 1, min(len(theta), 8)).round().astype(int))
+    total = 0.0
+    for v in picks:
+        c, s = math.cos(theta[v]), math.sin(theta[v])
+        x, y, z = corners[..., 0], corners[..., 1], corners[..., 2]
+        depth = s * x + c * z + sod
+        behind = depth <= 1e-9 * sod
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xd = (c * x - s * z) / depth * sdd
+            yd = y / depth * sdd
+        uu = np.where(behind, np.nan, u0_v[v] + (cos_tilt * xd + sin_tilt * yd) / geometry.pixel_pitch_u_mm)
+        vv = np.where(behind, np.nan, v0_v[v] + (cos_tilt * yd - sin_tilt * xd) / geometry.pixel_pitch_v_mm)
+        inside = ~behind.any(axis=1)
+        width = np.zeros(len(corners))
+        height = np.zeros(len(corners))
+        if inside.any():
+            u, w = uu[inside], vv[inside]
+            width[inside] = np.clip(np.clip(u.max(1) + 0.5, -1, cols) - np.clip(u.min(1) - 0.5, -1, cols) + 1, 0, cols)
+            height[inside] = np.clip(np.clip(w.max(1) + 0.5, -1, rows) - np.clip(w.min(1) - 0.5, -1, rows) + 1, 0, rows)
+        across = behind.any(axis=1) & ~behind.all(axis=1)
+        total += float(np.sum(width * height)) + float(np.count_nonzero(across)) * rows * cols
+    return total * len(theta) / len(picks)
 
 
 def _turn_invariant(primitives: Primitives) -> np.ndarray:

@@ -157,6 +157,31 @@ def test_turntable_invariant_shapes_project_as_in_every_view():
     assert not np.allclose(off_axis[0], off_axis[1], atol=1e-3)
 
 
+def test_shapes_behind_the_source_add_nothing_and_cost_nothing():
+    from ctpipe.sim.projectors import _kernel_shapes, _sub_rays
+
+    seen = _one(0, (1.0, 0.0, 2.0), (3.0, 3.0, 3.0), np.eye(3))
+    # At angle 0 the source is at z = -SOD: this sphere sits wholly behind it, that one across it.
+    behind = _one(0, (0.0, 0.0, -GEOMETRY.source_to_object_mm - 20.0), (5.0, 5.0, 5.0), np.eye(3))
+    across = _one(0, (0.0, 0.0, -GEOMETRY.source_to_object_mm), (5.0, 5.0, 5.0), np.eye(3))
+    alone = project_analytic(seen, GEOMETRY, [0.0])
+    np.testing.assert_array_equal(project_analytic(Primitives.concatenate([seen, behind]), GEOMETRY, [0.0]), alone)
+    theta, u0, v0 = np.zeros(1), np.full(1, GEOMETRY.u0_px), np.full(1, GEOMETRY.v0_px)
+    work = [_sub_rays(_kernel_shapes(p)[3], GEOMETRY, theta, u0, v0, 1.0, 0.0) for p in (seen, behind, across)]
+    assert 0 < work[0] < 96 * 80 and work[1] == 0 and work[2] == 96 * 80
+
+
+def test_too_much_work_is_refused_before_projecting(monkeypatch):
+    from ctpipe.errors import ResourceError
+
+    prim = _one(0, (0.0, 0.0, 0.0), (8.0, 8.0, 8.0), np.eye(3))
+    monkeypatch.setattr("ctpipe.sim.projectors._project_primitives", lambda *a: pytest.fail("projected anyway"))
+    monkeypatch.setattr("ctpipe.sim.projectors.MAX_SUB_RAYS", 1e4)
+    with pytest.raises(ResourceError, match=r"projecting 1 primitives into 4 views of 80 x 96 at supersample 2 needs "
+                                            r"about .* ray-primitive intersections, more than the 1e\+04"):
+        project_analytic(prim, GEOMETRY, ANGLES, supersample=2)
+
+
 def test_supersampling_and_blur_keep_the_sum():
     prim = _one(2, (0.0, 0.0, 0.0), (5.0, 4.0, 3.0), _tilt(0.2, 0.1))
     plain = project_analytic(prim, GEOMETRY, [30.0])
