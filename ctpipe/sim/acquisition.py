@@ -7,10 +7,7 @@ sees, in one frame::
     F = Poisson(I0)         + Poisson(dark_counts)      (a flat field: no object)
     D =                       Poisson(dark_counts)      (a dark field: no beam)
 
-with ``I0 = photons_per_pixel``, the unattenuated photons a pixel counts in one frame. Two
-independent Poisson counts add up to one Poisson count of the summed mean, so a projection or
-flat pixel is drawn once, as ``Poisson(I0 exp(-p) + dark_counts)``: the same distribution at half
-the draws. The
+with ``I0 = photons_per_pixel``, the unattenuated photons a pixel counts in one frame. The
 reconstruction starts from the flat/dark-corrected line integrals of
 :func:`ctpipe.io.flatfield.log_transform`, the correction every real scan needs too.
 
@@ -24,9 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from concurrent.futures import ThreadPoolExecutor
-
-import numba
 import numpy as np
 
 from ctpipe.config import check_keys
@@ -34,9 +28,6 @@ from ctpipe.errors import InputError
 from ctpipe.stages import ParamSpec, check_value
 
 __all__ = ["NoiseModel", "parse_noise", "beer_lambert", "acquire"]
-
-# Views drawn from one spawned stream (a fixed split, so the counts do not depend on the threads).
-_CHUNK_VIEWS = 16
 
 
 @dataclass(frozen=True)
@@ -116,8 +107,7 @@ def acquire(line_integrals, noise: NoiseModel, rng: np.random.Generator
         Exact line integrals at the true angles.
     noise : NoiseModel
     rng : numpy.random.Generator
-        Spawns one stream per 16 views for the projections (drawn on threads), then draws the
-        flats, then the darks.
+        Draws the projections view by view, then the flats, then the darks.
 
     Returns
     -------
@@ -132,19 +122,14 @@ def acquire(line_integrals, noise: NoiseModel, rng: np.random.Generator
     shape = p.shape[1:]
 
     def frame(mean: np.ndarray | float) -> np.ndarray:
-        return rng.poisson(mean + dark, size=shape).astype(np.float32)
+        counts = rng.poisson(mean, size=shape).astype(np.float64)
+        if dark > 0:
+            counts += rng.poisson(dark, size=shape)
+        return counts.astype(np.float32)
 
     intensities = np.empty(p.shape, np.float32)
-
-    def draw(start: int, stream: np.random.Generator) -> None:
-        for v in range(start, min(start + _CHUNK_VIEWS, len(p))):
-            intensities[v] = stream.poisson(i0 * np.exp(-p[v].astype(np.float64)) + dark).astype(np.float32)
-
-    # Fixed chunks, each with its own stream spawned from rng: the draws do not depend on the
-    # threads, which share the work (numpy's samplers release the GIL).
-    starts = range(0, len(p), _CHUNK_VIEWS)
-    with ThreadPoolExecutor(max_workers=numba.get_num_threads(), thread_name_prefix="ctpipe-acquire") as pool:
-        list(pool.map(draw, starts, rng.spawn(len(starts))))
+    for v in range(len(p)):
+        intensities[v] = frame(i0 * np.exp(-p[v].astype(np.float64)))
     flats = np.stack([frame(i0) for _ in range(noise.flat_frames)])
     darks = None
     if noise.dark_frames:

@@ -48,24 +48,6 @@ def test_acquisition_is_seeded():
     assert not np.array_equal(a[0], c[0])
 
 
-def test_acquisition_does_not_depend_on_the_threads():
-    numba = pytest.importorskip("numba")
-    noise = NoiseModel(photons_per_pixel=1000.0, flat_frames=1, dark_frames=1, dark_counts=5.0)
-    p = np.full((40, 6, 7), 0.5)  # 3 chunks of views, the last short; every view the same
-    before = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        one = acquire(p, noise, np.random.default_rng(8))
-        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-        many = acquire(p, noise, np.random.default_rng(8))
-    finally:
-        numba.set_num_threads(before)
-    for a, b in zip(one, many):
-        np.testing.assert_array_equal(a, b)
-    # Every view drew its own counts: no two chunks share a stream.
-    assert len({one[0][v].tobytes() for v in range(40)}) == 40
-
-
 def test_starved_and_dead_pixels_are_clipped_not_infinite():
     intensities = np.array([[[0.0, 5.0, 50.0]]], np.float32)
     flats = np.array([[100.0, 100.0, 10.0]])
