@@ -166,8 +166,8 @@ def _estimate_batch(args, config, pipeline, sources: list[Path], outs: dict, exe
 
     in_flight = 1 if executor is None else min(len(sources), 2 + executor.workers // 16)
     outcomes = {}
-    with ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="ctpipe-scan") as pool, \
-            _progress(len(sources), "scans", quiet=args.json) as advance:
+    pool = ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="ctpipe-scan")
+    with _progress(len(sources), "scans", quiet=args.json) as advance:
         futures = {pool.submit(one, source): source for source in sources}
         try:
             for future in as_completed(futures):
@@ -178,10 +178,12 @@ def _estimate_batch(args, config, pipeline, sources: list[Path], outs: dict, exe
                           file=sys.stderr, flush=True)
                 if advance is not None:
                     advance(1)
-        except BaseException:  # Ctrl-C or SIGTERM: start no further scan (those running end with the pool)
-            for future in futures:
-                future.cancel()
+        except BaseException:
+            # Ctrl-C or SIGTERM: start no further scan and do not wait for those running; the
+            # program ends without them, removing what they had not committed (entry()).
+            pool.shutdown(wait=False, cancel_futures=True)
             raise
+    pool.shutdown()
     failed = [source for source in sources if outcomes[source][0] != "ok"]
     if args.json:
         entries = []
@@ -610,7 +612,34 @@ def _on_sigterm(signum, frame) -> None:
 _MAIN_PID = [0]
 
 
-def main(argv: list[str] | None = None) -> int:
+def _end_now_if_threads_run(code: int) -> None:
+    """End the process with ``code`` at once if worker threads still run (an interrupted run).
+
+    Python would otherwise wait for them at exit: a detection or reconstruction in flight can
+    take minutes, and a run that is stopped must stop. What they were writing and had not
+    committed is removed first (:func:`ctpipe.io.outputs.discard_pending`), so every output is
+    as it was before the run, or wholly the new one.
+    """
+    import threading
+
+    running = [t for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive() and not t.daemon]
+    if not running:
+        return
+    from ctpipe.io.outputs import discard_pending
+
+    discard_pending()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+def entry() -> None:
+    """The ``ctpipe`` command: :func:`main`, ending promptly on Ctrl-C and SIGTERM (exit 130 and 143)."""
+    sys.exit(main(_entry=True))
+
+
+def main(argv: list[str] | None = None, *, _entry: bool = False) -> int:
+    """Run the command line ``argv`` (default ``sys.argv[1:]``); the exit status."""
     args = build_parser().parse_args(argv)
     previous = None
     try:
@@ -625,9 +654,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except _Terminated:
         print("ctpipe: terminated", file=sys.stderr)
+        if _entry:
+            _end_now_if_threads_run(128 + signal.SIGTERM)
         return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("ctpipe: interrupted", file=sys.stderr)
+        if _entry:
+            _end_now_if_threads_run(130)
         return 130
     finally:
         if previous is not None:
@@ -635,4 +668,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()

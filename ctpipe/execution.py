@@ -141,10 +141,16 @@ class ThreadExecutor(Executor):
                     progress(weight.get(id(future), 1))
         return [future.result() for future in handles]
 
-    def close(self) -> None:
+    def close(self, *, wait: bool = True) -> None:
+        """Shut the pool down; with ``wait`` False (an interrupted run) do not wait for running tasks."""
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool.shutdown(wait=wait, cancel_futures=True)
             self._pool = None
+
+    def __exit__(self, exc_type, *exc) -> None:
+        # Ctrl-C, SIGTERM or an error: cancel what has not started and leave running tasks behind,
+        # instead of waiting minutes for a detection to end (the program exits without them).
+        self.close(wait=exc_type is None)
 
 
 def _resolved(value: Any) -> Any:

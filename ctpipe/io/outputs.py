@@ -9,6 +9,7 @@ import json
 import os
 import shutil
 import tempfile
+import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
@@ -17,7 +18,42 @@ import numpy as np
 from ctpipe.errors import InputError
 
 __all__ = ["atomic_write", "write_json", "write_csv", "write_files", "staged_folder", "json_bytes", "csv_bytes",
-           "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer", "to_jsonable"]
+           "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer", "to_jsonable",
+           "pending", "COMMIT_LOCK", "discard_pending"]
+
+#: Held while renames put results in place (and while a replaced scan folder is swapped), so that
+#: a program ended by a signal never stops half-way through: :func:`discard_pending` takes it.
+COMMIT_LOCK = threading.RLock()
+_PENDING: set[Path] = set()
+
+
+@contextlib.contextmanager
+def pending(path: Path) -> Iterator[Path]:
+    """Mark the temporary file or folder ``path`` as being written for the block (see :func:`discard_pending`)."""
+    _PENDING.add(path)
+    try:
+        yield path
+    finally:
+        _PENDING.discard(path)
+
+
+def discard_pending(timeout_s: float = 1.0) -> None:
+    """Remove every temporary file and folder that writers on other threads are still filling.
+
+    For a program that ends at once on Ctrl-C or SIGTERM while worker threads still run: what
+    they have not committed is removed (the targets keep their previous contents), after any
+    commit in progress has finished (up to ``timeout_s``; the commits are renames).
+    """
+    locked = COMMIT_LOCK.acquire(timeout=timeout_s)
+    try:
+        for path in list(_PENDING):
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+    finally:
+        if locked:
+            COMMIT_LOCK.release()
 
 
 def _umask() -> int:
@@ -92,6 +128,11 @@ def _commit(moves: Sequence[tuple[Path, Path]]) -> None:
     for _, target in moves:
         if target.is_dir():
             raise InputError(f"{target}: is a folder; cannot replace it with a file")
+    with COMMIT_LOCK:
+        _commit_locked(moves)
+
+
+def _commit_locked(moves: Sequence[tuple[Path, Path]]) -> None:
     done: list[tuple[Path, Path | None]] = []
     try:
         for staged, target in moves:
@@ -119,12 +160,14 @@ def _stage(path: Path, write: Callable[[io.BufferedWriter], None]) -> Path:
     """Write a temporary sibling of ``path`` with the permissions a plain ``open`` would give."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    _PENDING.add(Path(tmp))  # until write_files renames or removes it
     try:
         os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as handle:
             write(handle)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
+        _PENDING.discard(Path(tmp))
         raise
     return Path(tmp)
 
@@ -158,6 +201,7 @@ def write_files(files: Mapping[str | Path, Callable[[io.BufferedWriter], None]])
     finally:
         for tmp, _ in staged:
             tmp.unlink(missing_ok=True)
+            _PENDING.discard(tmp)
     return [path for _, path in staged]
 
 
@@ -174,17 +218,19 @@ def staged_folder(folder: str | Path, what: str = "--out") -> Iterator[Path]:
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
     try:
-        yield tmp
-        files = sorted(p for p in tmp.rglob("*") if p.is_file())
-        created = not folder.exists()
-        try:
-            for file in files:
-                (folder / file.relative_to(tmp)).parent.mkdir(parents=True, exist_ok=True)
-            _commit([(file, folder / file.relative_to(tmp)) for file in files])
-        except BaseException:
-            if created:
-                shutil.rmtree(folder, ignore_errors=True)
-            raise
+        with pending(tmp):
+            yield tmp
+            files = sorted(p for p in tmp.rglob("*") if p.is_file())
+            created = not folder.exists()
+            with COMMIT_LOCK:
+                try:
+                    for file in files:
+                        (folder / file.relative_to(tmp)).parent.mkdir(parents=True, exist_ok=True)
+                    _commit([(file, folder / file.relative_to(tmp)) for file in files])
+                except BaseException:
+                    if created:
+                        shutil.rmtree(folder, ignore_errors=True)
+                    raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -344,8 +344,12 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         _project_primitives(image, np.ones(1), np.zeros(1), *_kernel_shapes(primitives.subset(still)), *constants,
                             u0_v[:1], v0_v[:1], cos_tilt, sin_tilt, supersample)
     args = (*_kernel_shapes(moving), *constants)
-    for start in range(0, angles.size, _CHUNK_VIEWS):
-        stop = min(start + _CHUNK_VIEWS, angles.size)
+    # Chunks of at most about 1e8 intersections (well under a second), so that Ctrl-C and SIGTERM,
+    # which Python handles between calls, stop a large scene promptly.
+    per_view = work / angles.size
+    chunk = int(min(_CHUNK_VIEWS, max(1, 1e8 // max(per_view, 1.0))))
+    for start in range(0, angles.size, chunk):
+        stop = min(start + chunk, angles.size)
         if still.any():
             out[start:stop] = image
         if len(moving):
