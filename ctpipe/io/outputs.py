@@ -18,8 +18,7 @@ import numpy as np
 from ctpipe.errors import InputError
 
 __all__ = ["atomic_write", "write_json", "write_csv", "write_files", "staged_folder", "json_bytes", "csv_bytes",
-           "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer", "to_jsonable",
-           "pending", "COMMIT_LOCK", "discard_pending"]
+           "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer", "to_jsonable"]
 
 #: Held while renames put results in place (and while a replaced scan folder is swapped), so that
 #: a program ended by a signal never stops half-way through: :func:`discard_pending` takes it.
