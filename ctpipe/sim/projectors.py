@@ -160,7 +160,6 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
             col_hi = -np.inf
             row_lo = np.inf
             row_hi = -np.inf
-            behind = False
             n_behind = 0
             for k in range(8):
                 x = corners[n, k, 0]
@@ -168,7 +167,6 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
                 z = corners[n, k, 2]
                 depth = s * x + c * z + sod
                 if depth <= 1e-9 * sod:
-                    behind = True
                     n_behind += 1
                     continue
                 xd = (c * x - s * z) / depth * sdd
@@ -182,7 +180,7 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
             if n_behind == 8:
                 # Wholly behind the source: no ray from the source to the detector reaches it.
                 continue
-            if behind:
+            if n_behind:  # across the source plane: its image is unbounded
                 c0, c1, r0, r1 = 0, n_cols - 1, 0, n_rows - 1
             else:
                 # Sub-rays sit within half a pixel of the pixel centre.
@@ -218,7 +216,7 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
             rho = density[n] * inv_ss2
             # An ellipsoid in front of the source images to an ellipse: its rows give tighter
             # column spans than the box corners (every sub-ray outside them misses).
-            tight = k_n == 0 and not behind
+            tight = k_n == 0 and n_behind == 0
             if tight:
                 # Sub-ray of pixel offsets (au, bv): b = pa au + pb bv + pz (detector tilt folded in).
                 pa0 = ax0 * cos_tilt + ay0 * sin_tilt
@@ -326,10 +324,10 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     # detector: project it once and add that image to every view.
     shared_detector = np.all(u0_v == u0_v[0]) and np.all(v0_v == v0_v[0])
     still = _turn_invariant(primitives) if shared_detector else np.zeros(len(primitives), bool)
-    moving = primitives.subset(~still) if still.any() else primitives
-    work = (_sub_rays(_kernel_shapes(moving)[3], geometry, theta, u0_v, v0_v, cos_tilt, sin_tilt)
-            + _sub_rays(_kernel_shapes(primitives.subset(still))[3], geometry, theta[:1], u0_v, v0_v, cos_tilt,
-                        sin_tilt)) * supersample ** 2
+    moving = _kernel_shapes(primitives.subset(~still) if still.any() else primitives)
+    fixed = _kernel_shapes(primitives.subset(still))
+    work = (_sub_rays(moving[3], geometry, theta, u0_v, v0_v, cos_tilt, sin_tilt)
+            + _sub_rays(fixed[3], geometry, theta[:1], u0_v, v0_v, cos_tilt, sin_tilt)) * supersample ** 2
     if work > MAX_SUB_RAYS:
         raise ResourceError(
             f"projecting {len(primitives)} primitives into {angles.size} views of {geometry.detector_rows} x "
@@ -341,9 +339,9 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
                  float(geometry.pixel_pitch_u_mm), float(geometry.pixel_pitch_v_mm))
     if still.any():
         image = np.zeros((1, *out.shape[1:]), np.float32)
-        _project_primitives(image, np.ones(1), np.zeros(1), *_kernel_shapes(primitives.subset(still)), *constants,
-                            u0_v[:1], v0_v[:1], cos_tilt, sin_tilt, supersample)
-    args = (*_kernel_shapes(moving), *constants)
+        _project_primitives(image, np.ones(1), np.zeros(1), *fixed, *constants, u0_v[:1], v0_v[:1], cos_tilt,
+                            sin_tilt, supersample)
+    args = (*moving, *constants)
     # Chunks of at most about 1e8 intersections (well under a second), so that Ctrl-C and SIGTERM,
     # which Python handles between calls, stop a large scene promptly.
     per_view = work / angles.size
@@ -352,7 +350,7 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         stop = min(start + chunk, angles.size)
         if still.any():
             out[start:stop] = image
-        if len(moving):
+        if not still.all():
             _project_primitives(out[start:stop], np.cos(theta[start:stop]), np.sin(theta[start:stop]), *args,
                                 u0_v[start:stop], v0_v[start:stop], cos_tilt, sin_tilt, supersample)
         if blur_px > 0:
