@@ -935,9 +935,9 @@ class _executor:
         self.own = ThreadExecutor()
         return self.own
 
-    def __exit__(self, exc_type, *exc) -> None:
+    def __exit__(self, *exc) -> None:
         if self.own is not None:
-            self.own.close(wait=exc_type is None)  # interrupted or failed: do not wait for running tasks
+            self.own.__exit__(*exc)  # interrupted or failed: it does not wait for running tasks
 
 
 def _check_geometry(geometry) -> Geometry:
