@@ -612,34 +612,75 @@ def _on_sigterm(signum, frame) -> None:
 _MAIN_PID = [0]
 
 
-def _end_now_if_threads_run(code: int) -> None:
-    """End the process with ``code`` at once if worker threads still run (an interrupted run).
+def _end_now(code: int) -> None:
+    """End the process with ``code`` at once: an interrupted run of the ``ctpipe`` command.
 
-    Python would otherwise wait for them at exit: a detection or reconstruction in flight can
-    take minutes, and a run that is stopped must stop. What they were writing and had not
-    committed is removed first (:func:`ctpipe.io.outputs.discard_pending`), so every output is
-    as it was before the run, or wholly the new one.
+    Python would otherwise wait for the threads still running: a detection, a reconstruction or
+    a simulation in flight can take minutes, and a run that is stopped must stop. What they were
+    writing and had not committed is removed first (:func:`ctpipe.io.outputs.discard_pending`),
+    so every output is as it was before the run, or wholly the new one; child processes (the
+    worker pools of ``experiment synthetic``, a LocalCluster's workers) are ended with it.
     """
-    import threading
+    import multiprocessing
 
-    running = [t for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive() and not t.daemon]
-    if not running:
-        return
     from ctpipe.io.outputs import discard_pending
 
     discard_pending()
+    for child in multiprocessing.active_children():
+        child.terminate()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)
 
 
 def entry() -> None:
-    """The ``ctpipe`` command: :func:`main`, ending promptly on Ctrl-C and SIGTERM (exit 130 and 143)."""
-    sys.exit(main(_entry=True))
+    """The ``ctpipe`` command: :func:`main`, ending within moments on Ctrl-C and SIGTERM (exit 130 and 143).
+
+    The command runs in a worker thread while the main thread only waits for it. Python handles
+    a signal in the main thread, between two of its calls; a command run there would not see
+    Ctrl-C until a long numba or OpenCV call returned (a reconstruction, one chunk of a
+    projection: seconds to minutes). Waiting, the main thread sees it at once and ends the
+    process (:func:`_end_now`).
+    """
+    import threading
+
+    args = build_parser().parse_args()   # a usage error exits here, as argparse does
+    _MAIN_PID[0] = os.getpid()
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    outcome: list = []
+
+    def run() -> None:
+        try:
+            outcome.append(_run(args))
+        except BaseException as exc:  # a bug's traceback is printed by the main thread, as before
+            outcome.append(exc)
+
+    command = threading.Thread(target=run, name="ctpipe-command")
+    try:
+        command.start()
+        while command.is_alive():
+            command.join(0.05)
+    except _Terminated:
+        print("ctpipe: terminated", file=sys.stderr)
+        _end_now(128 + signal.SIGTERM)
+    except KeyboardInterrupt:
+        print("ctpipe: interrupted", file=sys.stderr)
+        _end_now(130)
+    result = outcome[0]
+    if isinstance(result, BaseException):
+        raise result
+    if result != 0 and any(t.is_alive() and not t.daemon for t in threading.enumerate()
+                           if t is not threading.main_thread()):
+        _end_now(result)   # tasks a failed command left running must not hold its exit for minutes
+    sys.exit(result)
 
 
-def main(argv: list[str] | None = None, *, _entry: bool = False) -> int:
-    """Run the command line ``argv`` (default ``sys.argv[1:]``); the exit status."""
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line ``argv`` (default ``sys.argv[1:]``); the exit status.
+
+    For Python callers: Ctrl-C and SIGTERM (in the main thread) return 130 and 143 once the
+    command's own clean-up has run; the ``ctpipe`` command (:func:`entry`) ends at once instead.
+    """
     args = build_parser().parse_args(argv)
     previous = None
     try:
@@ -648,23 +689,25 @@ def main(argv: list[str] | None = None, *, _entry: bool = False) -> int:
     except ValueError:  # not the main thread (main() called from a thread): leave signals alone
         pass
     try:
-        return args.run(args)
-    except CtpipeError as exc:
-        print(f"ctpipe: error: {exc}", file=sys.stderr)
-        return 2
+        return _run(args)
     except _Terminated:
         print("ctpipe: terminated", file=sys.stderr)
-        if _entry:
-            _end_now_if_threads_run(128 + signal.SIGTERM)
         return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("ctpipe: interrupted", file=sys.stderr)
-        if _entry:
-            _end_now_if_threads_run(130)
         return 130
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args) -> int:
+    """Run the parsed command; a user's error is one line on stderr and exit status 2."""
+    try:
+        return args.run(args)
+    except CtpipeError as exc:
+        print(f"ctpipe: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

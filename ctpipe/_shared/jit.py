@@ -11,8 +11,51 @@ backprojection within 1 % of ``fastmath=True``). Hence ``fastmath=FASTMATH`` eve
 
 from __future__ import annotations
 
-__all__ = ["FASTMATH"]
+import numba
+
+__all__ = ["FASTMATH", "NOGIL", "njit"]
 
 #: LLVM's ``fast`` without ``nsz``: fused multiply-add, reassociation, reciprocals, approximate
 #: functions, no NaN or infinity operands. A set, as numba requires (a frozenset is refused).
 FASTMATH = {"contract", "reassoc", "arcp", "afn", "nnan", "ninf"}
+
+
+def _threadsafe_layer() -> bool:
+    """Whether numba's parallel kernels may be launched from several threads at once here.
+
+    numba picks its threading layer at the first parallel call: TBB, else OpenMP, else its own
+    workqueue. The first two take launches from any number of threads; the workqueue aborts the
+    process on a second concurrent launch (numba's "Threading layers" documentation). A layer
+    chosen with ``NUMBA_THREADING_LAYER`` is taken at its word.
+    """
+    import importlib
+
+    layer = str(numba.config.THREADING_LAYER).lower()
+    if layer in ("tbb", "omp", "safe", "threadsafe"):
+        return True
+    if layer != "default":
+        return False
+    for module in ("numba.np.ufunc.tbbpool", "numba.np.ufunc.omppool"):
+        try:
+            importlib.import_module(module)   # fails when the library (libtbb, libgomp) is missing
+        except ImportError:
+            continue
+        return True
+    return False
+
+
+#: Whether kernels release the GIL while they run (see :func:`njit`).
+NOGIL = _threadsafe_layer()
+
+
+def njit(*args, **options):
+    """``numba.njit`` whose kernels release the GIL (``nogil``) where the threading layer allows it.
+
+    A kernel that holds the GIL holds up every other thread for as long as it runs: detection in
+    the other worker threads, and the main thread that handles Ctrl-C and SIGTERM while the
+    ``ctpipe`` command runs in a thread of its own (:func:`ctpipe.cli.entry`). Without a
+    thread-safe layer (workqueue only) the GIL keeps parallel kernels from being launched from
+    two threads at once, as before.
+    """
+    options.setdefault("nogil", NOGIL)
+    return numba.njit(*args, **options)

@@ -14,9 +14,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
-from ctpipe._shared.jit import FASTMATH
+from ctpipe._shared.jit import FASTMATH, njit
 
 # Cells the disc is sampled on in the model, px (exactly integrated, so only the shape's fidelity
 # depends on it, not the centre's symmetry).

@@ -11,11 +11,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy import fft, ndimage
 from scipy.spatial import cKDTree
 
-from ctpipe._shared.jit import FASTMATH
+from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe.features._disc_model import _window_of
 
 # Scale-normalised LoG, -s^2 LoG_s, at the centre of the chord profile sqrt(1 - d^2) (radius 1,

@@ -89,11 +89,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ctpipe._shared.jit import FASTMATH
+from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe.features._disc_fit import _clusters, _fit_all
 from ctpipe.features._disc_model import _render, _window_of
 from ctpipe.features._scale_space import (_MIN_ROUNDNESS, _SCALE_STEP, _across, _of_the_balls_size, _recentred,

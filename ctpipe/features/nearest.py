@@ -15,7 +15,8 @@ descriptors of the neighbours found.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from ctpipe._shared.jit import njit
 
 __all__ = ["l2_neighbours"]
 

@@ -41,8 +41,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
+from ctpipe._shared.jit import njit
 from ctpipe.images import to_uint8
 
 __all__ = ["integral_image", "fast_hessian", "surf_descriptors", "compute_surf"]

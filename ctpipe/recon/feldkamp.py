@@ -34,11 +34,11 @@ import math
 from typing import Callable
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy import fft as sp_fft
 
 from ctpipe._shared.checks import as_angles_deg, short_repr
-from ctpipe._shared.jit import FASTMATH
+from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe._shared.resources import check_fits, memory_guard
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry

@@ -24,9 +24,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
-from ctpipe._shared.jit import FASTMATH
+from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe.errors import InputError
 from ctpipe.recon.volume import VolumeGrid
 

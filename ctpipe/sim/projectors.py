@@ -39,10 +39,10 @@ from typing import Callable, Iterator
 
 import numba
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from ctpipe._shared.checks import as_angles_deg
-from ctpipe._shared.jit import FASTMATH
+from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe._shared.resources import check_fits
 from ctpipe.errors import InputError, ResourceError
 from ctpipe.geometry import Geometry, check_geometry
