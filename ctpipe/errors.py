@@ -1,12 +1,13 @@
 """Exceptions that carry a one-line message meant for the user.
 
-The CLI prints ``str(exc)`` of these on one line and exits with status 2; anything else is a
-bug and keeps its traceback.
+The CLI prints ``str(exc)`` of these on one line and exits with status 2 (1 for
+:class:`OutputError`, which is not the user's input); anything else is a bug and keeps its
+traceback.
 """
 
 from __future__ import annotations
 
-__all__ = ["CtpipeError", "ConfigError", "InputError", "ResourceError", "PluginError", "EstimationError"]
+__all__ = ["CtpipeError", "ConfigError", "InputError", "ResourceError", "PluginError", "EstimationError", "OutputError"]
 
 
 class CtpipeError(Exception):
@@ -31,3 +32,7 @@ class PluginError(CtpipeError):
 
 class EstimationError(CtpipeError):
     """The data do not determine what was asked (too few matches, no consensus)."""
+
+
+class OutputError(CtpipeError):
+    """A result could not be written (the disk or the quota is full); earlier results are unchanged."""

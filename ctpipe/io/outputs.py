@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import json
 import os
@@ -15,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ctpipe.errors import InputError
+from ctpipe.errors import InputError, OutputError
 
 __all__ = ["atomic_write", "write_json", "write_csv", "write_files", "staged_folder", "json_bytes", "csv_bytes",
            "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer", "to_jsonable"]
@@ -53,6 +54,37 @@ def discard_pending(timeout_s: float = 1.0) -> None:
     finally:
         if locked:
             COMMIT_LOCK.release()
+
+
+#: The errors of a write that found no room: the device (ENOSPC) or the user's quota (EDQUOT) is full.
+_NO_ROOM = {errno.ENOSPC, errno.EDQUOT}
+#: Less room than this where a write failed without an errno is a full disk too.
+_FULL_BYTES = 1 << 20
+
+
+@contextlib.contextmanager
+def disk_full_is_one_line(target: Path) -> Iterator[None]:
+    """Turn "no space left" while ``target`` is written into :class:`OutputError` naming it.
+
+    The writers here stage everything in temporaries and rename them into place only once all
+    are written, so a full disk leaves every earlier result as it was; the message says so, with
+    the room left where ``target`` goes.
+    """
+    try:
+        yield
+    except OSError as exc:
+        try:
+            free = shutil.disk_usage(_existing_ancestor(Path(target) / "x")).free
+        except OSError:
+            free = None
+        # numpy's tofile (np.save) reports a short write without an errno: "N requested and M written".
+        short_write = exc.errno is None and free is not None and free < _FULL_BYTES
+        if exc.errno not in _NO_ROOM and not short_write:
+            raise
+        free = "free space unknown" if free is None else f"{free / 1e6:.1f} MB free there"
+        full = "the disk quota is exceeded" if exc.errno == errno.EDQUOT else "no space left on the device"
+        raise OutputError(f"{target}: {full} while writing it ({free}); nothing was replaced: make room "
+                          f"and run again") from None
 
 
 def _umask() -> int:
@@ -157,13 +189,15 @@ def _commit_locked(moves: Sequence[tuple[Path, Path]]) -> None:
 
 def _stage(path: Path, write: Callable[[io.BufferedWriter], None]) -> Path:
     """Write a temporary sibling of ``path`` with the permissions a plain ``open`` would give."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    with disk_full_is_one_line(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     _PENDING.add(Path(tmp))  # until write_files renames or removes it
     try:
-        os.fchmod(fd, 0o666 & ~_umask())
-        with os.fdopen(fd, "wb") as handle:
-            write(handle)
+        with disk_full_is_one_line(path):
+            os.fchmod(fd, 0o666 & ~_umask())
+            with os.fdopen(fd, "wb") as handle:
+                write(handle)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         _PENDING.discard(Path(tmp))
@@ -196,7 +230,8 @@ def write_files(files: Mapping[str | Path, Callable[[io.BufferedWriter], None]])
         for path, write in files.items():
             path = Path(path)
             staged.append((_stage(path, write), path))
-        _commit(staged)
+        with disk_full_is_one_line(staged[0][1] if len(staged) == 1 else staged[0][1].parent):
+            _commit(staged)
     finally:
         for tmp, _ in staged:
             tmp.unlink(missing_ok=True)
@@ -214,10 +249,11 @@ def staged_folder(folder: str | Path, what: str = "--out") -> Iterator[Path]:
     (which ``ctpipe.cli`` turns into :class:`KeyboardInterrupt`).
     """
     folder = check_output_dir(folder, what)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    with disk_full_is_one_line(folder):
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
     try:
-        with pending(tmp):
+        with pending(tmp), disk_full_is_one_line(folder):
             yield tmp
             files = sorted(p for p in tmp.rglob("*") if p.is_file())
             created = not folder.exists()

@@ -57,7 +57,7 @@ from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.hookspecs import hookimpl
 from ctpipe.io.flatfield import log_transform
-from ctpipe.io.outputs import COMMIT_LOCK, pending, to_jsonable
+from ctpipe.io.outputs import COMMIT_LOCK, disk_full_is_one_line, pending, to_jsonable
 from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack
 from ctpipe.stages import ParamSpec, check_value
 
@@ -339,10 +339,11 @@ def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angl
     document["written_by"] = f"ctpipe {__version__}"
     document["written_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    with disk_full_is_one_line(folder):
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
     try:
-        with pending(tmp):
+        with pending(tmp), disk_full_is_one_line(folder):
             # mkdtemp makes the folder private (0700); the scan folder should read like any other.
             mask = os.umask(0o022)
             os.umask(mask)
