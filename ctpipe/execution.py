@@ -12,6 +12,12 @@ tasks to an executor and never cares where they run:
   from disk travels as its path (:meth:`ctpipe.io.scans.ViewStack.reference`), so each
   worker reads its own views and only features and pair results come back.
 
+A worker that dies mid-run costs time, not results: Dask runs its tasks again on the others
+(the values given with :meth:`~Executor.scatter` included, see :meth:`DaskExecutor.scatter`)
+and every task's seed goes with it, so the angles are those of an undisturbed run. A run that
+cannot go on -- a task whose workers keep dying, or every worker gone -- stops with one line
+(:class:`~ctpipe.errors.InputError`), not a traceback or a wait for ever.
+
 Both backends take the same calls: :meth:`~Executor.scatter` places a value where tasks run,
 :meth:`~Executor.submit` starts a task whose arguments may hold handles of earlier tasks
 (lists and tuples of them too), :meth:`~Executor.gather` waits and returns results in order.
@@ -25,7 +31,9 @@ Dask is optional (``pip install 'ctpipe[dask]'``); nothing here imports it until
 from __future__ import annotations
 
 import os
+import time
 import uuid
+import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
 from typing import Any
@@ -36,6 +44,9 @@ __all__ = ["Executor", "ThreadExecutor", "DaskExecutor", "available_cores", "INS
 
 #: The one line that tells how to get the Dask backend.
 INSTALL_DASK = "pip install 'ctpipe[dask]'"
+
+#: How often :meth:`DaskExecutor.gather` looks for finished tasks while it waits, seconds.
+_POLL_S = 0.05
 
 
 def available_cores() -> int:
@@ -177,17 +188,27 @@ class DaskExecutor(Executor):
         Close the client's cluster on :meth:`close` (True when :meth:`connect` started it).
     dashboard : bool, optional
         Whether the scheduler serves the dashboard; None: ask the scheduler.
+    no_workers_timeout_s : float or None
+        How long a run waits for new workers once every worker of the cluster is gone, before
+        it stops with an :class:`~ctpipe.errors.InputError`; None: as long as it takes. The
+        nannies of a LocalCluster start a killed worker again within seconds; a batch system
+        may take longer. A cluster that has not had a worker yet (its jobs still queued) is
+        waited for however long it takes.
     """
 
     name = "dask"
 
-    def __init__(self, client, *, owns_cluster: bool = False, dashboard: bool | None = None) -> None:
+    def __init__(self, client, *, owns_cluster: bool = False, dashboard: bool | None = None,
+                 no_workers_timeout_s: float | None = 60.0) -> None:
         self.client = client
         self._owns_cluster = owns_cluster
         self._dashboard = dashboard
+        self.no_workers_timeout_s = no_workers_timeout_s
         self._run = uuid.uuid4().hex[:8]
         self._count = 0
         self._checked: set[str] = set()
+        self._workers_seen: float | None = None   # when the cluster last had a worker (time.monotonic)
+        self._next_check = 0.0
 
     @classmethod
     def connect(cls, address: str | None = None, *, n_workers: int | None = None, threads_per_worker: int = 1,
@@ -266,7 +287,20 @@ class DaskExecutor(Executor):
                 + (f"; dashboard {link}" if link else ""))
 
     def scatter(self, value: Any) -> Any:
-        return self.client.scatter(value, hash=False)
+        """A handle of ``value``: the result of a task that returns it, which Dask can make again.
+
+        Not ``client.scatter``: scattered data has no task to make it again. Dask keeps one copy
+        of it once no task waits for it (its memory manager drops the others, broadcast or not),
+        and when the worker that holds the copy dies, the value is gone and every task that
+        needs it is cancelled, those Dask would otherwise run again included. A task's result
+        lost with its worker is made again where it is needed; the scheduler keeps the task,
+        and so the value, as long as the handle lives. The cost: a stack in memory is held by
+        the scheduler too while the run lasts (a scan opened from disk is only its path).
+        """
+        with warnings.catch_warnings():
+            # Dask warns of a large task, asking for it to be sent once and shared: which this is.
+            warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)
+            return self.submit(_given, value, name="scatter")
 
     def submit(self, fn: Callable, *args: Any, name: str = "task") -> Any:
         self._check_imports({getattr(fn, "__module__", None), *(type(a).__module__ for a in args)})
@@ -280,15 +314,37 @@ class DaskExecutor(Executor):
         handles = list(handles)
         weight = dict(zip((h.key for h in handles), weights)) if weights is not None else {}
         try:
-            for future in as_completed(handles):
-                if future.status == "error":
-                    future.result()   # raises the task's own exception
-                if progress is not None:
-                    progress(weight.get(future.key, 1))
+            finished = as_completed(handles)
+            while not finished.is_empty():
+                ready = finished.next_batch(block=False)
+                if not ready:
+                    # Dask waits for ever for a worker to run the tasks on: look whether any is left.
+                    self._check_workers_left()
+                    time.sleep(_POLL_S)
+                for future in ready:
+                    if future.status == "error":
+                        _raise_task_error(future)
+                    if progress is not None:
+                        progress(weight.get(future.key, 1))
             return self.client.gather(handles)
         except BaseException:
             self.client.cancel(handles)
             raise
+
+    def _check_workers_left(self) -> None:
+        """Raise InputError once every worker has been gone ``no_workers_timeout_s`` (asks at most every second)."""
+        now = time.monotonic()
+        if self.no_workers_timeout_s is None or now < self._next_check:
+            return
+        self._next_check = now + min(1.0, self.no_workers_timeout_s / 4)
+        try:
+            workers = self.client.nthreads()
+        except OSError:  # the scheduler does not answer now; the client reconnects or cancels the tasks itself
+            return
+        if workers:
+            self._workers_seen = now
+        elif self._workers_seen is not None and now - self._workers_seen >= self.no_workers_timeout_s:
+            raise InputError(_all_gone(self.client.scheduler.address, f"none for {now - self._workers_seen:.0f} s"))
 
     def _check_imports(self, modules: set) -> None:
         """Refuse to send a task whose code a worker cannot import.
@@ -301,8 +357,9 @@ class DaskExecutor(Executor):
         modules = {m for m in modules if m and m not in ("__main__", "builtins")} - self._checked
         if not modules:
             return
-        for worker, missing in self.client.run(_missing_modules, sorted(modules)).items():
-            if missing:
+        # A worker that died meanwhile cannot answer; Dask runs its tasks on the others.
+        for worker, missing in self.client.run(_missing_modules, sorted(modules), on_error="return").items():
+            if missing and not isinstance(missing, BaseException):
                 raise InputError(f"the Dask worker at {worker} cannot import {', '.join(missing)}: every worker "
                                  f"needs the ctpipe and the plugins the client has, at the same versions")
         self._checked |= modules
@@ -312,6 +369,40 @@ class DaskExecutor(Executor):
         self.client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _given(value: Any) -> Any:
+    """``value``: the task behind :meth:`DaskExecutor.scatter`'s handles."""
+    return value
+
+
+def _stage(key) -> str:
+    """The task kind in a DaskExecutor key (``ctpipe-detect-...`` -> ``detect``), or the key."""
+    parts = str(key).split("-")
+    return parts[1] if len(parts) > 2 and parts[0] == "ctpipe" else str(key)
+
+
+def _all_gone(address: str, how_long: str) -> str:
+    return (f"every Dask worker of the scheduler at {address} is gone ({how_long}): the run cannot go on; "
+            f"start workers again (their logs say why they ended) and run it again")
+
+
+def _raise_task_error(future) -> None:
+    """Raise the exception of a failed task: its own, or one line when Dask gave the task up."""
+    from distributed.scheduler import KilledWorker, NoWorkerError
+
+    try:
+        future.result()
+    except KilledWorker as exc:
+        # The same task killed its worker again and again (or the cluster is falling apart):
+        # Dask stops trying after allowed-failures + 1 deaths instead of killing every worker.
+        raise InputError(
+            f"the Dask workers running a {_stage(exc.task)} task died while running it: "
+            f"{exc.allowed_failures + 1} died, the last at {exc.last_worker.address}, and Dask gives a task up then "
+            f"(distributed.scheduler.allowed-failures); that worker's log says why, most often too little memory "
+            f"for a task (give each worker more, or fewer threads)") from None
+    except NoWorkerError as exc:   # the scheduler's own distributed.scheduler.no-workers-timeout
+        raise InputError(_all_gone(future.client.scheduler.address, f"none for {exc.timeout:.0f} s")) from None
 
 
 def _missing_modules(names: list[str]) -> list[str]:
