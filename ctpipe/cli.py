@@ -110,6 +110,10 @@ def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, execu
         scan = open_scan(source, blocked=tuple(args.block_plugin))
         if args.geometry:
             raise InputError(f"{source} is a {scan.format} scan with its own geometry; drop --geometry")
+        if args.skip_bad_views:
+            from ctpipe.io.scans import find_bad_views
+
+            scan = scan.without_views(find_bad_views(scan.projections))
         if progress and not args.json:
             print("\n".join(scan.describe()), flush=True)
         inputs, n_views = (scan,), scan.n_views
@@ -133,6 +137,10 @@ def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, execu
         write_files(files)
     summary = result.summary(source=source, written=sorted(path.name for path in files),
                              described=scan is not None and progress and not args.json)
+    if scan is not None and scan.skipped_views:
+        summary += (f"\nskipped: {len(scan.skipped_views)} views that could not be read "
+                    f"({', '.join(map(str, sorted(scan.skipped_views)[:12]))}{', ...' if len(scan.skipped_views) > 12 else ''}"
+                    f"); result.json lists why")
     return report, summary, result.failed_pairs_warning()
 
 
@@ -266,16 +274,18 @@ def _estimate_files(out: Path, report: dict, result) -> dict:
     from ctpipe.io.outputs import csv_bytes, json_bytes
 
     columns = result.angle_columns()
+    scan = result.scan
+    # Each view by its number in the scan (with views skipped, the rows are the others only).
+    numbers = scan.view_numbers if scan is not None else range(len(result.estimated_deg))
     blobs = {
-        "angles.csv": csv_bytes(["view", *columns], [[v, *row] for v, row in enumerate(zip(*columns.values()))]),
+        "angles.csv": csv_bytes(["view", *columns], [[v, *row] for v, row in zip(numbers, zip(*columns.values()))]),
         "result.json": json_bytes(report),
         "geometry_vectors.csv": csv_bytes(["view", *CONE_VECTOR_COLUMNS],
-                                          [[v, *row] for v, row in enumerate(result.cone_vectors())]),
+                                          [[v, *row] for v, row in zip(numbers, result.cone_vectors())]),
     }
     picture = estimate_angles_png(result)
     if picture is not None:
         blobs["angles.png"] = picture
-    scan = result.scan
     if result.before_after is not None:
         from ctpipe.evaluate.preview import before_after_png
 
@@ -283,9 +293,25 @@ def _estimate_files(out: Path, report: dict, result) -> dict:
                                                      f"{scan.format} scan {scan.path.name}" if scan is not None else "")
     writer = None if scan is None else _angle_log_writer(scan.format)
     if writer is not None:
-        name, blob = writer(scan, result.estimated_deg)
+        name, blob = writer(*_every_view(scan, result.estimated_deg))
         blobs[name] = blob
     return {out / name: (lambda blob: lambda handle: handle.write(blob))(blob) for name, blob in blobs.items()}
+
+
+def _every_view(scan, estimated_deg):
+    """The scan with every view, and an angle for each: (scan, angles) for a corrected angle log.
+
+    The scanner's log has a line per view it took. A view left out (``--skip-bad-views``) gets
+    its nominal angle moved by the correction (estimated minus nominal) interpolated from the
+    views on either side of it; the result's notes say which views these are.
+    """
+    if not scan.skipped_views:
+        return scan, estimated_deg
+    whole = scan.whole
+    numbers = np.asarray(scan.view_numbers)
+    correction = np.asarray(estimated_deg) - np.asarray(scan.nominal_angles_deg)
+    filled = np.interp(np.arange(whole.n_views), numbers, correction)
+    return whole, np.asarray(whole.nominal_angles_deg) + filled
 
 
 def _angle_log_writer(format_name: str):
@@ -538,6 +564,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dask", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="run on Dask: a LocalCluster on this machine, or the scheduler at ADDRESS "
                         "(tcp://host:8786 or a scheduler file). Needs: pip install 'ctpipe[dask]'")
+    p.add_argument("--skip-bad-views", action="store_true",
+                   help="read every view of a scan first and leave out those that cannot be read (damaged or "
+                        "truncated files, NaN pixels); result.json lists them and why. Default: stop at the first")
     p.set_defaults(run=_cmd_estimate)
 
     p = sub.add_parser("detect", help="run one detector on one image: keypoints to .npz, optionally a picture",

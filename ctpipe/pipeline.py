@@ -347,6 +347,11 @@ class ScanResult:
         if scan is not None:
             report["scan"] = {"format": scan.format, "path": str(scan.path), "notes": list(scan.notes),
                               "angle_log": None if scan.angle_log is None else str(scan.angle_log)}
+            if scan.skipped_views:
+                # The arrays of the report hold the other views; these are their numbers in the scan.
+                report["scan"]["skipped_views"] = [{"view": k, "reason": why}
+                                                   for k, why in sorted(scan.skipped_views.items())]
+                report["scan"]["view_numbers"] = list(scan.view_numbers)
         nominal = self.nominal_angles_deg
         if nominal is not None:
             report["nominal_deg"] = nominal

@@ -33,7 +33,7 @@ from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
 from ctpipe.io.flatfield import log_transform, mean_frame
 
-__all__ = ["ViewStack", "ViewFiles", "StackReference", "ScanFiles", "open_scan", "check_angles"]
+__all__ = ["ViewStack", "ViewFiles", "StackReference", "ScanFiles", "open_scan", "check_angles", "find_bad_views"]
 
 
 class ViewStack:
@@ -87,6 +87,7 @@ class ViewStack:
             log_transform(np.zeros((1, *self._shape), np.float32), self._flat, self._dark)
         self._lock = threading.Lock()
         self._source: tuple[str, str] | None = None
+        self._views: tuple[int, ...] | None = None
 
     def opened_from(self, format_name: str, path: str | Path) -> "ViewStack":
         """This stack, marked as the projections of the ``format_name`` scan at ``path``.
@@ -102,7 +103,28 @@ class ViewStack:
         """What reopens this stack in another process: its format and path; None if not opened from disk."""
         if self._source is None:
             return None
-        return StackReference(*self._source, self.shape)
+        views = None if self._views is None else tuple(self._views)
+        return StackReference(*self._source, self.shape, views=views)
+
+    def subset(self, views: Sequence[int]) -> "ViewStack":
+        """The stack of ``views`` only (indices into this one, in the order given).
+
+        What a scan with unreadable views is estimated from (:meth:`ScanFiles.without_views`);
+        :attr:`view_numbers` says which of the scan's views each one is.
+        """
+        views = [self._index(int(v)) for v in views]
+        if not views:
+            raise InputError(f"{self.name}: no views left")
+        stack = copy.copy(self)
+        stack._read = _Picked(self._read, tuple(views))
+        stack._n_views = len(views)
+        stack._views = tuple(self.view_numbers[v] for v in views)
+        return stack
+
+    @property
+    def view_numbers(self) -> tuple[int, ...]:
+        """Which of the scan's views each view of this stack is (0, 1, ... unless it is a :meth:`subset`)."""
+        return tuple(range(self._n_views)) if self._views is None else self._views
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -126,7 +148,14 @@ class ViewStack:
     def raw(self, index: int) -> np.ndarray:
         """View ``index`` as stored, checked against the stack's shape."""
         index = self._index(index)
-        view = np.asarray(self._read(index))
+        try:
+            view = np.asarray(self._read(index))
+        except InputError as exc:
+            raise InputError(f"{self._which(index)}: {exc}{_SKIP_HINT}") from None
+        except OSError as exc:   # a read error of the disk or the network, a file taken away
+            where = exc.filename if exc.filename is not None else self.name
+            raise InputError(f"{self._which(index)}: {where}: cannot be read ({exc.strerror or exc}){_SKIP_HINT}") \
+                from None
         if view.shape != self._shape:
             raise InputError(f"{self.name}: view {index} has shape {view.shape}, the others {self._shape}")
         if view.dtype == bool or not (np.issubdtype(view.dtype, np.integer) or np.issubdtype(view.dtype, np.floating)):
@@ -144,7 +173,7 @@ class ViewStack:
             view = log_transform(raw[None], self._flat, self._dark)[0]
         else:
             view = raw.astype(np.float32, copy=False)
-        check_image(view, name=f"{self.name}: view {index}")
+        check_image(view, name=f"{self.name}: {self._which(index)}")
         return view
 
     def __iter__(self):
@@ -156,12 +185,56 @@ class ViewStack:
             out[i] = self[i]
         return out if dtype is None else out.astype(dtype)
 
+    def _which(self, index: int) -> str:
+        """How errors name view ``index``: by its number in the scan."""
+        return f"view {index} of {self._n_views}" if self._views is None else f"view {self._views[index]}"
+
     def _index(self, index) -> int:
         if isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer)):
             raise InputError(f"{self.name}: a view index must be an integer, got {index!r}")
         if not -self._n_views <= index < self._n_views:
             raise InputError(f"{self.name}: view {index} out of range: the scan has {self._n_views} views")
         return int(index) % self._n_views
+
+
+_SKIP_HINT = " (ctpipe estimate --skip-bad-views leaves out the views that cannot be read)"
+
+
+@dataclass(frozen=True)
+class _Picked:
+    """``read`` of a :meth:`ViewStack.subset`: view ``k`` is view ``picks[k]`` of the stack it was taken from.
+
+    A module-level class, so that the stack pickles.
+    """
+
+    read: Callable[[int], np.ndarray]
+    picks: tuple[int, ...]
+
+    def __call__(self, index: int) -> np.ndarray:
+        return self.read(self.picks[index])
+
+
+def find_bad_views(stack: ViewStack, *, workers: int | None = None) -> dict[int, str]:
+    """The views of ``stack`` that cannot be read, each with the reason: {index: one line}.
+
+    Every view is read (and flat-corrected and checked) once, on ``workers`` threads: a pass
+    over the scan before the estimate, which :meth:`ScanFiles.without_views` then leaves the
+    bad ones out of.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ctpipe.execution import available_cores
+
+    def reason(index: int) -> str | None:
+        try:
+            stack[index]
+        except InputError as exc:
+            return str(exc).removesuffix(_SKIP_HINT)
+        return None
+
+    with ThreadPoolExecutor(max_workers=workers or available_cores(), thread_name_prefix="ctpipe-check") as pool:
+        reasons = list(pool.map(reason, range(len(stack))))
+    return {index: why for index, why in enumerate(reasons) if why is not None}
 
 
 @dataclass(frozen=True)
@@ -222,6 +295,7 @@ class StackReference:
     format: str
     path: str
     shape: tuple[int, int, int]
+    views: tuple[int, ...] | None = None
 
     def open(self) -> ViewStack:
         """The stack, reopened (and kept for the next task of this process)."""
@@ -232,6 +306,8 @@ class StackReference:
                              f"files, which must be on a filesystem they share with the client, at the same path") \
                 from None
         stack = _reopened(self.format, self.path, changed)
+        if self.views is not None:
+            stack = stack.subset(self.views)
         if stack.shape != self.shape:
             raise InputError(f"{self.path}: changed on disk since it was opened: {stack.shape} (views, rows, cols) "
                              f"now, {self.shape} then")
@@ -291,6 +367,11 @@ class ScanFiles:
         in a real CT Pro scan whose step does not divide 360). It is read as a view like the
         others; the pair graph pairs it with the view one turn before it
         (:func:`ctpipe.solve.turn_pairs`), so the whole turn is measured from the images.
+    skipped_views : dict of int -> str
+        Views left out because they could not be read (:meth:`without_views`), by their number
+        in the scan, with the reason; the arrays above then hold the other views only.
+    whole : ScanFiles or None
+        With skipped views: the scan as opened, every view in it.
     """
 
     format: str
@@ -304,10 +385,50 @@ class ScanFiles:
     notes: tuple[str, ...] = ()
     metadata: Mapping[str, Any] = field(default_factory=dict)
     closing_view: bool = False
+    skipped_views: Mapping[int, str] = field(default_factory=dict)
+    whole: "ScanFiles | None" = None
 
     @property
     def n_views(self) -> int:
         return len(self.projections)
+
+    @property
+    def view_numbers(self) -> tuple[int, ...]:
+        """Which of the scan's views each view here is: 0, 1, ... unless views were skipped."""
+        return self.projections.view_numbers
+
+    def without_views(self, bad: Mapping[int, str]) -> "ScanFiles":
+        """The scan without the views ``bad`` ({index: why}, e.g. from :func:`find_bad_views`).
+
+        The projections, nominal, logged and true angles keep the other views; a closing view
+        stays one if it is kept. A note names how many were left out and why the first was.
+
+        Raises
+        ------
+        InputError
+            Fewer than two views would be left.
+        """
+        if not bad:
+            return self
+        keep = [k for k in range(self.n_views) if k not in bad]
+        first = min(bad)
+        if len(keep) < 2:
+            raise InputError(f"{self.path}: {len(bad)} of {self.n_views} views cannot be read, e.g. {bad[first]}; "
+                             f"too few are left to estimate from")
+        numbers = [self.view_numbers[k] for k in sorted(bad)]
+        listed = ", ".join(map(str, numbers[:12])) + (", ..." if len(numbers) > 12 else "")
+
+        def pick(values):
+            return None if values is None else np.asarray(values)[keep]
+
+        note = (f"{len(bad)} of {self.n_views} views could not be read and are left out (--skip-bad-views): "
+                f"view{'s' if len(bad) > 1 else ''} {listed}; the first: {bad[first]}")
+        return dataclasses.replace(
+            self, projections=self.projections.subset(keep), nominal_angles_deg=pick(self.nominal_angles_deg),
+            recorded_angles_deg=pick(self.recorded_angles_deg), true_angles_deg=pick(self.true_angles_deg),
+            closing_view=self.closing_view and keep[-1] == self.n_views - 1, notes=(*self.notes, note),
+            skipped_views={**self.skipped_views, **{self.view_numbers[k]: why for k, why in bad.items()}},
+            whole=self.whole or self)
 
     def describe(self) -> list[str]:
         """What was read, as the lines a person checks before the long work starts.
