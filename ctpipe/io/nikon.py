@@ -407,8 +407,10 @@ def _check_projection_files(file: Path, folder: Path, names: list[str], shape: t
     n_views = len(names) - 2
     for i, name in enumerate(names[:n_views]):
         if not (folder / name).is_file():
+            from ctpipe.io.scans import still_being_written_hint
+
             raise InputError(f"{folder / name}: no such file; {file.name} says Projections={n_views} but projection "
-                             f"{i + 1} is missing")
+                             f"{i + 1} is missing{still_being_written_hint([folder / n for n in names[:n_views]])}")
     if (folder / names[-1]).is_file():
         raise InputError(f"{folder / names[-1]}: exists, but {file.name} says Projections={n_views}; there must be "
                          f"{n_views} projection files, or {n_views + 1} with the image that closes the turn")

@@ -134,8 +134,11 @@ def _file_names(value: Any, path: str, folder: Path, allowed: tuple[str, ...] = 
             except (KeyError, IndexError, ValueError) as exc:
                 raise ConfigError(f"{path}.files: not a usable pattern ({exc}), got {files!r}") from None
             if not (folder / name).is_file():
+                from ctpipe.io.scans import still_being_written_hint
+
                 raise InputError(f"{folder / name}: no such file; {path}.count says {count} files, of which "
-                                 f"only the first {i} exist, and count must match the files present")
+                                 f"only the first {i} exist, and count must match the files present"
+                                 f"{still_being_written_hint([folder / n for n in names])}")
             names.append(name)
         return names
     if not isinstance(files, list) or not files or not all(isinstance(f, str) for f in files):

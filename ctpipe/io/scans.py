@@ -21,6 +21,7 @@ import copy
 import dataclasses
 import functools
 import threading
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -268,19 +269,84 @@ class ViewFiles:
     missing: str = "{file}: no such file (projection {index} of {count})"
     wrong_shape: str = "{file}: is an image of shape {got} but the scan's views are {rows} x {cols}"
     context: Mapping[str, Any] = field(default_factory=dict)
+    stamps: tuple[tuple[int, int] | None, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # Each file's size and modification time when the scan was opened: a scan that a scanner
+        # is still writing shows as files not there yet, or files that change while they are read.
+        stamps = tuple(_stamp(file) for file in self.files)
+        object.__setattr__(self, "stamps", stamps)
+        absent = [k for k, stamp in enumerate(stamps) if stamp is None]
+        age = _newest_age(stamps)
+        if absent and age is not None and age < FRESH_S:
+            raise InputError(f"{self.files[absent[0]].parent}: is still being written: {len(absent)} of "
+                             f"{len(self.files)} view files are not there yet (the first: {self.files[absent[0]].name}) "
+                             f"and the newest was written {age:.0f} s ago; run again when the scanner has finished")
 
     def __call__(self, index: int) -> np.ndarray:
         from ctpipe.io.arrays import read_array
 
         file = self.files[index]
-        if not file.is_file():
+        before = _stamp(file)
+        if before is None:
             raise InputError(self.missing.format(**self.context, file=file, index=index, number=index + 1,
                                                  count=len(self.files)))
-        image = read_array(file, kind=".tif")
+        self._check_unchanged(file, self.stamps[index], before)
+        try:
+            image = read_array(file, kind=".tif")
+        except InputError as exc:
+            age = time.time() - before[1] / 1e9
+            if age < FRESH_S:   # cut short by a copy or a scanner still at it
+                raise InputError(f"{exc}; it was written {age:.0f} s ago: the scan may still be being written; run "
+                                 f"again when the scanner has finished") from None
+            raise
+        self._check_unchanged(file, before, _stamp(file))
         if self.shape is not None and image.shape != self.shape:
             raise InputError(self.wrong_shape.format(**self.context, file=file, rows=self.shape[0],
                                                      cols=self.shape[1], got=image.shape))
         return image
+
+    @staticmethod
+    def _check_unchanged(file: Path, then: tuple[int, int] | None, now: tuple[int, int] | None) -> None:
+        if now == then:
+            return
+        how = ("appeared" if then is None else "disappeared" if now is None
+               else f"grew from {then[0]} to {now[0]} bytes" if now[0] > then[0]
+               else f"was rewritten ({then[0]} bytes then, {now[0]} now)")
+        raise InputError(f"{file}: {how} since the scan was opened: the scan is being written or replaced while it "
+                         f"is read; run again when the scanner has finished")
+
+
+#: Files younger than this (seconds) may still be being written by the scanner.
+FRESH_S = 30.0
+
+
+def _stamp(file: Path) -> tuple[int, int] | None:
+    """(size, modification time in ns) of ``file``, or None if it is not there."""
+    try:
+        stat = file.stat()
+    except OSError:
+        return None
+    return stat.st_size, stat.st_mtime_ns
+
+
+def still_being_written_hint(files: Sequence[Path]) -> str:
+    """``"; the newest ... was written N s ago: ..."`` when one of ``files`` is fresh, else ``""``.
+
+    For a reader's "missing file" message: a scan whose files are not all there and one of them
+    was written moments ago is most likely still being written by the scanner.
+    """
+    age = _newest_age([_stamp(file) for file in files])
+    if age is None or age >= FRESH_S:
+        return ""
+    return (f"; its newest image was written {age:.0f} s ago: the scan is most likely still being written; run "
+            f"again when the scanner has finished")
+
+
+def _newest_age(stamps) -> float | None:
+    """Seconds since the newest of ``stamps`` was modified, or None if none is there."""
+    times = [stamp[1] for stamp in stamps if stamp is not None]
+    return None if not times else time.time() - max(times) / 1e9
 
 
 @dataclass(frozen=True)

@@ -228,8 +228,8 @@ def test_a_missing_projection_is_named(scan):
 def test_an_image_of_the_wrong_size_is_named(scan):
     import tifffile
 
-    opened = open_scan(scan)
     tifffile.imwrite(scan / "scan_0003.tif", np.zeros((95, 128), np.uint16))
+    opened = open_scan(scan)
     with pytest.raises(InputError, match=r"scan_0003\.tif: must be a 96 x 128 image \(DetectorPixelsY x "
                                          r"DetectorPixelsX in scan\.xtekct\), got shape \(95, 128\)"):
         opened.projections[2]

@@ -1,5 +1,8 @@
 """Opening scans lazily: a view read through ViewStack is bitwise the view of the stack read whole."""
 
+import os
+import time
+
 import numpy as np
 import pytest
 
@@ -97,6 +100,8 @@ def test_view_files_read_check_and_pickle(tmp_path):
 
     tifffile.imwrite(tmp_path / "v0.tif", np.zeros((4, 6), np.uint16))
     tifffile.imwrite(tmp_path / "v1.tif", np.zeros((4, 5), np.uint16))
+    for name in ("v0.tif", "v1.tif"):   # written an hour ago: v{2} is missing, not still to come
+        os.utime(tmp_path / name, (time.time() - 3600, time.time() - 3600))
     read = ViewFiles((tmp_path / "v0.tif", tmp_path / "v1.tif", tmp_path / "v{2}.tif"), (4, 6),
                      missing="{file}: no such file ({number} of {count} in {log})",
                      wrong_shape="{file}: {got} but {log} says {rows} x {cols}", context={"log": "a{b}.log"})
