@@ -112,6 +112,69 @@ def test_a_signal_ends_a_command_within_two_seconds_during_a_long_call(tmp_path,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["working"]  # no output, no temporary left
 
 
+# `ctpipe estimate --dask` on a LocalCluster, its client held in a long wait for the tasks (as
+# for a long detection on the workers); the mark holds the workers' process ids.
+DASK_RUN = """
+import os, sys, time
+from pathlib import Path
+import ctpipe.execution as execution
+
+mark = Path(sys.argv[1])
+
+def gather(self, handles, **kwargs):
+    pids = self.client.run(os.getpid)
+    Path(str(mark) + ".tmp").write_text(" ".join(str(pid) for pid in pids.values()))
+    os.replace(str(mark) + ".tmp", mark)
+    time.sleep(120)
+
+execution.DaskExecutor.gather = gather
+sys.argv = ["ctpipe", *sys.argv[2:]]
+from ctpipe.cli import entry
+entry()
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            return not any(line.startswith("State:") and "Z" in line.split()[1] for line in status)
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_ends_a_run_on_a_local_cluster_and_its_workers(tmp_path, small_scan_folder, sig, code):
+    pytest.importorskip("distributed")
+    if not Path("/proc/self/status").exists():
+        pytest.skip("reads process states from /proc")
+    mark, out = tmp_path / "workers", tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-c", DASK_RUN, str(mark), "estimate", str(small_scan_folder), "--dask",
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120
+        while not mark.exists():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the cluster never ran"
+            time.sleep(0.05)
+        workers = [int(pid) for pid in mark.read_text().split()]
+        assert workers and all(_alive(pid) for pid in workers)
+        sent = time.monotonic()
+        proc.send_signal(sig)
+        _, stderr = proc.communicate(timeout=30)
+        took = time.monotonic() - sent
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == code and "Traceback" not in stderr, stderr
+    assert took < 2.0, f"ended {took:.1f} s after the signal"
+    deadline = time.monotonic() + 10
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in workers), "a worker outlived the run"
+    assert not out.exists()
+
+
 def test_discard_pending_removes_what_other_threads_had_not_committed(tmp_path):
     import threading
 
