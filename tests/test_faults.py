@@ -73,6 +73,31 @@ COMMANDS = {
 }
 
 
+def _signal_once_marked(command: list[str], mark: Path, sig: int, what: str) -> tuple[int, str, float, str]:
+    """Start ``command``, send ``sig`` once ``mark`` exists: (exit status, stderr, seconds to end, the mark's text).
+
+    A shell ignores SIGINT in its background jobs, and Python then leaves it ignored; a test run in
+    the background would pass that on. A terminal's Ctrl-C meets the default: give it back.
+    """
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120
+        while not mark.exists():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, f"{what} never started"
+            time.sleep(0.02)
+        marked = mark.read_text()
+        time.sleep(0.2)
+        sent = time.monotonic()
+        proc.send_signal(sig)
+        _, stderr = proc.communicate(timeout=30)
+        return proc.returncode, stderr, time.monotonic() - sent, marked
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 @pytest.mark.parametrize("command", sorted(COMMANDS))
 @pytest.mark.parametrize("sig, code, said", [(signal.SIGTERM, 143, "ctpipe: terminated"),
                                              (signal.SIGINT, 130, "ctpipe: interrupted")])
@@ -87,26 +112,9 @@ def test_a_signal_ends_a_command_within_two_seconds_during_a_long_call(tmp_path,
     spec = tmp_path_factory.mktemp("spec") / "scan.yaml"
     spec.write_text(yaml.safe_dump(SMALL_SCAN))
     argv = [a.format(scan=small_scan_folder, out=out, spec=spec) for a in argv]
-    # A shell ignores SIGINT in its background jobs, and Python then leaves it ignored; a test run
-    # in the background would pass that on. A terminal's Ctrl-C meets the default: give it back.
-    proc = subprocess.Popen([sys.executable, "-c", LONG_CALL, str(mark), patch, *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    try:
-        deadline = time.monotonic() + 120
-        while not mark.exists():
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "the long call never started"
-            time.sleep(0.02)
-        time.sleep(0.2)
-        sent = time.monotonic()
-        proc.send_signal(sig)
-        _, stderr = proc.communicate(timeout=30)
-        took = time.monotonic() - sent
-    finally:
-        proc.kill()
-        proc.wait()
-    assert proc.returncode == code and stderr.strip().endswith(said), stderr
+    returncode, stderr, took, _ = _signal_once_marked([sys.executable, "-c", LONG_CALL, str(mark), patch, *argv],
+                                                      mark, sig, "the long call")
+    assert returncode == code and stderr.strip().endswith(said), stderr
     assert "Traceback" not in stderr
     assert took < 2.0, f"ended {took:.1f} s after the signal"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["working"]  # no output, no temporary left
@@ -148,25 +156,12 @@ def test_a_signal_ends_a_run_on_a_local_cluster_and_its_workers(tmp_path, small_
     if not Path("/proc/self/status").exists():
         pytest.skip("reads process states from /proc")
     mark, out = tmp_path / "workers", tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-c", DASK_RUN, str(mark), "estimate", str(small_scan_folder), "--dask",
-                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    try:
-        deadline = time.monotonic() + 120
-        while not mark.exists():
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "the cluster never ran"
-            time.sleep(0.05)
-        workers = [int(pid) for pid in mark.read_text().split()]
-        assert workers and all(_alive(pid) for pid in workers)
-        sent = time.monotonic()
-        proc.send_signal(sig)
-        _, stderr = proc.communicate(timeout=30)
-        took = time.monotonic() - sent
-    finally:
-        proc.kill()
-        proc.wait()
-    assert proc.returncode == code and "Traceback" not in stderr, stderr
+    returncode, stderr, took, marked = _signal_once_marked(
+        [sys.executable, "-c", DASK_RUN, str(mark), "estimate", str(small_scan_folder), "--dask", "--out", str(out)],
+        mark, sig, "the cluster")
+    workers = [int(pid) for pid in marked.split()]
+    assert workers
+    assert returncode == code and "Traceback" not in stderr, stderr
     assert took < 2.0, f"ended {took:.1f} s after the signal"
     deadline = time.monotonic() + 10
     while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
