@@ -188,14 +188,20 @@ def test_a_worker_killed_mid_run_changes_no_angle(small_scan_folder, cluster, sl
     assert disturbed.pair_status == undisturbed.pair_status
 
 
+def _slow_detection(folder, slow_stages, tmp_path):
+    """(scan, marks folder, pipeline) for a run whose every detection leaves a mark and waits 30 s."""
+    scan = open_scan(folder)
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    pipeline = Pipeline.from_config(PIPELINE)
+    return scan, marks, dataclasses.replace(pipeline, detector=slow_stages.SlowDetector(pipeline.detector,
+                                                                                         str(marks), 30.0))
+
+
 def test_when_every_worker_is_gone_the_run_stops_with_one_line(small_scan_folder, slow_stages, tmp_path):
     cluster, client = _local_cluster()
     try:
-        scan = open_scan(small_scan_folder)
-        marks = tmp_path / "marks"
-        marks.mkdir()
-        pipeline = Pipeline.from_config(PIPELINE)
-        slow = dataclasses.replace(pipeline, detector=slow_stages.SlowDetector(pipeline.detector, str(marks), 30.0))
+        scan, marks, slow = _slow_detection(small_scan_folder, slow_stages, tmp_path)
         executor = DaskExecutor(client, no_workers_timeout_s=1.0)
         pids = client.run(os.getpid)
         runner, outcome = _in_background(lambda: _run(slow, scan, scan.projections, executor))
@@ -222,11 +228,7 @@ def test_a_task_whose_workers_keep_dying_stops_the_run_with_one_line(small_scan_
     # default; 0 + 1 here, to kill once). The nanny starts the worker again: the cluster is up.
     cluster, client = _local_cluster(**{"distributed.scheduler.allowed-failures": 0})
     try:
-        scan = open_scan(small_scan_folder)
-        marks = tmp_path / "marks"
-        marks.mkdir()
-        pipeline = Pipeline.from_config(PIPELINE)
-        slow = dataclasses.replace(pipeline, detector=slow_stages.SlowDetector(pipeline.detector, str(marks), 30.0))
+        scan, marks, slow = _slow_detection(small_scan_folder, slow_stages, tmp_path)
         runner, outcome = _in_background(lambda: _run(slow, scan, scan.projections, DaskExecutor(client)))
         os.kill(_first_mark(marks), signal.SIGKILL)
         runner.join(30)
