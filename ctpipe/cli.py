@@ -656,7 +656,7 @@ def _end_now(code: int) -> None:
 
     discard_pending()
     for child in multiprocessing.active_children():
-        child.terminate()
+        child.kill()   # SIGTERM would wait, as here, for a long compiled call to return
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)

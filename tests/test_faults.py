@@ -7,6 +7,8 @@ SIGTERM must end ``ctpipe`` within two seconds all the same, with exit status 13
 
 from __future__ import annotations
 
+import contextlib
+import os
 import signal
 import subprocess
 import sys
@@ -70,6 +72,10 @@ COMMANDS = {
     "simulate": ("ctpipe.sim.simulator:simulate", ["simulate", "bead-cylinder", "--scan", "{spec}",
                                                    "--out", "{out}"]),
     "validate": ("ctpipe.sim.simulator:simulate", ["validate", "--out", "{out}"]),
+    "sweep": ("ctpipe.sim.simulator:simulate", ["experiment", "sweep", "--n", "2", "--out", "{out}"]),
+    # In the worker processes of a pool (forked: they inherit the patch).
+    "synthetic": ("ctpipe.evaluate.experiments:_run_block", ["experiment", "synthetic", "--reps", "1", "--jobs", "2",
+                                                             "--out", "{out}"]),
 }
 
 
@@ -77,10 +83,14 @@ def _signal_once_marked(command: list[str], mark: Path, sig: int, what: str) -> 
     """Start ``command``, send ``sig`` once ``mark`` exists: (exit status, stderr, seconds to end, the mark's text).
 
     A shell ignores SIGINT in its background jobs, and Python then leaves it ignored; a test run in
-    the background would pass that on. A terminal's Ctrl-C meets the default: give it back.
+    the background would pass that on. A terminal's Ctrl-C meets the default: give it back. The
+    command's processes (a pool's, a cluster's) are killed at the end, whatever happened.
     """
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    def child() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        os.setpgrp()   # a group of its own, so that a failed test leaves no process of it behind
+
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=child)
     try:
         deadline = time.monotonic() + 120
         while not mark.exists():
@@ -94,7 +104,8 @@ def _signal_once_marked(command: list[str], mark: Path, sig: int, what: str) -> 
         _, stderr = proc.communicate(timeout=30)
         return proc.returncode, stderr, time.monotonic() - sent, marked
     finally:
-        proc.kill()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
 
 
