@@ -158,9 +158,9 @@ class ViewStack:
             raise InputError(f"{self._which(index)}: {where}: cannot be read ({exc.strerror or exc}){_SKIP_HINT}") \
                 from None
         if view.shape != self._shape:
-            raise InputError(f"{self.name}: view {index} has shape {view.shape}, the others {self._shape}")
+            raise InputError(f"{self.name}: {self._which(index)} has shape {view.shape}, the others {self._shape}")
         if view.dtype == bool or not (np.issubdtype(view.dtype, np.integer) or np.issubdtype(view.dtype, np.floating)):
-            raise InputError(f"{self.name}: view {index} must hold real numbers, got {view.dtype}")
+            raise InputError(f"{self.name}: {self._which(index)} must hold real numbers, got {view.dtype}")
         return view
 
     def __getitem__(self, index) -> np.ndarray:
