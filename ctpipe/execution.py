@@ -38,6 +38,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
 from typing import Any
 
+from ctpipe._shared.resources import available_cores
 from ctpipe.errors import InputError
 
 __all__ = ["Executor", "ThreadExecutor", "DaskExecutor", "available_cores", "INSTALL_DASK"]
@@ -47,14 +48,6 @@ INSTALL_DASK = "pip install 'ctpipe[dask]'"
 
 #: How often :meth:`DaskExecutor.gather` looks for finished tasks while it waits, seconds.
 _POLL_S = 0.05
-
-
-def available_cores() -> int:
-    """Cores this process may run on (its CPU affinity, not the machine's total)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # not on Linux
-        return os.cpu_count() or 1
 
 
 class Executor:

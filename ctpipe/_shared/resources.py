@@ -14,7 +14,16 @@ from pathlib import Path
 
 from ctpipe.errors import ResourceError
 
-__all__ = ["available_bytes", "format_bytes", "check_fits", "memory_guard", "FLOAT32"]
+__all__ = ["available_cores", "available_bytes", "format_bytes", "check_fits", "memory_guard", "FLOAT32"]
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, not the machine's total)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        return os.cpu_count() or 1
+
 
 #: Bytes of one float32 value, the dtype of every stack ctpipe computes.
 FLOAT32 = 4

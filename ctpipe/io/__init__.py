@@ -24,7 +24,7 @@ from ctpipe._shared.lazy import lazy_exports
 #: Public name -> the module that defines it.
 _EXPORTS = {
     "open_scan": "scans", "ScanFiles": "scans", "ViewStack": "scans", "ViewFiles": "scans",
-    "StackReference": "scans", "check_angles": "scans",
+    "StackReference": "scans", "check_angles": "scans", "find_bad_views": "scans",
     "Scan": "scan_folder", "read_scan": "scan_folder", "write_scan": "scan_folder", "open_scan_folder": "scan_folder",
     "open_tiff_stack": "tiff_stack",
     "open_nikon": "nikon", "read_xtekct": "nikon",

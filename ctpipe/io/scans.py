@@ -224,7 +224,7 @@ def find_bad_views(stack: ViewStack, *, workers: int | None = None) -> dict[int,
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from ctpipe.execution import available_cores
+    from ctpipe._shared.resources import available_cores
 
     def reason(index: int) -> str | None:
         try:
