@@ -192,16 +192,15 @@ def _stage(path: Path, write: Callable[[io.BufferedWriter], None]) -> Path:
     with disk_full_is_one_line(path):
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    _PENDING.add(Path(tmp))  # until write_files renames or removes it
-    try:
-        with disk_full_is_one_line(path):
+        _PENDING.add(Path(tmp))  # until write_files renames or removes it
+        try:
             os.fchmod(fd, 0o666 & ~_umask())
             with os.fdopen(fd, "wb") as handle:
                 write(handle)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        _PENDING.discard(Path(tmp))
-        raise
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            _PENDING.discard(Path(tmp))
+            raise
     return Path(tmp)
 
 
@@ -230,8 +229,9 @@ def write_files(files: Mapping[str | Path, Callable[[io.BufferedWriter], None]])
         for path, write in files.items():
             path = Path(path)
             staged.append((_stage(path, write), path))
-        with disk_full_is_one_line(staged[0][1] if len(staged) == 1 else staged[0][1].parent):
-            _commit(staged)
+        if staged:   # replacing a file first moves the old one aside, under a new name: that can find no room
+            with disk_full_is_one_line(staged[0][1] if len(staged) == 1 else staged[0][1].parent):
+                _commit(staged)
     finally:
         for tmp, _ in staged:
             tmp.unlink(missing_ok=True)
@@ -249,23 +249,35 @@ def staged_folder(folder: str | Path, what: str = "--out") -> Iterator[Path]:
     (which ``ctpipe.cli`` turns into :class:`KeyboardInterrupt`).
     """
     folder = check_output_dir(folder, what)
+    with temporary_sibling(folder) as tmp:
+        yield tmp
+        files = sorted(p for p in tmp.rglob("*") if p.is_file())
+        created = not folder.exists()
+        with COMMIT_LOCK:
+            try:
+                for file in files:
+                    (folder / file.relative_to(tmp)).parent.mkdir(parents=True, exist_ok=True)
+                _commit([(file, folder / file.relative_to(tmp)) for file in files])
+            except BaseException:
+                if created:
+                    shutil.rmtree(folder, ignore_errors=True)
+                raise
+
+
+@contextlib.contextmanager
+def temporary_sibling(folder: Path) -> Iterator[Path]:
+    """A new folder beside ``folder`` to fill before it (or what is in it) is moved into place.
+
+    Registered as pending (:func:`discard_pending`) while the block runs, and removed at its end
+    whatever happened (once moved into place, there is nothing left to remove); a full disk on
+    the way is one line naming ``folder`` (:func:`disk_full_is_one_line`).
+    """
     with disk_full_is_one_line(folder):
         folder.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
     try:
         with pending(tmp), disk_full_is_one_line(folder):
             yield tmp
-            files = sorted(p for p in tmp.rglob("*") if p.is_file())
-            created = not folder.exists()
-            with COMMIT_LOCK:
-                try:
-                    for file in files:
-                        (folder / file.relative_to(tmp)).parent.mkdir(parents=True, exist_ok=True)
-                    _commit([(file, folder / file.relative_to(tmp)) for file in files])
-                except BaseException:
-                    if created:
-                        shutil.rmtree(folder, ignore_errors=True)
-                    raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

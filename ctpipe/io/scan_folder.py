@@ -57,7 +57,7 @@ from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.hookspecs import hookimpl
 from ctpipe.io.flatfield import log_transform
-from ctpipe.io.outputs import COMMIT_LOCK, disk_full_is_one_line, pending, to_jsonable
+from ctpipe.io.outputs import COMMIT_LOCK, temporary_sibling, to_jsonable
 from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack
 from ctpipe.stages import ParamSpec, check_value
 
@@ -342,27 +342,20 @@ def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angl
     document["written_by"] = f"ctpipe {__version__}"
     document["written_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
-    with disk_full_is_one_line(folder):
-        folder.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
-    try:
-        with pending(tmp), disk_full_is_one_line(folder):
-            # mkdtemp makes the folder private (0700); the scan folder should read like any other.
-            mask = os.umask(0o022)
-            os.umask(mask)
-            os.chmod(tmp, 0o777 & ~mask)
-            for name, stack in stacks.items():
-                for i, image in enumerate(stack):
-                    file = tmp / _PATTERNS[name].format(index=i)
-                    file.parent.mkdir(exist_ok=True)
-                    tifffile.imwrite(file, image)
-            text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None, width=100)
-            (tmp / "scan.yaml").write_text(text, encoding="utf-8")
-            with COMMIT_LOCK:
-                _swap_into_place(tmp, folder, overwrite)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    with temporary_sibling(folder) as tmp:
+        # mkdtemp makes the folder private (0700); the scan folder should read like any other.
+        mask = os.umask(0o022)
+        os.umask(mask)
+        os.chmod(tmp, 0o777 & ~mask)
+        for name, stack in stacks.items():
+            for i, image in enumerate(stack):
+                file = tmp / _PATTERNS[name].format(index=i)
+                file.parent.mkdir(exist_ok=True)
+                tifffile.imwrite(file, image)
+        text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None, width=100)
+        (tmp / "scan.yaml").write_text(text, encoding="utf-8")
+        with COMMIT_LOCK:
+            _swap_into_place(tmp, folder, overwrite)
     return folder
 
 
