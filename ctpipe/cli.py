@@ -689,12 +689,8 @@ def entry() -> None:
         command.start()
         while command.is_alive():
             command.join(0.05)
-    except _Terminated:
-        print("ctpipe: terminated", file=sys.stderr)
-        _end_now(128 + signal.SIGTERM)
-    except KeyboardInterrupt:
-        print("ctpipe: interrupted", file=sys.stderr)
-        _end_now(130)
+    except KeyboardInterrupt as stop:   # _Terminated too
+        _end_now(_stopped(stop))
     result = outcome[0]
     if isinstance(result, BaseException):
         raise result
@@ -719,15 +715,20 @@ def main(argv: list[str] | None = None) -> int:
         pass
     try:
         return _run(args)
-    except _Terminated:
-        print("ctpipe: terminated", file=sys.stderr)
-        return 128 + signal.SIGTERM
-    except KeyboardInterrupt:
-        print("ctpipe: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as stop:   # _Terminated too
+        return _stopped(stop)
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _stopped(stop: KeyboardInterrupt) -> int:
+    """Say on stderr how the run was stopped; its exit status (143 for SIGTERM, 130 for Ctrl-C)."""
+    if isinstance(stop, _Terminated):
+        print("ctpipe: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
+    print("ctpipe: interrupted", file=sys.stderr)
+    return 130
 
 
 def _run(args) -> int:
