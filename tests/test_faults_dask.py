@@ -27,7 +27,8 @@ from ctpipe.execution import DaskExecutor, distributed_quiet  # noqa: E402
 from ctpipe.io import open_scan  # noqa: E402
 from ctpipe.pipeline import Pipeline  # noqa: E402
 
-#: Wrappers that leave a mark ("PID-NS" in ``marks``) and sleep before each call of the stage they wrap.
+#: Wrappers that leave a mark ("PID-NS" in ``marks``) and sleep before each call of the stage they wrap
+#: (the matcher then waits while its ``gate`` file exists).
 SLOW_STAGES = '''
 import dataclasses
 import os
@@ -37,9 +38,12 @@ from pathlib import Path
 from ctpipe.stages import Detector, Matcher
 
 
-def _mark_and_wait(marks, delay_s):
+def _mark_and_wait(marks, delay_s, gate=None):
     Path(marks, f"{os.getpid()}-{time.monotonic_ns()}").touch()
     time.sleep(delay_s)
+    deadline = time.monotonic() + 60.0
+    while gate is not None and Path(gate).exists() and time.monotonic() < deadline:
+        time.sleep(0.01)   # held until the test opens the gate (removes the file)
 
 
 class _Wrapper:
@@ -68,9 +72,10 @@ class SlowMatcher(_Wrapper, Matcher):
     inner: object
     marks: str
     delay_s: float
+    gate: str
 
     def match(self, features_a, features_b):
-        _mark_and_wait(self.marks, self.delay_s)
+        _mark_and_wait(self.marks, self.delay_s, self.gate)
         return self.inner.match(features_a, features_b)
 '''
 
@@ -161,29 +166,36 @@ def test_a_worker_killed_mid_run_changes_no_angle(small_scan_folder, cluster, sl
     pipeline = Pipeline.from_config(PIPELINE)
     undisturbed = _run(pipeline, scan, projections, DaskExecutor(client))
 
-    # Matching is slowed down: ~1 s in all. Detection is over, so no task waits for the projections
-    # and Dask keeps one copy of them (its memory manager drops the others); the worker killed is
-    # the one that holds it, which also holds the features of about half the views.
+    # Matching waits at a gate until the worker is killed. Detection is over, so no task waits for
+    # the projections and Dask keeps one copy of them (its memory manager drops the others); the
+    # worker killed is the one that holds it, which also holds the features of about half the
+    # views, and is killed inside a match it has begun.
     marks = tmp_path / "marks"
     marks.mkdir()
-    slow = dataclasses.replace(pipeline, matcher=slow_stages.SlowMatcher(pipeline.matcher, str(marks), 0.02))
+    gate = tmp_path / "gate"
+    gate.touch()
+    slow = dataclasses.replace(pipeline, matcher=slow_stages.SlowMatcher(pipeline.matcher, str(marks), 0.0, str(gate)))
     executor = _Recording(client)
     pids = client.run(os.getpid)
 
     def kill_the_holder():
-        _first_mark(marks)
-        deadline = time.monotonic() + 3.0
-        while len(holders := client.who_has([executor.placed])[executor.placed.key]) != 1:
-            assert time.monotonic() < deadline, f"the projections stay on {holders}"
-            time.sleep(0.02)
-        os.kill(pids[holders[0]], signal.SIGKILL)
-        return holders[0]
+        try:
+            _first_mark(marks)
+            deadline = time.monotonic() + 30.0
+            while (len(holders := client.who_has([executor.placed])[executor.placed.key]) != 1
+                   or not any(marks.glob(f"{pids[holders[0]]}-*"))):
+                assert time.monotonic() < deadline, f"the projections stay on {holders}, or it matches nothing"
+                time.sleep(0.02)
+            os.kill(pids[holders[0]], signal.SIGKILL)
+            return holders[0]
+        finally:
+            gate.unlink()
 
     killer, killed = _in_background(kill_the_holder)
     disturbed = _run(slow, scan, projections, executor)
     killer.join(10)
     assert killed and isinstance(killed[0], str), killed   # a worker was killed (its address)
-    assert len(list(marks.iterdir())) > len(disturbed.pairs)   # mid-run: matches it had made were made again
+    assert len(list(marks.iterdir())) > len(disturbed.pairs)   # the match it was in was made again
     assert np.array_equal(disturbed.angles_deg, undisturbed.angles_deg)
     assert disturbed.pair_status == undisturbed.pair_status
 
