@@ -76,13 +76,14 @@ def test_estimate_on_a_folder_the_scanner_is_writing_stops_in_one_line(small_sca
     views = sorted((small_scan_folder / "projections").iterdir())
     shutil.copytree(small_scan_folder, scan, ignore=lambda folder, names: names if folder.endswith("projections")
                     else [])
-    started = threading.Event()
+    started, checked = threading.Event(), threading.Event()
 
     def scanner():
         for k, view in enumerate(views):
             shutil.copy(view, scan / "projections" / view.name)
             if k == 5:
                 started.set()
+                checked.wait(30)   # a slow view: however slow this machine, the scan is unfinished when read
             time.sleep(0.1)
 
     writing = threading.Thread(target=scanner, daemon=True)
@@ -97,4 +98,5 @@ def test_estimate_on_a_folder_the_scanner_is_writing_stops_in_one_line(small_sca
             in err, err
         assert not out.exists()
     finally:
+        checked.set()
         writing.join(30)
