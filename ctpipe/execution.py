@@ -30,6 +30,8 @@ Dask is optional (``pip install 'ctpipe[dask]'``); nothing here imports it until
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import time
 import uuid
@@ -202,6 +204,7 @@ class DaskExecutor(Executor):
         self._checked: set[str] = set()
         self._workers_seen: float | None = None   # when the cluster last had a worker (time.monotonic)
         self._next_check = 0.0
+        self._scheduler_lost = False   # said in one line; the client's own complaints are not repeated
 
     @classmethod
     def connect(cls, address: str | None = None, *, n_workers: int | None = None, threads_per_worker: int = 1,
@@ -317,6 +320,10 @@ class DaskExecutor(Executor):
                 for future in ready:
                     if future.status == "error":
                         _raise_task_error(future)
+                    if future.status == "cancelled":
+                        reason = _cancelled_reason(future)
+                        self._scheduler_lost = reason == _SCHEDULER_LOST
+                        raise InputError(_cancelled(future, reason))
                     if progress is not None:
                         progress(weight.get(future.key, 1))
             return self.client.gather(handles)
@@ -359,7 +366,10 @@ class DaskExecutor(Executor):
 
     def close(self) -> None:
         cluster = self.client.cluster if self._owns_cluster else None
-        self.client.close()
+        # Closing a client that lost its scheduler stops its attempts to reconnect, which it logs
+        # as an error with a traceback: the run has already said the scheduler is gone.
+        with distributed_quiet(logging.CRITICAL) if self._scheduler_lost else contextlib.nullcontext():
+            self.client.close()
         if cluster is not None:
             cluster.close()
 
@@ -398,6 +408,39 @@ def _raise_task_error(future) -> None:
         raise InputError(_all_gone(future.client.scheduler.address, f"none for {exc.timeout:.0f} s")) from None
 
 
+#: Dask's reason for the futures its client cancels when the connection to the scheduler is lost.
+_SCHEDULER_LOST = "scheduler-connection-lost"
+
+
+def _cancelled_reason(future) -> str:
+    """Why Dask cancelled ``future``, as its ``FutureCancelledError`` says."""
+    from distributed.client import FutureCancelledError
+
+    try:
+        future.result()
+    except FutureCancelledError as exc:
+        return exc.reason
+    except Exception as exc:   # distributed before 2024.4: a CancelledError without a reason
+        return type(exc).__name__
+    return "not cancelled"
+
+
+def _cancelled(future, reason: str) -> str:
+    """The line for a task cancelled by someone else than this run: the scheduler's loss, most often.
+
+    The client cancels every future at once when its connection to the scheduler is lost (reason
+    :data:`_SCHEDULER_LOST`); the results are gone with the scheduler, so the run cannot go on.
+    A task cancelled otherwise (by another client, or from the dashboard) is named with Dask's
+    reason.
+    """
+    address = future.client.scheduler.address
+    if reason == _SCHEDULER_LOST:
+        return (f"the Dask scheduler at {address} is gone (the connection to it was lost mid-run): the run cannot go "
+                f"on; start the scheduler and its workers again (their logs say why it ended) and run it again")
+    return (f"a {_stage(future.key)} task of this run was cancelled on the Dask cluster at {address} ({reason}), "
+            f"not by ctpipe: the run cannot go on; run it again")
+
+
 def _missing_modules(names: list[str]) -> list[str]:
     """Those of ``names`` this process cannot import (run on each worker)."""
     import importlib.util
@@ -423,15 +466,19 @@ def import_distributed():
 
 
 class distributed_quiet:
-    """Silence distributed's start-up chatter (port taken, ...) below warnings for a block."""
+    """Silence distributed's messages below ``level`` for a block (by default its start-up chatter: port taken, ...)."""
+
+    def __init__(self, level: int = logging.ERROR) -> None:
+        self._level = level
 
     def __enter__(self):
-        import logging
-
-        self._loggers = [logging.getLogger(name) for name in ("distributed", "bokeh")]
+        # distributed's own configuration gives some of its loggers a level (distributed.client:
+        # warning), which a level on their parent would not override.
+        names = [name for name in logging.root.manager.loggerDict if name.startswith("distributed.")]
+        self._loggers = [logging.getLogger(name) for name in ("distributed", "bokeh", *names)]
         self._levels = [logger.level for logger in self._loggers]
         for logger in self._loggers:
-            logger.setLevel(logging.ERROR)
+            logger.setLevel(self._level)
         return self
 
     def __exit__(self, *exc) -> None:

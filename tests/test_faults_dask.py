@@ -252,3 +252,64 @@ def test_a_task_whose_workers_keep_dying_stops_the_run_with_one_line(small_scan_
     finally:
         client.close()
         cluster.close()
+
+
+#: Run by a worker started before it: every detection leaves a mark (its path in the environment) and waits a minute.
+SLOW_WORKER_PRELOAD = '''
+import os
+import time
+from pathlib import Path
+
+import ctpipe.builtin.opencv_detectors as detectors
+
+
+def slow(self, image):
+    Path(os.environ["CTPIPE_TEST_MARK"]).touch()
+    time.sleep(60)
+
+
+detectors.SiftDetector.detect = slow
+'''
+
+
+def test_a_scheduler_lost_mid_run_stops_estimate_in_one_line(small_scan_folder, tmp_path):
+    # A scheduler and a worker in processes of their own, as on a cluster; the scheduler is killed
+    # while the worker detects.
+    import subprocess
+
+    schedule, mark, out = tmp_path / "scheduler.json", tmp_path / "detecting", tmp_path / "out"
+    (tmp_path / "slow_preload.py").write_text(SLOW_WORKER_PRELOAD)
+    started = []
+    try:
+        python_m = [sys.executable, "-m"]
+        started.append(subprocess.Popen([*python_m, "distributed.cli.dask_scheduler", "--scheduler-file", str(schedule),
+                                         "--host", "127.0.0.1", "--port", "0", "--dashboard-address", ":0"],
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        deadline = time.monotonic() + 60
+        while not schedule.exists():
+            assert time.monotonic() < deadline, "the scheduler never started"
+            time.sleep(0.05)
+        started.append(subprocess.Popen([*python_m, "distributed.cli.dask_worker", "--scheduler-file", str(schedule),
+                                         "--nthreads", "1", "--preload", str(tmp_path / "slow_preload.py")],
+                                        env={**os.environ, "CTPIPE_TEST_MARK": str(mark)},
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        run = subprocess.Popen([sys.executable, "-c", "from ctpipe.cli import entry; entry()", "estimate",
+                                str(small_scan_folder), "--dask", str(schedule), "--out", str(out)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        started.append(run)
+        while not mark.exists():
+            assert run.poll() is None, run.communicate()
+            assert time.monotonic() < deadline + 60, "the worker never detected"
+            time.sleep(0.05)
+        started[0].kill()
+        killed = time.monotonic()
+        _, stderr = run.communicate(timeout=60)
+        assert time.monotonic() - killed < 10
+        assert run.returncode == 2 and "Traceback" not in stderr, stderr
+        line = stderr.strip().splitlines()[-1]
+        assert line.startswith("ctpipe: error: the Dask scheduler at tcp://127.0.0.1:") and "is gone" in line, stderr
+        assert not out.exists()
+    finally:
+        for process in started:
+            process.kill()
+            process.wait()
