@@ -313,3 +313,19 @@ def test_a_scheduler_lost_mid_run_stops_estimate_in_one_line(small_scan_folder, 
         for process in started:
             process.kill()
             process.wait()
+
+
+def test_a_task_cancelled_by_someone_else_stops_the_run_with_one_line(cluster):
+    _, client = cluster
+    executor = DaskExecutor(client)
+    handles = [executor.submit(time.sleep, 5.0, name="detect") for _ in range(2)]
+    other = distributed.Client(client.scheduler.address, set_as_default=False)   # as from another session
+    try:
+        canceller, _ = _in_background(lambda: (time.sleep(0.5), other.cancel([distributed.Future(handles[0].key,
+                                                                                                   other)], force=True)))
+        with pytest.raises(InputError, match=r"^a detect task of this run was cancelled on the Dask cluster at "
+                                             r"tcp://\S+ \(.*\), not by ctpipe: the run cannot go on; run it again$"):
+            executor.gather(handles)
+        canceller.join(10)
+    finally:
+        other.close()
