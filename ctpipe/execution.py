@@ -51,6 +51,11 @@ INSTALL_DASK = "pip install 'ctpipe[dask]'"
 #: How often :meth:`DaskExecutor.gather` looks for finished tasks while it waits, seconds.
 _POLL_S = 0.05
 
+#: How long :meth:`DaskExecutor.gather` waits for the scheduler to say how many workers it has,
+#: seconds. A scheduler that is gone would make the client try to connect for its whole connect
+#: timeout (30 s); its loss is seen otherwise, and a check that got no answer is tried again.
+_ASK_S = 2.0
+
 
 class Executor:
     """Runs independent tasks; subclasses say where.
@@ -337,9 +342,11 @@ class DaskExecutor(Executor):
         if self.no_workers_timeout_s is None or now < self._next_check:
             return
         self._next_check = now + min(1.0, self.no_workers_timeout_s / 4)
+        if self.client.status != "running":
+            return   # the connection to the scheduler is lost: the client cancels the tasks, which gather says
         try:
-            workers = self.client.nthreads()
-        except OSError:  # the scheduler does not answer now; the client reconnects or cancels the tasks itself
+            workers = self.client.nthreads(callback_timeout=_ASK_S)
+        except OSError:  # no answer now (TimeoutError is an OSError): the client reconnects or cancels the tasks
             return
         if workers:
             self._workers_seen = now
@@ -358,7 +365,12 @@ class DaskExecutor(Executor):
         if not modules:
             return
         # A worker that died meanwhile cannot answer; Dask runs its tasks on the others.
-        for worker, missing in self.client.run(_missing_modules, sorted(modules), on_error="return").items():
+        try:
+            found = self.client.run(_missing_modules, sorted(modules), on_error="return")
+        except OSError as exc:   # the scheduler went away as the tasks were being sent
+            self._scheduler_lost = True
+            raise InputError(_scheduler_gone(self.client.scheduler.address, str(exc).splitlines()[0])) from None
+        for worker, missing in found.items():
             if missing and not isinstance(missing, BaseException):
                 raise InputError(f"the Dask worker at {worker} cannot import {', '.join(missing)}: every worker "
                                  f"needs the ctpipe and the plugins the client has, at the same versions")
@@ -412,6 +424,11 @@ def _raise_task_error(future) -> None:
 _SCHEDULER_LOST = "scheduler-connection-lost"
 
 
+def _scheduler_gone(address: str, how: str) -> str:
+    return (f"the Dask scheduler at {address} is gone ({how}): the run cannot go on; start the scheduler and its "
+            f"workers again (their logs say why it ended) and run it again")
+
+
 def _cancelled_reason(future) -> str:
     """Why Dask cancelled ``future``, as its ``FutureCancelledError`` says."""
     from distributed.client import FutureCancelledError
@@ -435,8 +452,7 @@ def _cancelled(future, reason: str) -> str:
     """
     address = future.client.scheduler.address
     if reason == _SCHEDULER_LOST:
-        return (f"the Dask scheduler at {address} is gone (the connection to it was lost mid-run): the run cannot go "
-                f"on; start the scheduler and its workers again (their logs say why it ended) and run it again")
+        return _scheduler_gone(address, "the connection to it was lost mid-run")
     return (f"a {_stage(future.key)} task of this run was cancelled on the Dask cluster at {address} ({reason}), "
             f"not by ctpipe: the run cannot go on; run it again")
 
