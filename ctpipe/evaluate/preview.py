@@ -171,15 +171,18 @@ def before_after(projections, geometry: Geometry, nominal_deg, corrected_deg, *,
     axial_voxel = _voxel_mm(g, max_axial_voxels)
     coarse = binned_geometry(g, factor)
     vertical_voxel = _voxel_mm(coarse, max(coarse.detector_cols, 16))
+    # One grid per cut for both angle sets, so the slices can be subtracted: the field of view
+    # depends on the axis column, which each set fits for itself; the wider one is taken.
+    n_axial = _cylinder_voxels(g, axial_voxel)
+    n_x = max(_cylinder_voxels(binned_geometry(replace(g, u0_px=u0[label]), factor), vertical_voxel)
+              for label in LABELS)
+    n_y = max(int(math.ceil(coarse.detector_rows * coarse.pixel_pitch_v_mm * g.source_to_object_mm
+                            / g.source_to_detector_mm / vertical_voxel)), 1)
     axial, vertical = {}, {}
     for label, angles in sets.items():
         at_u0 = replace(row_geometry, u0_px=u0[label])
-        n_axial = _cylinder_voxels(g, axial_voxel)
         axial[label] = _fdk(midplane[:, None, :], at_u0, angles, VolumeGrid(n_axial, 1, n_axial, axial_voxel))[0]
         coarse_at_u0 = binned_geometry(replace(g, u0_px=u0[label]), factor)
-        n_x = _cylinder_voxels(coarse_at_u0, vertical_voxel)
-        n_y = max(int(math.ceil(coarse.detector_rows * coarse.pixel_pitch_v_mm * g.source_to_object_mm
-                                / g.source_to_detector_mm / vertical_voxel)), 1)
         vertical[label] = _fdk(binned, coarse_at_u0, angles, VolumeGrid(n_x, n_y, 1, vertical_voxel))[:, 0, :]
     changed = float(np.max(np.abs(difference))) if n_views else 0.0
     return BeforeAfter(axial, vertical, axial_voxel, vertical_voxel, factor, u0, changed, scores, note)
