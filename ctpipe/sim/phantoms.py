@@ -384,13 +384,27 @@ def _add_container(builder: _Builder, c: _Container) -> None:
         builder.add(_CYLINDER, c.centre_mm, [c.radius_mm, half_height, c.radius_mm], np.eye(3), c.density_per_mm)
 
 
+#: The largest fraction of a container that placed objects' bounding spheres may fill (see :func:`_place`).
+_MAX_PACKING = 0.45
+
+
 def _place(bounding_mm: np.ndarray, c: _Container, gap_mm: float, rng: np.random.Generator, path: str,
            what: str) -> np.ndarray:
     """Centres (N, 3) for spheres of radii ``bounding_mm`` inside the cavity, ``gap_mm`` apart.
 
-    Random sequential addition, largest first, with a hash grid for the neighbour test.
+    Random sequential addition, largest first, with a hash grid for the neighbour test. Spheres
+    (each widened by half the gap) that would fill more than :data:`_MAX_PACKING` of the cavity are
+    refused at once: random sequential addition of equal spheres jams at 38 % (Talbot, Tarjus and
+    Van Tassel), a spread of sizes placed largest first gets a little further, and beyond that the
+    placement would try 2,000 spots for each of up to 200,000 objects (hours) before failing.
     """
     n = len(bounding_mm)
+    widened = np.maximum(bounding_mm + gap_mm / 2.0, 0.0)
+    filled = float(np.sum(widened ** 3)) * 4.0 / 3.0 * math.pi / (math.pi * c.radius_mm ** 2 * c.height_mm)
+    if filled > _MAX_PACKING:
+        raise ConfigError(f"{path}: the {n} {what}s (as spheres {gap_mm:g} mm apart) would fill {filled:.0%} of the "
+                          f"container, more than the {_MAX_PACKING:.0%} random placement reaches; lower count or "
+                          f"the sizes, or let them overlap with a smaller (even negative) min_gap_mm")
     order = np.argsort(-bounding_mm, kind="stable")
     centres = np.zeros((n, 3))
     cell = 2.0 * float(bounding_mm.max()) + max(gap_mm, 0.0)

@@ -74,7 +74,9 @@ def test_extent_of_centred_shapes_is_exact():
     ("objects:\n  - grains: {container: {radius_mm: 10, height_mm: 10}, count: 5, size_mm: 1, aspect: [0.5, 2], "
      "density_per_mm: 1, seed: 0}", "p.objects[0].grains.aspect: must be fractions in (0, 1]"),
     ("objects:\n  - grains: {container: {radius_mm: 5, height_mm: 5}, count: 1000, size_mm: 2, density_per_mm: 1, "
-     "seed: 0}", "p.objects[0].grains: placed only"),
+     "seed: 0}", "p.objects[0].grains: the 1000 grains (as spheres 0 mm apart) would fill 1067% of the container"),
+    ("objects:\n  - beads: {container: {radius_mm: 10, height_mm: 20}, count: 600, radius_mm: 1, density_per_mm: 1, "
+     "seed: 0}", "p.objects[0].beads: placed only"),   # 40 %: tried, and jammed
 ])
 def test_bad_phantoms_name_the_path_the_value_and_what_is_allowed(text, message):
     with pytest.raises(ConfigError) as info:
