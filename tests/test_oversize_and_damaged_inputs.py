@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -237,9 +238,88 @@ def test_cli_simulate_refuses_projections_that_would_run_for_hours(tmp_path):
     (tmp_path / "grains.yaml").write_text(yaml.safe_dump(phantom))
     (tmp_path / "scan.yaml").write_text(yaml.safe_dump(scan))
     result = run_cli("simulate", "grains.yaml", "--scan", "scan.yaml", "--out", "out", cwd=tmp_path)
-    assert_one_line_error(result, "projecting 20001 primitives into 2000 views of 1024 x 1024 at supersample 3",
-                          "ray-primitive intersections, more than the 2e+11")
+    assert_one_line_error(result, "simulating 2000 views of 1024 x 1024 at supersample 3 needs about",
+                          "ray-primitive intersections, more than the 2e+11", "fewer primitives in the cone of rays")
     assert not (tmp_path / "out").exists()
+
+
+def _never(*args, **kwargs):
+    pytest.fail("projected anyway")
+
+
+@pytest.fixture
+def plenty_of_memory(monkeypatch):
+    """Make the machine look large, so that only the work, not the memory, can refuse a simulation."""
+    monkeypatch.setattr("ctpipe._shared.resources.available_bytes", lambda: 10**14)
+
+
+def test_simulate_refuses_a_voxel_phantom_that_would_run_for_hours(tmp_path, monkeypatch, plenty_of_memory):
+    # A 64 x 512 x 64 rod along the beam: every ray that meets it samples up to 512 planes, and
+    # 2,000 views of 1,024^2 make about 1e12 samples (over an hour), so nothing is projected.
+    from ctpipe.sim.phantoms import parse_phantom
+    from ctpipe.sim.scan_spec import parse_scan_spec
+    from ctpipe.sim.simulator import check_simulation_work, simulate
+
+    np.save(tmp_path / "rod.npy", np.ones((64, 512, 64), np.uint8))
+    phantom = parse_phantom({"voxels": {"file": "rod.npy", "voxel_size_mm": 0.1}}, base_dir=tmp_path)
+    scan = {"geometry": {**big(1024, 1024), "pixel_pitch_u_mm": 0.02, "pixel_pitch_v_mm": 0.02},
+            "angles": {"n_views": 2000}}
+    monkeypatch.setattr("ctpipe.sim.projectors.VoxelProjector.forward", _never)
+    with pytest.raises(ResourceError, match=r"simulating 2000 views of 1024 x 1024 at supersample 1 needs about "
+                                            r"\S+ voxel samples, more than the 6e\+11 .*a voxel phantom of fewer voxels"):
+        simulate(phantom, parse_scan_spec(scan), rng=np.random.default_rng(0))
+    check_simulation_work(phantom, parse_scan_spec({**scan, "angles": {"n_views": 200}}))   # a tenth is taken on
+
+
+def test_simulate_counts_every_energy_bin_of_a_polychromatic_beam(monkeypatch, plenty_of_memory):
+    # One sphere is little projection work, but each of 256 energy bins is an exponential in every
+    # pixel of every view: 2,000 views of 1,024^2 make 5e11 of them.
+    pytest.importorskip("spekpy")
+    from ctpipe.sim.phantoms import parse_phantom
+    from ctpipe.sim.scan_spec import parse_scan_spec
+    from ctpipe.sim.simulator import simulate, simulation_work
+
+    phantom = parse_phantom({"objects": [{"sphere": {"radius_mm": 20, "material": "aluminium"}}]})
+    spec = {"geometry": big(1024, 1024), "angles": {"n_views": 2000}, "beam": {"kvp": 100, "energy_bins": 256}}
+    monkeypatch.setattr("ctpipe.sim.beam.polychromatic_line_integrals", _never)
+    work = simulation_work(phantom, parse_scan_spec(spec))
+    assert work["energy-bin terms"] == 2000 * 1024 * 1024 * 256 and work["ray-primitive intersections"] < 1e11
+    with pytest.raises(ResourceError, match=r"needs about \S+ ray-primitive intersections \(of 2e\+11\) and about "
+                                            r"5\.4e\+11 energy-bin terms \(of 1e\+11\), \d+\.\d times the work .*"
+                                            r"fewer beam.energy_bins"):
+        simulate(phantom, parse_scan_spec(spec), rng=np.random.default_rng(0))
+
+
+def test_validate_refuses_two_simulations_that_would_run_for_hours_before_the_first(tmp_path):
+    # Each scan alone needs about 1.2e11 intersections; validate simulates two.
+    phantom = {"objects": [{"grains": {"container": {"radius_mm": 60, "height_mm": 120, "density_per_mm": 0.01},
+                                       "count": 20_000, "size_mm": [2, 4], "density_per_mm": [0.02, 0.04],
+                                       "min_gap_mm": 0.0, "seed": 1}}]}
+    (tmp_path / "grains.yaml").write_text(yaml.safe_dump(phantom))
+    experiment = {"phantom": "grains.yaml", "scan": {
+        "geometry": {**SMALL, "detector_rows": 1024, "detector_cols": 1024, "pixel_pitch_u_mm": 0.4,
+                     "pixel_pitch_v_mm": 0.4}, "angles": {"n_views": 600}, "projector": {"supersample": 3}},
+        "reconstruction": {"grid_size": 64}}
+    (tmp_path / "exp.yaml").write_text(yaml.safe_dump(experiment))
+    result = run_cli("validate", "exp.yaml", "--out", "out", cwd=tmp_path)
+    assert_one_line_error(result, "exp.yaml: simulating 2 scans of 600 views of 1024 x 1024 at supersample 3 needs about",
+                          "more than the 2e+11")
+    assert not (tmp_path / "out").exists()
+
+
+def test_objects_that_cannot_be_packed_are_refused_at_once(tmp_path):
+    # 200,000 beads of 0.2 mm radius would fill 107 % of this container: random placement gave up after
+    # 45 s (placing 54,000 of them); it is refused before the first is placed.
+    from ctpipe.sim.phantoms import parse_phantom
+
+    beads = {"container": {"radius_mm": 10, "height_mm": 20, "density_per_mm": 0.01}, "count": 200_000,
+             "radius_mm": [0.2, 0.2], "density_per_mm": [0.02, 0.08], "min_gap_mm": 0.0, "seed": 1}
+    start = time.perf_counter()
+    with pytest.raises(ConfigError, match=r"phantom.objects\[0\].beads: the 200000 beads .* would fill 107% of the "
+                                          r"container, more than the 45% random placement reaches"):
+        parse_phantom({"objects": [{"beads": beads}]})
+    assert time.perf_counter() - start < 5.0   # refused, not tried (45 s of placement before)
+    parse_phantom({"objects": [{"beads": {**beads, "count": 5_000}}]})   # 3 %: placed
 
 
 def test_validate_short_scan_message_names_the_experiment_setting():

@@ -55,7 +55,7 @@ import numpy as np
 
 from ctpipe._shared.resources import FLOAT32, check_fits, memory_guard
 from ctpipe.config import PipelineConfig, check_keys, load_yaml, parse_pipeline
-from ctpipe.errors import ConfigError, InputError
+from ctpipe.errors import ConfigError, InputError, ResourceError
 from ctpipe.recon.feldkamp import bin_detector, binned_geometry
 from ctpipe.recon.volume import VolumeGrid
 from ctpipe.registry import StageRegistry
@@ -164,22 +164,29 @@ def check_experiment(settings: ValidateSettings, *, path: str = "experiment") ->
     voxels inside the object.
 
     Also refuses, before anything is allocated, a run whose two simulated scans and volumes
-    cannot fit in the memory available.
+    cannot fit in the memory available, or whose two simulations would take too long
+    (:func:`ctpipe.sim.simulator.check_simulation_work`).
 
     Raises
     ------
     ConfigError
         One line naming the YAML path, the value and what is allowed.
     ctpipe._shared.resources.ResourceError
-        The run needs more memory than is available (the message names the sizes and what to lower).
+        The run needs more memory than is available, or more work than ctpipe takes on in a
+        simulation (the message names the sizes and what to lower).
     """
     from ctpipe.evaluate.scoring import support_mask
     from ctpipe.recon.feldkamp import covers_full_circle, short_scan_minimum_deg
+    from ctpipe.sim.simulator import check_simulation_work
     from ctpipe.solve.graph import view_pairs
 
     scan = settings.scan
     what, n_bytes, of, hint = _run_size(settings, path)
     check_fits(what, n_bytes, of=of, hint=hint)
+    try:
+        check_simulation_work(settings.phantom, scan, scans=2)
+    except ResourceError as exc:
+        raise ResourceError(f"{path}: {exc}") from None
     nominal = scan.nominal_angles_deg()
     try:
         # simulate() draws the jitter first from default_rng(seed): these are the true angles.

@@ -19,7 +19,7 @@ from ctpipe.geometry import Geometry
 from ctpipe.recon.volume import VolumeGrid
 
 __all__ = ["SimulatedScan", "project_phantom", "simulate", "simulation_bytes", "check_simulation_fits",
-           "voxelise_phantom", "write_simulated_scan"]
+           "simulation_work", "check_simulation_work", "voxelise_phantom", "write_simulated_scan"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,6 +113,71 @@ def check_simulation_fits(spec, *, scans: int = 1, hint: str | None = None) -> N
                simulation_bytes(spec, scans=scans), hint=hint)
 
 
+def simulation_work(phantom, spec) -> dict[str, float]:
+    """The work of :func:`simulate` of ``phantom`` in ``spec``, by kind, each an upper bound.
+
+    ``"ray-primitive intersections"`` of the analytic projector (the phantom's primitives and the
+    holder's, :func:`ctpipe.sim.projectors.analytic_work`), ``"voxel samples"`` of the voxel
+    projector (a voxel phantom, :func:`ctpipe.sim.projectors.voxel_work`) and ``"energy-bin terms"``
+    of a polychromatic beam (one exponential per pixel, view and energy bin). Counted at the nominal
+    angles on the nominal detector: the jitter and a misalignment move the shapes by far less than
+    a bound's slack.
+    """
+    from ctpipe.sim.projectors import analytic_work, voxel_work
+
+    g, angles = spec.geometry, spec.nominal_angles_deg()
+    supersample = spec.projector.supersample
+    work = {"ray-primitive intersections": 0.0, "voxel samples": 0.0, "energy-bin terms": 0.0}
+    if phantom.primitives is not None:
+        work["ray-primitive intersections"] += analytic_work(phantom.primitives, g, angles, supersample=supersample)
+    else:
+        work["voxel samples"] += voxel_work(g, phantom.grid, angles)
+    holder = getattr(spec, "holder", None)
+    for objects in holder.placed(phantom) if holder is not None else ():
+        if len(objects):   # a static holder turns with nothing, but may be projected in every view: counted so
+            work["ray-primitive intersections"] += analytic_work(objects, g, angles, supersample=supersample)
+    beam = getattr(spec, "beam", None)
+    if beam is not None:
+        bins = 1 if beam.energy_kev is not None else beam.energy_bins
+        work["energy-bin terms"] += float(spec.n_views) * g.detector_rows * g.detector_cols * bins
+    return work
+
+
+def check_simulation_work(phantom, spec, *, scans: int = 1) -> None:
+    """Raise :class:`ctpipe.errors.ResourceError` when ``scans`` simulations of ``spec`` would run too long.
+
+    Each kind of :func:`simulation_work` has a limit worth about 10-20 minutes on two cores
+    (:data:`~ctpipe.sim.projectors.MAX_SUB_RAYS`, :data:`~ctpipe.sim.projectors.MAX_VOXEL_STEPS`,
+    :data:`~ctpipe.sim.beam.MAX_ENERGY_TERMS`); a simulation that needs more than that in all,
+    the shares of the limits added up, is refused before anything is projected, naming the work,
+    its limit and what to lower.
+    """
+    from ctpipe.errors import ResourceError
+    from ctpipe.sim.beam import MAX_ENERGY_TERMS
+    from ctpipe.sim.projectors import MAX_SUB_RAYS, MAX_VOXEL_STEPS
+
+    limits = {"ray-primitive intersections": MAX_SUB_RAYS, "voxel samples": MAX_VOXEL_STEPS,
+              "energy-bin terms": MAX_ENERGY_TERMS}
+    lower = {"ray-primitive intersections": "fewer primitives in the cone of rays",
+             "voxel samples": "a voxel phantom of fewer voxels", "energy-bin terms": "fewer beam.energy_bins"}
+    work = {kind: scans * amount for kind, amount in simulation_work(phantom, spec).items() if amount > 0}
+    load = sum(amount / limits[kind] for kind, amount in work.items())
+    if load <= 1.0:
+        return
+    g = spec.geometry
+    what = (f"simulating {'' if scans == 1 else f'{scans} scans of '}{spec.n_views} views of {g.detector_rows} x "
+            f"{g.detector_cols} at supersample {spec.projector.supersample}")
+    if len(work) == 1:
+        (kind, amount), = work.items()
+        needs = f"about {amount:.1e} {kind}, more than the {limits[kind]:.0e}"
+    else:
+        needs = (" and ".join(f"about {amount:.1e} {kind} (of {limits[kind]:.0e})" for kind, amount in work.items())
+                 + f", {load:.1f} times the work")
+    hints = ", ".join(lower[kind] for kind in work)
+    raise ResourceError(f"{what} needs {needs} (10-20 minutes on two cores) ctpipe takes on in one simulation; use "
+                        f"fewer views, a smaller detector or supersample, or {hints}")
+
+
 def simulate(phantom, spec, *, rng: np.random.Generator, jitter: bool = True,
              progress: Callable[[int], object] | None = None) -> SimulatedScan:
     """Simulate the scan ``spec`` of ``phantom``.
@@ -130,9 +195,11 @@ def simulate(phantom, spec, *, rng: np.random.Generator, jitter: bool = True,
     Raises
     ------
     ctpipe._shared.resources.ResourceError
-        The scan cannot fit in the memory available (checked before anything is allocated).
+        The scan cannot fit in the memory available, or would take too long
+        (:func:`check_simulation_work`): checked before anything is allocated.
     """
     check_simulation_fits(spec, hint="use fewer views, a smaller detector or fewer flat/dark frames")
+    check_simulation_work(phantom, spec)
     with memory_guard(f"simulating {spec.n_views} views of {spec.geometry.detector_rows} x "
                       f"{spec.geometry.detector_cols}", simulation_bytes(spec)):
         return _simulate(phantom, spec, rng, jitter, progress)
