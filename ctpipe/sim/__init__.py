@@ -12,8 +12,8 @@ scans in :mod:`ctpipe.io`. ``docs/simulation.md`` has the conventions and figure
 """
 
 from ctpipe.sim.acquisition import NoiseModel, acquire, beer_lambert, parse_noise
-from ctpipe.sim.beam import (ANODES, DETECTOR_RESPONSES, Beam, beam_spectrum, effective_energy_kev, parse_beam,
-                             polychromatic_line_integrals)
+from ctpipe.sim.beam import (ANODES, DETECTOR_RESPONSES, MAX_ENERGY_TERMS, Beam, beam_spectrum, effective_energy_kev,
+                             parse_beam, polychromatic_line_integrals)
 from ctpipe.sim.detector import (FULL_SCALE_PER_FLAT, MAX_STUCK_FRACTION, DetectorModel, DetectorPattern,
                                  detected_line_integrals, draw_pattern, parse_detector, record, scatter_counts)
 from ctpipe.sim.drift import DetectorDrift, Misalignment, parse_misalignment, resample_to_detector
@@ -23,10 +23,11 @@ from ctpipe.sim.materials import (INSTALL_BEAM, MATERIALS, REFERENCE_KEV, Materi
                                   element_density_g_cm3, mass_attenuation_cm2_g, resolve_material)
 from ctpipe.sim.phantoms import ELECTRONIC_MATERIALS, Phantom, list_phantoms, load_phantom, parse_objects, parse_phantom
 from ctpipe.sim.primitives import Primitives, voxelise
-from ctpipe.sim.projectors import VoxelProjector, project_analytic
+from ctpipe.sim.projectors import (MAX_SUB_RAYS, MAX_VOXEL_STEPS, VoxelProjector, analytic_work, project_analytic,
+                                   voxel_work)
 from ctpipe.sim.scan_spec import AngleSpec, ProjectorSpec, ScanSpec, load_scan_spec, parse_scan_spec
-from ctpipe.sim.simulator import (SimulatedScan, project_phantom, simulate, simulation_bytes, voxelise_phantom,
-                                  write_simulated_scan)
+from ctpipe.sim.simulator import (SimulatedScan, check_simulation_fits, check_simulation_work, project_phantom,
+                                  simulate, simulation_bytes, simulation_work, voxelise_phantom, write_simulated_scan)
 
 __all__ = ["simulate", "SimulatedScan", "write_simulated_scan", "project_phantom", "voxelise_phantom",
            "simulation_bytes", "Phantom", "load_phantom", "parse_phantom", "list_phantoms", "Primitives", "voxelise",
@@ -40,3 +41,5 @@ __all__ += ["Beam", "parse_beam", "beam_spectrum", "effective_energy_kev", "poly
             "mass_attenuation_cm2_g", "element_density_g_cm3", "beam_libraries_missing"]
 __all__ += ["Misalignment", "DetectorDrift", "parse_misalignment", "resample_to_detector"]
 __all__ += ["Holder", "parse_holder", "HOLDER_ORIGINS", "parse_objects", "ELECTRONIC_MATERIALS"]
+__all__ += ["simulation_work", "check_simulation_work", "check_simulation_fits", "analytic_work", "voxel_work",
+            "MAX_SUB_RAYS", "MAX_VOXEL_STEPS", "MAX_ENERGY_TERMS"]
