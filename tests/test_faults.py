@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 # The real console entry point with one long call patched in; the first call leaves a mark so the
@@ -215,3 +216,122 @@ def test_discard_pending_removes_what_other_threads_had_not_committed(tmp_path):
     release.set()
     worker.join(10)
     assert failed and (tmp_path / "result.json").read_text() == "previous"
+
+
+# Real work, nothing patched: a simulation, an estimate and a validate of simulated scans, each
+# signalled while it computes. When the work has begun is read off the run itself: the lines it
+# prints, or the CPU time its process has used (machine-independent enough that the signal lands
+# in the same stage on a faster or slower host).
+GRANULAR_360 = {   # 360 views of 256 x 192: detection ~5 s, the projection-matching refiner ~45 s (2 cores)
+    "geometry": {"source_to_object_mm": 250.0, "source_to_detector_mm": 500.0, "detector_cols": 256,
+                 "detector_rows": 192, "pixel_pitch_u_mm": 0.4, "pixel_pitch_v_mm": 0.4},
+    "angles": {"n_views": 360}, "jitter": [{"gaussian": {"sigma_deg": 0.2}}], "seed": 0}
+GRANULAR_1000 = {**GRANULAR_360, "angles": {"n_views": 1000},   # projected for ~70 s (2 cores)
+                 "geometry": {**GRANULAR_360["geometry"], "detector_cols": 512, "detector_rows": 512,
+                              "pixel_pitch_u_mm": 0.2, "pixel_pitch_v_mm": 0.2},
+                 "projector": {"supersample": 2, "blur_px": 0.5}}
+# FDK of 120 views onto a 384^3 grid: ~6 s, after a second of bundle adjustment.
+FDK_EXPERIMENT = {"phantom": "granular", "scan": {**GRANULAR_360, "angles": {"n_views": 120}},
+                  "pipeline": {"refiner": {"name": "bundle-adjustment"}, "pairs": {"baselines": [1, 2]}},
+                  "reconstruction": {"grid_size": 384, "detector_binning": 1}}
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) process ``pid`` has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _signal_mid_run(command: list[str], begun, sig: int, cwd: Path) -> tuple[int, str, float]:
+    """Start ``command``; send ``sig`` once ``begun(stdout, stderr, pid)`` is true: (exit status, stderr, seconds to end)."""
+    import threading
+
+    def child() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)   # see _signal_once_marked
+        os.setpgrp()
+
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd,
+                            preexec_fn=child)
+    said = {"out": [], "err": []}
+    readers = [threading.Thread(target=lambda stream, lines: lines.extend(stream), args=(stream, said[name]),
+                                daemon=True) for name, stream in (("out", proc.stdout), ("err", proc.stderr))]
+    for reader in readers:
+        reader.start()
+    try:
+        deadline = time.monotonic() + 300
+        while not begun("".join(said["out"]), "".join(said["err"]), proc.pid):
+            assert proc.poll() is None, f"ended before the signal: {''.join(said['err'])}"
+            assert time.monotonic() < deadline, "the work never began"
+            time.sleep(0.02)
+        sent = time.monotonic()
+        proc.send_signal(sig)
+        proc.wait(timeout=30)
+        took = time.monotonic() - sent
+        for reader in readers:
+            reader.join(5)
+        return proc.returncode, "".join(said["err"]), took
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+def _after(text: str, stream: str = "out", cpu_s: float = 0.0):
+    """``begun`` for :func:`_signal_mid_run`: once ``text`` was printed and the process has used ``cpu_s`` more."""
+    seen = {}
+
+    def begun(out: str, err: str, pid: int) -> bool:
+        if text not in (out if stream == "out" else err):
+            return False
+        seen.setdefault("cpu", _cpu_s(pid))
+        return _cpu_s(pid) >= seen["cpu"] + cpu_s
+
+    return begun
+
+
+@pytest.fixture(scope="module")
+def granular_360(tmp_path_factory):
+    import yaml
+
+    from ctpipe.io.scan_folder import write_scan
+    from ctpipe.sim import load_phantom, parse_scan_spec, simulate
+
+    spec = parse_scan_spec(GRANULAR_360)
+    scan = simulate(load_phantom("granular"), spec, rng=np.random.default_rng(0))
+    folder = tmp_path_factory.mktemp("granular")
+    (folder / "scan-1000.yaml").write_text(yaml.safe_dump(GRANULAR_1000))
+    (folder / "fdk.yaml").write_text(yaml.safe_dump(FDK_EXPERIMENT))
+    write_scan(folder / "scan", scan.projections, spec.geometry, scan.nominal_angles_deg, scan.true_angles_deg)
+    return folder
+
+
+REAL_RUNS = {
+    # (arguments after "ctpipe", when the work has begun, where it then is)
+    "simulate": (["simulate", "granular", "--scan", "scan-1000.yaml", "--out", "{out}"],
+                 lambda out, err, pid: _cpu_s(pid) >= 6.0, "projecting the 1,000 views"),
+    "estimate-detect": (["estimate", "scan", "--out", "{out}"], _after("nominal angles:"), "detecting keypoints"),
+    "estimate-refine": (["estimate", "scan", "--out", "{out}"], _after("nominal angles:", cpu_s=30.0),
+                        "in the projection-matching refiner"),
+    "validate-fdk": (["validate", "fdk.yaml", "--out", "{out}"], _after("ctpipe: reconstructing (FDK", "err"),
+                     "reconstructing by FDK"),
+}
+
+
+@pytest.mark.parametrize("run, sig, code, said", [
+    ("simulate", signal.SIGTERM, 143, "ctpipe: terminated"),
+    ("estimate-detect", signal.SIGINT, 130, "ctpipe: interrupted"),
+    ("estimate-refine", signal.SIGTERM, 143, "ctpipe: terminated"),
+    ("validate-fdk", signal.SIGINT, 130, "ctpipe: interrupted"),
+])
+def test_a_signal_ends_a_real_long_run_within_two_seconds(granular_360, run, sig, code, said):
+    if not Path("/proc/self/stat").exists():
+        pytest.skip("reads the run's CPU time from /proc")
+    argv, begun, where = REAL_RUNS[run]
+    out = f"out-{run}"
+    before = sorted(p.name for p in granular_360.iterdir())
+    returncode, stderr, took = _signal_mid_run([sys.executable, "-m", "ctpipe.cli", *[a.format(out=out) for a in argv]],
+                                               begun, sig, granular_360)
+    assert returncode == code and stderr.strip().endswith(said), stderr
+    assert "Traceback" not in stderr
+    assert took < 2.0, f"ended {took:.1f} s after the signal, {where}"
+    assert sorted(p.name for p in granular_360.iterdir()) == before   # no output, no temporary left
