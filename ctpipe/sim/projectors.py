@@ -54,6 +54,9 @@ __all__ = ["project_analytic", "analytic_work", "voxel_work", "VoxelProjector", 
 # Views per call of the analytic kernel: paces ``progress`` without starving the threads.
 _CHUNK_VIEWS = 16
 
+# Voxel samples per call of the forward projection's kernel: about a second on two cores.
+_SAMPLES_PER_CALL = 1e9
+
 #: The most sub-ray/primitive intersections :func:`project_analytic` takes on (counted on the
 #: pixel boxes it visits, an upper bound). The default validate scan needs 1.2e9 (360 views at
 #: supersample 2), 4-8 s on two cores; 2e11, 160 times that, takes 10-20 minutes. Larger
@@ -821,7 +824,13 @@ class VoxelProjector:
         vol_y = np.zeros(shape_y[1:], dtype=np.float32)
         _to_layouts(volume, vol_x, vol_z, vol_y, self._with_y)
         out = np.empty((common[0].size, *self._geometry.shape), dtype=np.float32)
-        _forward(out, vol_x, vol_z, vol_y, *common)
+        # A chunk of views per call, about a second of work each (views are independent: the same
+        # numbers as one call), so that Ctrl-C reaches a Python caller between two of them.
+        samples_per_view = self._geometry.detector_rows * self._geometry.detector_cols * max(self._grid.shape)
+        chunk = max(2 * numba.get_num_threads(), int(_SAMPLES_PER_CALL // samples_per_view))
+        for start in range(0, out.shape[0], chunk):
+            part = slice(start, start + chunk)
+            _forward(out[part], vol_x, vol_z, vol_y, common[0][part], common[1][part], *common[2:])
         return out
 
     def forward_pair(self, first: np.ndarray, second: np.ndarray, angles_deg, *,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -250,6 +251,26 @@ def test_adjoint_identity():
     lhs = np.dot(projector.forward(x, angles).ravel().astype(np.float64), y.ravel())
     rhs = np.dot(x.ravel().astype(np.float64), projector.back(y, angles).ravel())
     assert lhs > 0 and lhs == pytest.approx(rhs, rel=1e-3)
+
+
+def test_forward_runs_a_chunk_of_views_per_kernel_call_with_the_numbers_of_one_call(monkeypatch):
+    # A long projection returns to Python between chunks (where Ctrl-C is seen), to the bit the same.
+    import ctpipe.sim.projectors as projectors
+
+    geometry = Geometry(100.0, 150.0, 40, 48, 3.0, 5.0, u0_px=21.2, v0_px=22.7)
+    grid = VolumeGrid(24, 20, 22, 1.5, centre_mm=(1.0, -2.0, 0.5))
+    rng = np.random.default_rng(9)
+    volume = rng.normal(size=grid.shape).astype(np.float32)
+    angles = rng.uniform(0, 360, 11)
+    whole = VoxelProjector(geometry, grid).forward(volume, angles)
+    calls = []
+    kernel = projectors._forward
+    monkeypatch.setattr(projectors, "_forward", lambda out, *args: (calls.append(len(out)), kernel(out, *args)))
+    monkeypatch.setattr(projectors, "_SAMPLES_PER_CALL", 40 * 48 * 24 * 4.5)   # 4 views a call, at least 2 x threads
+    chunked = VoxelProjector(geometry, grid).forward(volume, angles)
+    size = max(4, 2 * numba.get_num_threads())
+    assert calls == [min(size, 11 - start) for start in range(0, 11, size)]
+    np.testing.assert_array_equal(chunked, whole)
 
 
 def test_forward_pair_is_two_forwards_in_chunks():
