@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ctpipe.errors import ConfigError, CtpipeError, InputError, OutputError
+from ctpipe.errors import ClusterError, ConfigError, CtpipeError, InputError, OutputError
 
 __all__ = ["main"]
 
@@ -734,14 +734,15 @@ def _stopped(stop: KeyboardInterrupt) -> int:
 def _run(args) -> int:
     """Run the parsed command; a user's error is one line on stderr and exit status 2.
 
-    A result that could not be written (a full disk) is one line too, with exit status 1: it is
-    not the input's fault, and the run can be repeated as it was once there is room.
+    A result that could not be written (a full disk) or a Dask cluster that cannot go on is one
+    line too, with exit status 1: it is not the input's fault, and the run can be repeated as it
+    was once there is room or a cluster.
     """
     try:
         return args.run(args)
     except CtpipeError as exc:
         print(f"ctpipe: error: {exc}", file=sys.stderr)
-        return 1 if isinstance(exc, OutputError) else 2
+        return 1 if isinstance(exc, (OutputError, ClusterError)) else 2
 
 
 if __name__ == "__main__":  # pragma: no cover

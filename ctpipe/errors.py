@@ -1,13 +1,15 @@
 """Exceptions that carry a one-line message meant for the user.
 
 The CLI prints ``str(exc)`` of these on one line and exits with status 2 (1 for
-:class:`OutputError`, which is not the user's input); anything else is a bug and keeps its
+:class:`OutputError` and :class:`ClusterError`, faults of the machine rather than of the user's
+input: the same command works once they are mended); anything else is a bug and keeps its
 traceback.
 """
 
 from __future__ import annotations
 
-__all__ = ["CtpipeError", "ConfigError", "InputError", "ResourceError", "PluginError", "EstimationError", "OutputError"]
+__all__ = ["CtpipeError", "ConfigError", "InputError", "ResourceError", "PluginError", "EstimationError", "OutputError",
+           "ClusterError"]
 
 
 class CtpipeError(Exception):
@@ -36,3 +38,8 @@ class EstimationError(CtpipeError):
 
 class OutputError(CtpipeError):
     """A result could not be written (the disk or the quota is full); earlier results are unchanged."""
+
+
+class ClusterError(CtpipeError):
+    """The Dask cluster cannot go on with the run: its scheduler or every worker is gone, or the
+    workers running one task keep dying. Nothing is written."""

@@ -15,8 +15,8 @@ tasks to an executor and never cares where they run:
 A worker that dies mid-run costs time, not results: Dask runs its tasks again on the others
 (the values given with :meth:`~Executor.scatter` included, see :meth:`DaskExecutor.scatter`)
 and every task's seed goes with it, so the angles are those of an undisturbed run. A run that
-cannot go on -- a task whose workers keep dying, or every worker gone -- stops with one line
-(:class:`~ctpipe.errors.InputError`), not a traceback or a wait for ever.
+cannot go on -- a task whose workers keep dying, every worker gone, the scheduler gone -- stops
+with one line (:class:`~ctpipe.errors.ClusterError`), not a traceback or a wait for ever.
 
 Both backends take the same calls: :meth:`~Executor.scatter` places a value where tasks run,
 :meth:`~Executor.submit` starts a task whose arguments may hold handles of earlier tasks
@@ -41,7 +41,7 @@ from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
 from typing import Any
 
 from ctpipe._shared.resources import available_cores
-from ctpipe.errors import InputError
+from ctpipe.errors import ClusterError, InputError
 
 __all__ = ["Executor", "ThreadExecutor", "DaskExecutor", "available_cores", "INSTALL_DASK"]
 
@@ -190,7 +190,7 @@ class DaskExecutor(Executor):
         Whether the scheduler serves the dashboard; None: ask the scheduler.
     no_workers_timeout_s : float or None
         How long a run waits for new workers once every worker of the cluster is gone, before
-        it stops with an :class:`~ctpipe.errors.InputError`; None: as long as it takes. The
+        it stops with a :class:`~ctpipe.errors.ClusterError`; None: as long as it takes. The
         nannies of a LocalCluster start a killed worker again within seconds; a batch system
         may take longer. A cluster that has not had a worker yet (its jobs still queued) is
         waited for however long it takes.
@@ -328,7 +328,7 @@ class DaskExecutor(Executor):
                     if future.status == "cancelled":
                         reason = _cancelled_reason(future)
                         self._scheduler_lost = reason == _SCHEDULER_LOST
-                        raise InputError(_cancelled(future, reason))
+                        raise ClusterError(_cancelled(future, reason))
                     if progress is not None:
                         progress(weight.get(future.key, 1))
             return self.client.gather(handles)
@@ -337,7 +337,7 @@ class DaskExecutor(Executor):
             raise
 
     def _check_workers_left(self) -> None:
-        """Raise InputError once every worker has been gone ``no_workers_timeout_s`` (asks at most every second)."""
+        """Raise ClusterError once every worker has been gone ``no_workers_timeout_s`` (asks at most every second)."""
         now = time.monotonic()
         if self.no_workers_timeout_s is None or now < self._next_check:
             return
@@ -351,7 +351,7 @@ class DaskExecutor(Executor):
         if workers:
             self._workers_seen = now
         elif self._workers_seen is not None and now - self._workers_seen >= self.no_workers_timeout_s:
-            raise InputError(_all_gone(self.client.scheduler.address, f"none for {now - self._workers_seen:.0f} s"))
+            raise ClusterError(_all_gone(self.client.scheduler.address, f"none for {now - self._workers_seen:.0f} s"))
 
     def _check_imports(self, modules: set) -> None:
         """Refuse to send a task whose code a worker cannot import.
@@ -369,7 +369,7 @@ class DaskExecutor(Executor):
             found = self.client.run(_missing_modules, sorted(modules), on_error="return")
         except OSError as exc:   # the scheduler went away as the tasks were being sent
             self._scheduler_lost = True
-            raise InputError(_scheduler_gone(self.client.scheduler.address, str(exc).splitlines()[0])) from None
+            raise ClusterError(_scheduler_gone(self.client.scheduler.address, str(exc).splitlines()[0])) from None
         for worker, missing in found.items():
             if missing and not isinstance(missing, BaseException):
                 raise InputError(f"the Dask worker at {worker} cannot import {', '.join(missing)}: every worker "
@@ -411,13 +411,13 @@ def _raise_task_error(future) -> None:
     except KilledWorker as exc:
         # The same task killed its worker again and again (or the cluster is falling apart):
         # Dask stops trying after allowed-failures + 1 deaths instead of killing every worker.
-        raise InputError(
+        raise ClusterError(
             f"the Dask workers running a {_stage(exc.task)} task died while running it: "
             f"{exc.allowed_failures + 1} died, the last at {exc.last_worker.address}, and Dask gives a task up then "
             f"(distributed.scheduler.allowed-failures); that worker's log says why, most often too little memory "
             f"for a task (give each worker more, or fewer threads)") from None
     except NoWorkerError as exc:   # the scheduler's own distributed.scheduler.no-workers-timeout
-        raise InputError(_all_gone(future.client.scheduler.address, f"none for {exc.timeout:.0f} s")) from None
+        raise ClusterError(_all_gone(future.client.scheduler.address, f"none for {exc.timeout:.0f} s")) from None
 
 
 #: Dask's reason for the futures its client cancels when the connection to the scheduler is lost.
