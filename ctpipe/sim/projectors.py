@@ -58,7 +58,7 @@ _CHUNK_VIEWS = 16
 _SAMPLES_PER_CALL = 1e9
 
 #: The most sub-ray/primitive intersections :func:`project_analytic` takes on (counted on the
-#: pixel boxes it visits, an upper bound). The default validate scan needs 1.2e9 (360 views at
+#: pixel boxes it visits, an upper bound). The default validate scan needs 1.3e9 (360 views at
 #: supersample 2), 4-8 s on two cores; 2e11, 160 times that, takes 10-20 minutes. Larger
 #: requests are refused before any work.
 MAX_SUB_RAYS = 2e11
