@@ -272,21 +272,28 @@ def test_simulate_refuses_a_voxel_phantom_that_would_run_for_hours(tmp_path, mon
 
 
 def test_simulate_counts_every_energy_bin_of_a_polychromatic_beam(monkeypatch, plenty_of_memory):
-    # One sphere is little projection work, but each of 256 energy bins is an exponential in every
+    # A sphere is little projection work, but each of 256 energy bins is an exponential in every
     # pixel of every view: 2,000 views of 1,024^2 make 5e11 of them.
     pytest.importorskip("spekpy")
     from ctpipe.sim.phantoms import parse_phantom
     from ctpipe.sim.scan_spec import parse_scan_spec
     from ctpipe.sim.simulator import simulate, simulation_work
 
-    phantom = parse_phantom({"objects": [{"sphere": {"radius_mm": 20, "material": "aluminium"}}]})
+    phantom = parse_phantom({"objects": [{"sphere": {"radius_mm": 20, "material": "aluminium",
+                                                     "centre_mm": [10, 0, 0]}}]})
     spec = {"geometry": big(1024, 1024), "angles": {"n_views": 2000}, "beam": {"kvp": 100, "energy_bins": 256}}
     monkeypatch.setattr("ctpipe.sim.beam.polychromatic_line_integrals", _never)
     work = simulation_work(phantom, parse_scan_spec(spec))
-    assert work["energy-bin terms"] == 2000 * 1024 * 1024 * 256 and work["ray-primitive intersections"] < 1e11
+    assert work["energy-bin terms"] == 2000 * 1024 * 1024 * 256 and work["ray-primitive intersections"] < 1e9
+    with pytest.raises(ResourceError, match=r"at supersample 1 needs about 5\.4e\+11 energy-bin terms, more than the "
+                                            r"1e\+11 .*; use fewer views, a smaller detector or supersample or fewer "
+                                            r"beam.energy_bins$"):
+        simulate(phantom, parse_scan_spec(spec), rng=np.random.default_rng(0))
+    # 40 bins are 84 % of the limit, supersample 16 a quarter of the projectors': together too much.
+    spec = {**spec, "beam": {"kvp": 100, "energy_bins": 40}, "projector": {"supersample": 16}}
     with pytest.raises(ResourceError, match=r"needs about \S+ ray-primitive intersections \(of 2e\+11\) and about "
-                                            r"5\.4e\+11 energy-bin terms \(of 1e\+11\), \d+\.\d times the work .*"
-                                            r"fewer beam.energy_bins"):
+                                            r"8\.4e\+10 energy-bin terms \(of 1e\+11\), 1\.\d times the work .*"
+                                            r"fewer primitives in the cone of rays or fewer beam.energy_bins$"):
         simulate(phantom, parse_scan_spec(spec), rng=np.random.default_rng(0))
 
 

@@ -164,6 +164,8 @@ def check_simulation_work(phantom, spec, *, scans: int = 1) -> None:
     load = sum(amount / limits[kind] for kind, amount in work.items())
     if load <= 1.0:
         return
+    # The message names the kinds that make up the load (a twentieth of it or more).
+    work = {kind: amount for kind, amount in work.items() if amount / limits[kind] >= load / 20}
     g = spec.geometry
     what = (f"simulating {'' if scans == 1 else f'{scans} scans of '}{spec.n_views} views of {g.detector_rows} x "
             f"{g.detector_cols} at supersample {spec.projector.supersample}")
@@ -173,9 +175,9 @@ def check_simulation_work(phantom, spec, *, scans: int = 1) -> None:
     else:
         needs = (" and ".join(f"about {amount:.1e} {kind} (of {limits[kind]:.0e})" for kind, amount in work.items())
                  + f", {load:.1f} times the work")
-    hints = ", ".join(lower[kind] for kind in work)
+    hints = ["fewer views", "a smaller detector or supersample", *(lower[kind] for kind in work)]
     raise ResourceError(f"{what} needs {needs} (10-20 minutes on two cores) ctpipe takes on in one simulation; use "
-                        f"fewer views, a smaller detector or supersample, or {hints}")
+                        f"{', '.join(hints[:-1])} or {hints[-1]}")
 
 
 def simulate(phantom, spec, *, rng: np.random.Generator, jitter: bool = True,
