@@ -385,7 +385,7 @@ def analytic_work(primitives: Primitives, geometry: Geometry, angles_deg, *, sup
     theta = np.deg2rad(as_angles_deg(angles_deg))
     u0_v, v0_v = _principal_points(geometry, theta.size, None)
     still = _turn_invariant(primitives)
-    corners = _box_corners(primitives)
+    corners = _box_corners(primitives.centre_mm, primitives.half_size_mm, primitives.rotation)
     return _work(corners[~still], corners[still], geometry, theta, u0_v, v0_v, 1.0, 0.0, supersample)
 
 
@@ -399,9 +399,7 @@ def voxel_work(geometry: Geometry, grid: VolumeGrid, angles_deg) -> float:
     geometry = check_geometry(geometry)
     theta = np.deg2rad(as_angles_deg(angles_deg))
     u0_v, v0_v = _principal_points(geometry, theta.size, None)
-    signs = np.array([[sx, sy, sz] for sx in (0, 1) for sy in (0, 1) for sz in (0, 1)], dtype=np.float64)
-    low = grid.origin_mm - grid.voxel_size_mm / 2.0
-    corners = (low + signs * grid.extent_mm)[None]
+    corners = _box_corners(np.asarray(grid.centre_mm)[None], grid.extent_mm[None] / 2.0, np.eye(3)[None])
     shadow = _sub_rays(corners, geometry, theta, u0_v, v0_v, 1.0, 0.0)
     return shadow * max(grid.n_x, grid.n_y, grid.n_z)
 
@@ -420,18 +418,18 @@ def _work(moving_corners: np.ndarray, fixed_corners: np.ndarray, geometry: Geome
     return pixels * supersample ** 2 + placed * _PRIMITIVE_VIEW_SUB_RAYS
 
 
-def _box_corners(primitives: Primitives) -> np.ndarray:
-    """The corners (N, 8, 3) of every primitive's bounding box, object frame, mm."""
+def _box_corners(centre_mm: np.ndarray, half_size_mm: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """The corners (N, 8, 3) of N boxes (centres and half sizes (N, 3), rotations (N, 3, 3)), mm."""
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
     # corner = centre + rotation @ (sign * half_size).
-    return np.ascontiguousarray(primitives.centre_mm[:, None, :] + np.einsum(
-        "nij,nkj->nki", primitives.rotation, signs[None, :, :] * primitives.half_size_mm[:, None, :]))
+    return np.ascontiguousarray(centre_mm[:, None, :] + np.einsum(
+        "nij,nkj->nki", rotation, signs[None, :, :] * half_size_mm[:, None, :]))
 
 
 def _kernel_shapes(primitives: Primitives) -> tuple:
     """The per-primitive arrays :func:`_project_primitives` takes: kind, centre, unit maps, box corners, density."""
-    return (primitives.kind, primitives.centre_mm, local_maps(primitives), _box_corners(primitives),
-            primitives.density_per_mm)
+    return (primitives.kind, primitives.centre_mm, local_maps(primitives),
+            _box_corners(primitives.centre_mm, primitives.half_size_mm, primitives.rotation), primitives.density_per_mm)
 
 
 def _sub_rays(corners: np.ndarray, geometry: Geometry, theta: np.ndarray, u0_v: np.ndarray, v0_v: np.ndarray,
