@@ -80,18 +80,24 @@ COMMANDS = {
 }
 
 
+def _as_from_a_terminal() -> None:
+    """In a test's child: SIGINT's default back, and a process group of its own.
+
+    A shell ignores SIGINT in its background jobs, and Python then leaves it ignored; a test run in
+    the background would pass that on, where a terminal's Ctrl-C meets the default. The group lets
+    the test kill whatever the command started (a pool's, a cluster's processes) at the end.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    os.setpgrp()
+
+
 def _signal_once_marked(command: list[str], mark: Path, sig: int, what: str) -> tuple[int, str, float, str]:
     """Start ``command``, send ``sig`` once ``mark`` exists: (exit status, stderr, seconds to end, the mark's text).
 
-    A shell ignores SIGINT in its background jobs, and Python then leaves it ignored; a test run in
-    the background would pass that on. A terminal's Ctrl-C meets the default: give it back. The
-    command's processes (a pool's, a cluster's) are killed at the end, whatever happened.
+    The command's processes (a pool's, a cluster's) are killed at the end, whatever happened.
     """
-    def child() -> None:
-        signal.signal(signal.SIGINT, signal.SIG_DFL)
-        os.setpgrp()   # a group of its own, so that a failed test leaves no process of it behind
-
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=child)
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_as_from_a_terminal)
     try:
         deadline = time.monotonic() + 120
         while not mark.exists():
@@ -246,12 +252,8 @@ def _signal_mid_run(command: list[str], begun, sig: int, cwd: Path) -> tuple[int
     """Start ``command``; send ``sig`` once ``begun(stdout, stderr, pid)`` is true: (exit status, stderr, seconds to end)."""
     import threading
 
-    def child() -> None:
-        signal.signal(signal.SIGINT, signal.SIG_DFL)   # see _signal_once_marked
-        os.setpgrp()
-
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd,
-                            preexec_fn=child)
+                            preexec_fn=_as_from_a_terminal)
     said = {"out": [], "err": []}
     readers = [threading.Thread(target=lambda stream, lines: lines.extend(stream), args=(stream, said[name]),
                                 daemon=True) for name, stream in (("out", proc.stdout), ("err", proc.stderr))]
