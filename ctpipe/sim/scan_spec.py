@@ -5,7 +5,7 @@
     jitter: [{gaussian: {sigma_deg: 0.2}}, {jumps: {count: 3, size_deg: 1.0}}]   # ctpipe.sim.jitter
     noise: {photons_per_pixel: 100000, flat_frames: 8, dark_frames: 4, dark_counts: 100}
                                                      # ctpipe.sim.acquisition; null: exact line integrals
-    projector: {kind: analytic, supersample: 2, blur_px: 0.5}   # analytic or voxel
+    projector: {kind: analytic, supersample: 2, blur_px: 0.5}   # the phantom picks the projector
     detector: {scatter_fraction: 0.05, psf_sigma_px: 0.8, dead_pixels: 20, gain_drift_sigma: 0.005}
                                                      # ctpipe.sim.detector; null: an ideal detector
     beam: {kvp: 120, anode: W, filter_mm: {Al: 1.0}, energy_bins: 32}   # ctpipe.sim.beam: polychromatic
@@ -63,9 +63,14 @@ class AngleSpec:
 
 @dataclass(frozen=True)
 class ProjectorSpec:
-    """How line integrals are computed: exact (``analytic``) or through a voxelised phantom."""
+    """How line integrals are computed.
 
-    kind: Literal["analytic", "voxel"] = "analytic"
+    The phantom picks the projector: primitives are projected exactly, a voxel phantom by the
+    voxel projector. ``kind`` is ``analytic`` only; ``voxel`` (a primitive phantom projected
+    through its voxelisation) was accepted but never done, so it is refused rather than ignored.
+    """
+
+    kind: Literal["analytic"] = "analytic"
     supersample: int = 1
     blur_px: float = 0.0
 
@@ -109,7 +114,7 @@ class ScanSpec:
 _ANGLE_FIELDS = {"n_views": ParamSpec("n_views", int, None, "", ge=1, le=100_000),
                  "range_deg": ParamSpec("range_deg", float, 360.0, "", gt=0, le=36_000),
                  "start_deg": ParamSpec("start_deg", float, 0.0, "", ge=-36_000, le=36_000)}
-_PROJECTOR_FIELDS = {"kind": ParamSpec("kind", Literal["analytic", "voxel"], "analytic", ""),
+_PROJECTOR_FIELDS = {"kind": ParamSpec("kind", Literal["analytic"], "analytic", ""),
                      "supersample": ParamSpec("supersample", int, 1, "", ge=1, le=16),
                      "blur_px": ParamSpec("blur_px", float, 0.0, "", ge=0, le=64)}
 _SEED = ParamSpec("seed", int, 0, "", ge=0)
