@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -159,24 +160,50 @@ def slices_png(volumes: dict[str, np.ndarray], reference: np.ndarray, *, axial_i
 
 
 def angle_errors_png(view_errors_deg: dict[str, np.ndarray], title: str = "", *,
-                     ylabel: str = "angle error (deg), common offset removed") -> bytes:
-    """Per-view angle error (degrees) of each angle set against the truth, one line each (NaN: a gap)."""
+                     ylabel: str = "angle error (deg), common offset removed",
+                     scale_to: Sequence[str] | None = None) -> bytes:
+    """Per-view angle error (degrees) of each angle set against the truth, one line each (NaN: a gap).
+
+    ``scale_to`` names the curves the vertical axis is fitted to (default: all). A curve that
+    goes past them (pairs chained tens of degrees off, beside nominal and estimated angles a few
+    tenths of a degree off) is clipped there and said to be, and a second panel below shows
+    every curve at its full scale, so neither flattens the others to a line.
+    """
     plt = _pyplot()
 
-    fig, ax = plt.subplots(figsize=(9, 4.2), dpi=110)
-    for label, errors in view_errors_deg.items():
-        errors = np.asarray(errors, dtype=float)
-        finite = errors[np.isfinite(errors)]
-        rms = np.sqrt(np.mean(finite**2)) if finite.size else np.nan
-        mae = np.mean(np.abs(finite)) if finite.size else np.nan
-        ax.plot(np.arange(len(errors)), errors, lw=1, label=f"{label} (RMS {rms:.3g}, MAE {mae:.3g} deg)")
-    ax.axhline(0.0, color="k", lw=0.5)
-    ax.set_xlabel("view")
-    ax.set_ylabel(ylabel)
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    if title:
-        ax.set_title(title, fontsize=9)
+    curves = {label: np.asarray(errors, dtype=float) for label, errors in view_errors_deg.items()}
+
+    def extent(values: np.ndarray) -> float:
+        finite = np.abs(values[np.isfinite(values)])
+        return float(finite.max()) if finite.size else 0.0
+
+    scaled = [label for label in (curves if scale_to is None else scale_to) if label in curves]
+    limit = 1.15 * max([extent(curves[label]) for label in scaled] + [1e-6])
+    beyond = [label for label, values in curves.items() if extent(values) > limit]
+    panels = 2 if beyond else 1
+    fig, axes = plt.subplots(panels, 1, figsize=(9, 4.2 if panels == 1 else 6.4), dpi=110, squeeze=False,
+                             gridspec_kw={"height_ratios": [3, 1.4][:panels]})
+    for row, ax in enumerate(axes[:, 0]):
+        for label, errors in curves.items():
+            finite = errors[np.isfinite(errors)]
+            rms = np.sqrt(np.mean(finite**2)) if finite.size else np.nan
+            mae = np.mean(np.abs(finite)) if finite.size else np.nan
+            note = f" (RMS {rms:.3g}, MAE {mae:.3g} deg)"
+            if row == 0 and label in beyond:
+                note += f"; off this scale, max {extent(errors):.3g} deg: see below"
+            ax.plot(np.arange(len(errors)), errors, lw=1, label=(label + note) if row == 0 else label)
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.grid(True, alpha=0.3)
+        if row == 0:
+            if beyond:
+                ax.set_ylim(-limit, limit)
+            ax.set_ylabel(ylabel)
+            ax.legend(fontsize=8)
+            if title:
+                ax.set_title(title, fontsize=9)
+        else:
+            ax.set_ylabel("full scale (deg)", fontsize=8)
+    axes[-1, 0].set_xlabel("view")
     fig.tight_layout()
     return _figure_png(fig)
 
@@ -204,8 +231,10 @@ def estimate_angles_png(result: ScanResult) -> bytes | None:
         verdict = ("nominal angles returned: the projections do not show the correction better" if gate.chosen == "nominal"
                    else f"{gate.chosen} returned: conjugate rays agree {gate.improvement:.0%} better than nominal")
         title = f"{title}\ngate: {verdict}" if title else f"gate: {verdict}"
-    return angle_errors_png({k[:-4] if k.endswith(" deg") else k: v for k, v in curves.items()}, title,
-                            ylabel="difference (deg), median offset removed")
+    named = {k[:-4] if k.endswith(" deg") else k: v for k, v in curves.items()}
+    # The returned angles set the scale; a refiner's answer the gate held back may be far off.
+    return angle_errors_png(named, title, ylabel="difference (deg), median offset removed",
+                            scale_to=[k for k in named if not k.startswith("refiner's")] or None)
 
 
 # --- ctpipe detect ---------------------------------------------------------------------------

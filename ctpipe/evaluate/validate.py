@@ -587,7 +587,8 @@ def write_validate_outputs(report: ValidateReport, out: str | Path) -> list[Path
     errors = angle_errors_png({"nominal angles": report.view_errors["nominal"],
                                "pair-chained (consecutive pairs, no loop closure)": report.view_errors["pair-chained"],
                                "estimated angles (whole-scan refiner)": report.view_errors["estimated"]},
-                              title="per-view angle error against the truth")
+                              title="per-view angle error against the truth",
+                              scale_to=("nominal angles", "estimated angles (whole-scan refiner)"))
     rows = [[v, n, t, e, en, ee, ec] for v, (n, t, e, en, ee, ec) in enumerate(zip(
         report.nominal_deg, report.true_deg, report.pipeline_result.angles_deg, report.view_errors["nominal"],
         report.view_errors["estimated"], report.view_errors["pair-chained"]))]
