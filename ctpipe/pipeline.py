@@ -142,9 +142,12 @@ class RefinerChoice:
     chosen : str or None
         The candidate whose angles were returned: ``matched``, ``start`` or ``nominal``.
     consistency_cost : dict of str to float
-        Each candidate's reconstruct-and-reproject residual
-        (:func:`ctpipe.solve.reprojection.consistency_costs`), the lowest chosen; empty when the
-        candidates were not compared.
+        Each candidate's residual on views held out of the reference they are compared with
+        (:func:`ctpipe.solve.reprojection.held_out_scores`); the lowest is chosen where it beats
+        the nominal angles' beyond noise (``held_out_z``); empty when the candidates were not compared.
+    held_out_z : dict of str to float
+        Each candidate's held-out cost against the nominal angles', in standard errors (negative:
+        better); empty when the candidates were not compared.
     """
 
     start: str | None = None
@@ -153,6 +156,7 @@ class RefinerChoice:
     skipped: str | None = None
     chosen: str | None = None
     consistency_cost: Mapping[str, float] = field(default_factory=dict)
+    held_out_z: Mapping[str, float] = field(default_factory=dict)
 
     @classmethod
     def from_info(cls, info: Mapping[str, Any]) -> "RefinerChoice":
@@ -161,7 +165,8 @@ class RefinerChoice:
         matched = isinstance(matching, Mapping)
         return cls(start=info.get("start"), matched=matched, matched_from=matching.get("from") if matched else None,
                    skipped=matching if isinstance(matching, str) else None, chosen=info.get("chosen"),
-                   consistency_cost=dict(info.get("consistency_cost") or {}))
+                   consistency_cost=dict(info.get("consistency_cost") or {}),
+                   held_out_z={name: score["z"] for name, score in (info.get("held_out") or {}).items()})
 
 
 @dataclass(frozen=True)
@@ -446,8 +451,11 @@ class ScanResult:
                      f"{int(np.isfinite(self.angles_deg).sum())}/{len(self.angles_deg)} views have an angle")
         choice = self.refiner_choice
         if choice.matched:
-            lines.append(f"refiner: projection matching from the {choice.matched_from} angles, kept the "
-                         f"{'matched' if choice.chosen is None else choice.chosen} ones")
+            kept = "matched" if choice.chosen is None else choice.chosen
+            evidence = choice.held_out_z.get("matched")
+            lines.append(f"refiner: projection matching from the {choice.matched_from} angles, kept the {kept} ones"
+                         + ("" if evidence is None else f" (views held out of the reference: the matched angles "
+                            f"z {evidence:+.1f} against the nominal ones)"))
         gate = self.gate
         if gate is not None:
             lines.append(_gate_line(gate, measured=self.before_after is not None and bool(self.before_after.scores)))
@@ -500,6 +508,8 @@ def _gate_line(gate: GateDecision, *, measured: bool = False) -> str:
             f"the nominal angles corrected by the {gate.chosen} part{'s' if len(gate.bands) > 1 else ''} of the correction")
     if measured:
         return f"gate: returned {what}"
+    if gate.held_out_z is not None and gate.held_out_z < -gate.z:
+        return f"gate: returned {what}: {gate.reason}"
     return (f"gate: the correction helped: {what} agree {gate.improvement:.0%} better than the nominal angles with the "
             f"projections' conjugate rays (z {gate.scores['returned'].z:+.1f})")
 
@@ -914,8 +924,9 @@ def _gate(observations: ScanObservations, solution: ScanSolution) -> GateDecisio
     line_integrals, converted = as_line_integrals(rows[:, None, :])
     if converted:   # d(-log I)/dv = -(dI/dv) / I
         slopes = -slopes / np.maximum(rows, 1e-30)
+    held_out = solution.info.get("held_out", {}).get(solution.info.get("chosen", ""), {})
     return gate_angles(line_integrals[:, 0].astype(np.float64), observations.geometry, observations.nominal_angles_deg,
-                       estimate, slopes=slopes)
+                       estimate, slopes=slopes, held_out_z=held_out.get("z"))
 
 
 class _Placed(NamedTuple):

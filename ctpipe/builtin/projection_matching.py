@@ -15,7 +15,8 @@ from ctpipe.hookspecs import hookimpl
 from ctpipe.geometry import Geometry
 from ctpipe.recon.feldkamp import FILTERS, bin_detector, binned_geometry
 from ctpipe.solve.graph import solve_view_graph
-from ctpipe.solve.reprojection import consistency_costs, matching_levels, projection_matching
+from ctpipe.solve.reprojection import (HELD_OUT_Z, consistency_costs, matching_levels, projection_matching,
+                                       static_part_applies)
 from ctpipe.stages import Refiner, StageSpec, param
 
 __all__ = ["ProjectionMatchingRefiner"]
@@ -60,11 +61,15 @@ class ProjectionMatchingRefiner(Refiner):
     with loop closure; ``nominal``; or any refiner, e.g. ``{name: bundle-adjustment,
     loss_scale_px: 0.7}``, built through the registry) has the capture range for slips of degrees; matching
     each view against the reprojection of a reconstruction from all views then removes the drift
-    a chain of pairs accumulates (:mod:`ctpipe.solve.reprojection`). With ``select``,
-    matching starts from whichever of the start and the nominal angles explains the projections
-    better (a reconstruct-and-reproject residual, :func:`~ctpipe.solve.reprojection.consistency_costs`),
-    and of nominal, start and matched angles the most consistent is returned, so a scan the
-    matching cannot handle keeps the better of its start and its nominal angles.
+    a chain of pairs accumulates (:mod:`ctpipe.solve.reprojection`), with the centre of rotation's
+    column and the detector's tilt (``detector``) and what does not turn taken out (``static``).
+    With ``select``, matching starts from whichever of the start and the nominal angles explains
+    the projections better (a reconstruct-and-reproject residual,
+    :func:`~ctpipe.solve.reprojection.consistency_costs`), and the matched angles are returned
+    only where they predict views held out of the reference better than the nominal angles do,
+    beyond noise (:func:`~ctpipe.solve.reprojection.held_out_scores`; a reference built from
+    wrong angles bends towards them, so its own residual cannot judge them), so a scan the
+    matching cannot handle keeps its nominal angles; the evidence goes to the gate.
     With ``shifts`` each view's detector shift is fitted with its angle, so a detector or source
     that drifts during the scan is not taken for angle errors; the shifts are in
     ``info["matching"]["shifts_px"]``.
@@ -86,10 +91,18 @@ class ProjectionMatchingRefiner(Refiner):
     band_high_px: float = param(4.0, doc="coarse edge of the band-pass (Gaussian sigma, binned pixels)", gt=0, le=64)
     max_voxels: int = param(192, doc="largest edge of the reconstruction grid", ge=16, le=1024)
     filter: Filter = param("ram-lak", doc="FDK ramp-filter window for the reference volume")
-    max_step_deg: float = param(1.0, doc="largest change of one view's angle per iteration", gt=0, le=45)
+    max_step_deg: float | None = param(None, doc="largest change of one view's angle per step (null: what the band "
+                                       "holds linear at each level: its coarse scale over the grid's edge)",
+                                       gt=0, le=45)
     shifts: bool = param(True, doc="fit each view's detector shift (a drifting detector or source) with its angle, so "
                          "the drift is not taken for angle errors")
-    select: bool = param(True, doc="keep whichever of nominal, start and matched angles fits the projections best")
+    detector: bool = param(True, doc="fit the centre of rotation's column and the detector's in-plane tilt with the "
+                           "angles (reported in the refined geometry)")
+    static: bool = param(True, doc="match the views less their static part (the per-pixel median over the views: "
+                         "what does not turn with the sample), where the views span 180 deg or more")
+    select: bool = param(True, doc="start matching from whichever of the start and the nominal angles fits the "
+                         "projections better, and return the matched angles only where they predict views held out "
+                         "of the reference better than the nominal ones, beyond noise")
     min_views: int = param(32, doc="fewest views worth reconstructing a reference from; fewer keep the start",
                            ge=8, le=100000)
 
@@ -140,6 +153,8 @@ class ProjectionMatchingRefiner(Refiner):
         projections, geometry = _binned_views(projections, observations.geometry, prebin)
         levels = [(b // prebin, n) for b, n in levels]
         band = (self.band_low_px, self.band_high_px)
+        static = self.static and static_part_applies(start_deg if nominal is None else nominal)
+        info["static_removed"] = bool(static)
         costs = {}
         candidates = {"start": start_deg}
         if nominal is not None:
@@ -149,17 +164,23 @@ class ProjectionMatchingRefiner(Refiner):
             costs.update(consistency_costs(projections, geometry,
                                            {name: a for name, a in candidates.items() if name not in costs},
                                            binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
-                                           filter=self.filter))
+                                           filter=self.filter, static=static))
 
         if self.select and len(candidates) > 1:
             # Match from whichever explains the projections better: a feature start that went
             # astray (too few features, a degenerate object) must not be the one refined.
             cost_the_rest()
         origin = min(candidates, key=lambda name: (costs.get(name, 0.0), name != "start"))
+        # The matched angles are judged against the others on views left out of the reference
+        # they are compared with (a reference bends towards the angles it is built from).
+        # (The nominal angles only, or the start without them: a start the matching began from
+        # and improved on is not worth another pair of reconstructions at the finest level.)
+        compare = ({"nominal": candidates["nominal"]} if "nominal" in candidates else
+                   {"start": candidates["start"]}) if self.select else None
         result = projection_matching(projections, geometry, candidates[origin],
                                      binning=[b for b, _ in levels], iterations=[n for _, n in levels], band_px=band,
                                      max_voxels=self.max_voxels, filter=self.filter, max_step_deg=self.max_step_deg,
-                                     shifts=self.shifts)
+                                     shifts=self.shifts, detector=self.detector, static=static, compare=compare)
         info["matching"] = {"from": origin, "levels": [{"binning": b * prebin, "iterations": n} for b, n in levels],
                             "history": [{**h, "binning": h["binning"] * prebin,
                                          **({"shift_rms_px": h["shift_rms_px"] * prebin} if "shift_rms_px" in h else {})}
@@ -172,19 +193,29 @@ class ProjectionMatchingRefiner(Refiner):
             info["matching"]["shifts_px"] = shifts_px.round(4).tolist()
             info["matching"]["shift_rms_px"] = float(np.sqrt(np.mean(shifts_px ** 2)))
         chosen, angles = "matched", result.angles_deg
-        if self.select:
+        if result.held_out is not None:
             candidates["matched"] = result.angles_deg
-            # All on the views as they came: the shifts were fitted with the matched angles, and
-            # costing the others on views moved by them favoured the matched ones (on a sweep
-            # scenario with a holder, angles 6 deg off were kept).
-            cost_the_rest()
-            chosen = min(costs, key=lambda name: (costs[name], name != "matched"))
+            scores = result.held_out
+            reference = next(iter(compare))
+            # The lowest held-out cost, but nothing over the reference (the nominal angles) unless
+            # it predicts the held-out views better beyond their noise.
+            best = min(scores, key=lambda name: (scores[name].cost, name != "matched"))
+            chosen = best if best == reference or scores[best].z < -HELD_OUT_Z else reference
             angles = candidates[chosen]
-            info["consistency_cost"] = costs
+            info["held_out"] = {name: score.to_dict() for name, score in scores.items()}
+            info["consistency_cost"] = {name: score.cost for name, score in scores.items()}
         info["matching"]["seconds"] = time.perf_counter() - begin
         info["chosen"] = chosen
+        geometry_found = {}
+        if result.axis_offset_px is not None:
+            info["matching"]["axis_offset_px"] = result.axis_offset_px * prebin
+            info["matching"]["tilt_deg"] = result.tilt_deg
+            if chosen == "matched":
+                # The geometry the matched angles were found with: the axis column and the tilt.
+                geometry_found = {"u0_px": observations.geometry.u0_px + result.axis_offset_px * prebin,
+                                  "tilt_deg": result.tilt_deg}
         return ScanSolution(np.deg2rad(angles - angles[0]), start_solution.pair_estimates, info,
-                            angle_se_deg=result.angle_se_deg if chosen == "matched" else None)
+                            angle_se_deg=result.angle_se_deg if chosen == "matched" else None, **geometry_found)
 
 
 @hookimpl
