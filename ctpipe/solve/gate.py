@@ -31,6 +31,19 @@ measure at all, so they keep their nominal angles whatever the bands.
 Where the projections cannot tell (no views half a turn apart, a midplane off the detector), the
 gate says so and passes the estimate through: there is no evidence either way, and nothing to
 base a decision on.
+
+**The refiner's own evidence.** Conjugate rays are one row of the detector: on the small and
+sparse scans of the built-in sweep they barely see anything (the whole estimate's z against the
+nominal angles lay between -3.1 and +1.7, and estimates tens of degrees off scored -1.0 to +1.0),
+so by them alone every correction was refused, right or wrong. Projection matching scores its
+angles on views held out of the reference they are compared with
+(:func:`~ctpipe.solve.reprojection.held_out_scores`), which a reference built from wrong angles
+cannot bend to fit. Where it gives that evidence (``held_out_z``, below ``-z``), it is combined
+with the conjugate rays' z of the whole estimate (Stouffer's sum: two independent lines of
+evidence), and where the two together show the estimate better than the nominal angles and the
+conjugate rays show no band of it worse, the whole estimate is returned, slow-even band
+included: the band conjugate rays hardly see is then decided by the evidence that sees it. Otherwise
+the bands are selected as above.
 """
 
 from __future__ import annotations
@@ -132,6 +145,11 @@ class GateDecision:
     estimate_deg : ndarray of shape (V,) or None
         The refiner's angles as they came, in the nominal angles' frame (their median offset
         from them removed); None when the gate could not decide.
+    held_out_z : float or None
+        The refiner's own evidence, where it gave some: how many standard errors better its
+        angles predict views held out of the reference than the nominal angles do (negative:
+        better). With it the estimate is returned unless the conjugate rays show it, or a band
+        of it, worse (``docs/wholescan.md``).
     """
 
     chosen: str
@@ -146,6 +164,7 @@ class GateDecision:
     harmonics: int = 3
     z: float = 2.0
     estimate_deg: np.ndarray | None = field(default=None, repr=False)
+    held_out_z: float | None = None
 
     @property
     def improvement(self) -> float | None:
@@ -160,12 +179,13 @@ class GateDecision:
                 "steps": [dict(step) for step in self.steps],
                 "needed": [dict(step) for step in self.needed], "views_seen": self.views_seen,
                 "harmonics": self.harmonics, "z": self.z, "improvement": self.improvement,
+                "held_out_z": self.held_out_z,
                 "scores": {name: score.to_dict() for name, score in self.scores.items()}}
 
 
 def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg, *, z: float = 2.0,
                 harmonics: int = 3, fit_u0_px: float | None = None, slopes: np.ndarray | None = None,
-                fit_tilt_deg: float = 1.0) -> GateDecision:
+                fit_tilt_deg: float = 1.0, held_out_z: float | None = None) -> GateDecision:
     """The nominal angles plus those bands of the correction that the conjugate rays show better.
 
     Parameters
@@ -194,6 +214,20 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         0.56 deg RMS passed without it).
     fit_tilt_deg : float
         The largest tilt searched, degrees (used only with ``slopes``).
+    held_out_z : float, optional
+        The refiner's evidence for its angles against the nominal ones, in standard errors
+        (projection matching's held-out views, :class:`~ctpipe.solve.reprojection.HeldOutScore`).
+        Below ``-z``, it is combined with the conjugate rays' z of the whole estimate against
+        the nominal angles (Stouffer: their sum over the square root of two; two independent
+        lines of evidence, the one from whole views held out of a reference, the other from the
+        midplane's common rays): where the two together pass, and the conjugate rays show no band
+        worse than the estimate without it, the whole estimate is returned; otherwise the bands
+        are selected as without the evidence. Conjugate rays see little on a
+        small or sparse scan (on the built-in sweep the whole estimate's z against the nominal
+        angles lay between -3.1 and +1.7, and estimates tens of degrees off scored +1.0 and
+        -1.0), so without other evidence nothing passes; views held out of the reference they
+        are matched against are that evidence, and they rank the estimate the right way on
+        those scans (``docs/wholescan.md``).
     """
     g = check_geometry(geometry)
     nominal = np.asarray(nominal_deg, dtype=np.float64)
@@ -206,7 +240,7 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     finite = np.isfinite(estimate)
     if not finite.all():
         return GateDecision("estimate", estimate, False, f"{int((~finite).sum())} views have no estimate; not gated",
-                            harmonics=harmonics, z=z)
+                            harmonics=harmonics, z=z, held_out_z=held_out_z)
     # The estimate in the nominal frame: its median offset from the nominal angles removed.
     difference = wrap_deg(estimate - nominal)
     shift = float(np.median(wrap_deg(difference - difference[0]))) + float(difference[0])
@@ -225,8 +259,17 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         return conjugate_ray_costs(None, g, candidates, reference=reference, fit_u0_px=search, rows=rows,
                                    slopes=slopes, fit_tilt_deg=fit_tilt_deg if slopes is not None else 0.0)
 
+    present = [name for name in BANDS if np.any(parts[name] != 0.0)]
+    if held_out_z is not None and held_out_z < -z and present:
+        stands = _backward(scored, nominal, correction, estimate, present, parts, seen, z, held_out_z)
+        if stands is not None:
+            reason, step, need, record = stands
+            chosen = "estimate" if seen.all() else " + ".join(present)
+            angles = estimate if chosen == "estimate" else nominal + correction + shift
+            return GateDecision(chosen, angles, True, reason, tuple(present), (step,), (need,), record,
+                                int(seen.sum()), harmonics, z, nominal + correction, held_out_z)
     current, added, steps, needed = nominal, [], [], []
-    remaining = [name for name in BANDS if np.any(parts[name] != 0.0)]
+    remaining = list(present)
     while remaining:
         scores = scored({"current": current, **{name: current + parts[name] for name in remaining}}, "current")
         steps.append({name: scores[name].z for name in remaining})
@@ -251,5 +294,32 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
                   f"{'s' if len(added) > 1 else ''} of the correction"
                   + ("" if seen.all() else f"; {int((~seen).sum())} views no pair reaches keep their nominal angle"))
     angles = estimate if chosen == "estimate" else current + shift
+    if held_out_z is not None and held_out_z < -z:
+        reason += (f" (the refiner's held-out views showed its angles better, z {held_out_z:+.1f}, but not together "
+                   "with the conjugate rays, or these show a band of them worse)")
     return GateDecision(chosen, angles, True, reason, tuple(added), tuple(steps), tuple(needed), record,
-                        int(seen.sum()), harmonics, z, nominal + correction)
+                        int(seen.sum()), harmonics, z, nominal + correction, held_out_z)
+
+
+def _backward(scored, nominal, correction, estimate, present, parts, seen, z, held_out_z):
+    """The refiner's held-out evidence with the conjugate rays': the estimate, where the two together show it
+    better than the nominal angles and no band of it is shown worse. Returns ``(reason, steps, needed,
+    record)`` when it stands, None when not."""
+    whole = nominal + correction
+    scores = scored({"estimate": whole, "nominal": nominal, **{name: whole - parts[name] for name in present}},
+                    "estimate")
+    steps = {name: scores[name].z for name in present}
+    needed = {name: needed_z(z, len(present), scores[name].dof) for name in present}
+    # Removing a band helps beyond its threshold: the band is shown worse. Or the nominal angles
+    # are shown better than the whole estimate.
+    worse = [name for name in present if scores[name].z < -needed[name]]
+    record = scored({"nominal": nominal, "returned": whole, "estimate": whole}, "nominal")
+    conjugate = record["returned"]
+    # Two independent lines of evidence, each a z against the nominal angles: Stouffer's sum.
+    combined = (held_out_z + conjugate.z) / math.sqrt(2.0)
+    if worse or combined >= -needed_z(z, 1, conjugate.dof):
+        return None
+    reason = (f"the refiner's held-out views (z {held_out_z:+.1f}) and the projections' conjugate rays (z "
+              f"{conjugate.z:+.1f}) together show its angles better than the nominal ones (z {combined:+.1f}), and no "
+              "band of them worse")
+    return reason, steps, needed, record

@@ -130,3 +130,43 @@ def test_bad_arguments_are_one_clear_error(scan):
         gate_angles(rows, s.geometry, s.nominal_angles_deg, s.nominal_angles_deg[:5])
     with pytest.raises(InputError, match="z must be > 0"):
         gate_angles(rows, s.geometry, s.nominal_angles_deg, s.nominal_angles_deg, z=0.0)
+
+
+def test_with_the_refiners_held_out_evidence_a_good_estimate_is_returned_whole(scan):
+    s, rows = scan
+    truth, nominal = s.true_angles_deg, s.nominal_angles_deg
+    estimate = truth + np.random.default_rng(3).normal(0.0, 0.03, len(truth)) + 7.0
+    decision = gate_angles(rows, s.geometry, nominal, estimate, held_out_z=-3.0)
+    assert decision.held_out_z == -3.0 and "held-out views" in decision.reason
+    assert decision.bands == ("fast", "slow-odd", "slow-even")
+    assert _rms(decision.angles_deg, truth) == pytest.approx(_rms(estimate, truth))
+
+
+def test_held_out_evidence_the_conjugate_rays_contradict_is_not_taken(scan):
+    """A band the conjugate rays show worse discredits the refiner's evidence: the bands are then
+    selected as without it (here the fast one alone, as in the test without evidence)."""
+    s, rows = scan
+    truth, nominal = s.true_angles_deg, s.nominal_angles_deg
+    theta = np.deg2rad(nominal)
+    estimate = truth + 0.5 * np.sin(theta) + np.random.default_rng(3).normal(0.0, 0.03, len(truth))
+    decision = gate_angles(rows, s.geometry, nominal, estimate, held_out_z=-3.0)
+    assert decision.bands == ("fast",) and "not together with the conjugate rays" in decision.reason
+    assert _rms(decision.angles_deg, truth) < 0.5 * _rms(nominal, truth)
+
+
+def test_with_held_out_evidence_an_estimate_the_conjugate_rays_show_worse_gives_the_nominal_angles(scan):
+    s, rows = scan
+    truth, nominal = s.true_angles_deg, s.nominal_angles_deg
+    estimate = nominal + np.random.default_rng(4).normal(0.0, 0.5, len(truth))
+    decision = gate_angles(rows, s.geometry, nominal, estimate, held_out_z=-3.0)
+    assert decision.chosen == "nominal"
+    assert _rms(decision.angles_deg, truth) == pytest.approx(_rms(nominal, truth))
+
+
+def test_held_out_evidence_short_of_the_threshold_changes_nothing(scan):
+    s, rows = scan
+    truth, nominal = s.true_angles_deg, s.nominal_angles_deg
+    estimate = nominal + np.random.default_rng(4).normal(0.0, 0.5, len(truth))
+    plain = gate_angles(rows, s.geometry, nominal, estimate)
+    weak = gate_angles(rows, s.geometry, nominal, estimate, held_out_z=-1.5)
+    assert weak.chosen == plain.chosen == "nominal" and weak.reason == plain.reason
