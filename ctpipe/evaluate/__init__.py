@@ -20,7 +20,7 @@ from ctpipe.evaluate.report import (angle_errors_png, estimate_angles_png, keypo
 from ctpipe.evaluate.scoring import (align_offset, error_table, keypoint_agreement, pair_errors_deg, recovery,
                                      score_against_truth, se_coverage, support_mask, view_errors_deg, volume_metrics)
 from ctpipe.evaluate.sweep import (DISTRIBUTIONS, SweepReport, SweepSettings, draw_scenario, load_sweep_settings,
-                                   parse_sweep, run_scenario, run_sweep, write_sweep_outputs)
+                                   parse_sweep, run_scenario, run_sweep, worse_than_nominal, write_sweep_outputs)
 from ctpipe.evaluate.synthetic import Cylinder, cylinder_points, make_correspondences
 from ctpipe.evaluate.validate import (ValidateReport, ValidateSettings, check_experiment, estimate_problems,
                                       load_validate_settings, pair_chained_deg, parse_validate, run_validate,
@@ -33,5 +33,5 @@ __all__ = ["run_validate", "load_validate_settings", "parse_validate", "check_ex
            "recovery", "keypoint_agreement", "synthetic_table", "write_synthetic_outputs", "slices_png",
            "angle_errors_png", "estimate_angles_png", "keypoints_png", "Cylinder", "cylinder_points",
            "make_correspondences", "run_sweep", "load_sweep_settings", "parse_sweep", "draw_scenario", "run_scenario",
-           "write_sweep_outputs", "SweepSettings", "SweepReport", "DISTRIBUTIONS", "BeforeAfter", "before_after",
+           "write_sweep_outputs", "worse_than_nominal", "SweepSettings", "SweepReport", "DISTRIBUTIONS", "BeforeAfter", "before_after",
            "before_after_png", "se_coverage"]

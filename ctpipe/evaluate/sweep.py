@@ -27,8 +27,9 @@ angle errors (and the refiner's own, ``ungated_rms_deg``, before the gate), the 
 the estimated angles over the nominal ones against the jitter-free scan and the phantom, how much
 the true angles gain (``visible_db``), the recoveries, what the refiner kept and what the gate
 returned (:mod:`ctpipe.solve.gate`), seconds.
-A scenario is *worse than nominal* when its per-view RMS is above the nominal angles' or either
-reconstruction falls more than :data:`WORSE_DB` below theirs. A scenario that the experiment refuses or that fails is a row with its
+A scenario is *worse than nominal* when its per-view RMS is above the nominal angles', or its
+reconstruction falls more than :data:`WORSE_DB` below theirs against the phantom, or against the
+jitter-free scan by more than the true angles' own reconstruction does. A scenario that the experiment refuses or that fails is a row with its
 reason, never the end of the sweep.
 """
 
@@ -51,7 +52,7 @@ from ctpipe.errors import ConfigError, CtpipeError
 from ctpipe.registry import StageRegistry
 
 __all__ = ["SweepSettings", "SweepReport", "DISTRIBUTIONS", "parse_sweep", "load_sweep_settings", "draw_scenario",
-           "run_scenario", "run_sweep", "write_sweep_outputs"]
+           "run_scenario", "run_sweep", "write_sweep_outputs", "worse_than_nominal"]
 
 #: The distributions a ``draw`` entry may name.
 DISTRIBUTIONS = ("choice", "uniform", "loguniform", "integer", "log_integer")
@@ -265,9 +266,8 @@ def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> 
             "gain_db": gains[0],
             "gain_phantom_db": gains[1],
             "visible_db": gain("reference", "true"),
-            # RMS: by more than rounding (angles returned as nominal give the nominal RMS to ~1e-15).
-            "worse_than_nominal": None if None in gains else bool(estimated_rms > nominal_rms + 1e-9
-                                                                  or min(gains) < -WORSE_DB),
+            "worse_than_nominal": None if None in gains else worse_than_nominal(
+                estimated_rms, nominal_rms, gains[0], gains[1], gain("reference", "true")),
             "recovery_reference": float(report.recovery["reference"]),
             "recovery_phantom": float(report.recovery["phantom"]),
             "refiner_kept": report.pipeline_result.refiner_info.get("chosen", ""),
@@ -278,6 +278,24 @@ def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> 
         })
     row["seconds"] = time.perf_counter() - start
     return row
+
+
+def worse_than_nominal(estimated_rms_deg: float, nominal_rms_deg: float, gain_db: float, gain_phantom_db: float,
+                       visible_db: float | None) -> bool:
+    """Whether a scenario's returned angles are worse than its nominal ones.
+
+    Their per-view RMS above the nominal angles' (by more than rounding: angles returned as
+    nominal give the nominal RMS to ~1e-15), or their reconstruction more than :data:`WORSE_DB`
+    below the nominal one's against the phantom (``gain_phantom_db``), or against the jitter-free
+    scan (``gain_db``) by more than the true angles' reconstruction falls below it there
+    (``visible_db`` when negative). On a sparse scan the regular nominal angles share the
+    jitter-free scan's streak pattern, and the true angles reconstruct up to 5.8 dB below them
+    against it (scenario 6 of the built-in sweep), so without that allowance any correction,
+    a perfect one included, would count as worse.
+    """
+    allowance = min(visible_db if visible_db is not None and math.isfinite(visible_db) else 0.0, 0.0)
+    return bool(estimated_rms_deg > nominal_rms_deg + 1e-9 or gain_phantom_db < -WORSE_DB
+                or gain_db < allowance - WORSE_DB)
 
 
 @dataclass
@@ -301,6 +319,11 @@ class SweepReport:
                    and np.isfinite(r["recovery_reference"])]
         se_views = sum(r.get("se_views") or 0 for r in ok)
         se_within = sum(r.get("se_within_2") or 0 for r in ok)
+        # What the gate did to the refiner's answer: held a closer one back, or kept a worse one out.
+        gated = [r for r in ok if r.get("ungated_rms_deg") is not None and np.isfinite(r["ungated_rms_deg"])]
+        held_back = [r for r in gated if r["estimated_rms_deg"] > 1.01 * r["ungated_rms_deg"]]
+        kept_out = [r for r in gated if r["ungated_rms_deg"] > r["nominal_rms_deg"] + 1e-9
+                    and r["estimated_rms_deg"] < r["ungated_rms_deg"]]
         return {"scenarios": len(self.rows), "ok": len(ok), "failed": len(self.rows) - len(ok),
                 "worse_than_nominal": len(worse),
                 "median_nominal_rms_deg": median("nominal_rms_deg"),
@@ -310,6 +333,7 @@ class SweepReport:
                 "median_recovery_visible": float(np.median(visible)) if visible else None,
                 "se_views": se_views, "se_within_2": se_within,
                 "se_coverage": se_within / se_views if se_views else None,
+                "gate_held_back": len(held_back), "gate_kept_out": len(kept_out),
                 "wall_s": self.wall_s}
 
     def summary_line(self) -> str:
@@ -323,7 +347,8 @@ class SweepReport:
                 f"(nominal {fmt(s['median_nominal_rms_deg'], '.4f')}); median recovery "
                 f"{fmt(s['median_recovery_reference'], '.3f')} ({fmt(s['median_recovery_visible'], '.3f')} over the "
                 f"{s['visible']} with visible jitter); {fmt(s['se_coverage'], '.1%')} of {s['se_views']} views within two "
-                f"standard errors of the truth; {s['wall_s']:.0f} s")
+                f"standard errors of the truth; the gate held back a closer answer on {s['gate_held_back']} and kept a "
+                f"worse one out on {s['gate_kept_out']}; {s['wall_s']:.0f} s")
 
     def table_rows(self) -> list[dict]:
         """One flat row per scenario: the drawn keys, then :data:`COLUMNS`."""

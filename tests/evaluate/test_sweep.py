@@ -131,3 +131,33 @@ def test_on_a_dask_cluster_the_rows_are_those_of_the_in_process_run(registry, da
         assert a["drawn"] == b["drawn"] and a["status"] == b["status"] == "ok"
         np.testing.assert_equal([a["estimated_rms_deg"], a["recovery_reference"]],
                                 [b["estimated_rms_deg"], b["recovery_reference"]])
+
+
+def test_worse_than_nominal_charges_a_reconstruction_only_beyond_what_the_truth_loses():
+    from ctpipe.evaluate.sweep import worse_than_nominal
+
+    assert worse_than_nominal(0.5, 0.4, 0.0, 0.0, 1.0)                 # farther from the truth
+    assert worse_than_nominal(0.3, 0.4, -0.2, 0.0, 1.0)                # a visible loss against the jitter-free scan
+    assert worse_than_nominal(0.3, 0.4, 0.0, -0.1, 1.0)                # against the phantom
+    # Sparse views: the true angles reconstruct 5.8 dB below the regular nominal ones against the
+    # jitter-free scan; an estimate that loses less than they do is not worse.
+    assert not worse_than_nominal(0.33, 0.36, -2.2, 0.0, -5.8)
+    assert worse_than_nominal(0.33, 0.36, -6.0, 0.0, -5.8)
+    assert not worse_than_nominal(0.4, 0.4, 0.0, 0.0, None)
+
+
+def test_the_summary_says_what_the_gate_did_to_the_refiners_answer(registry):
+    from ctpipe.evaluate.sweep import SweepReport, load_sweep_settings
+
+    settings = load_sweep_settings(None, registry)
+
+    def row(nominal, ungated, returned):
+        return {"status": "ok", "nominal_rms_deg": nominal, "ungated_rms_deg": ungated, "estimated_rms_deg": returned,
+                "recovery_reference": 0.0, "visible_db": 1.0, "worse_than_nominal": False, "drawn": {}}
+
+    report = SweepReport(settings, rows=[row(0.4, 0.1, 0.4),      # a closer answer held back
+                                         row(0.4, 0.9, 0.4),      # a worse one kept out
+                                         row(0.4, 0.1, 0.1)])     # passed as it was
+    summary = report.summary()
+    assert (summary["gate_held_back"], summary["gate_kept_out"]) == (1, 1)
+    assert "the gate held back a closer answer on 1 and kept a worse one out on 1" in report.summary_line()
