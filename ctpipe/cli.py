@@ -731,6 +731,24 @@ def _stopped(stop: KeyboardInterrupt) -> int:
     return 130
 
 
+def _name_leftovers(args) -> None:
+    """Say on stderr what runs killed before their clean-up (SIGKILL, a power cut) left where this one writes.
+
+    One line, with the command that removes it all; nothing is removed without the user.
+    """
+    import shlex
+
+    from ctpipe.io.outputs import leftovers
+
+    targets = [getattr(args, name, None) for name in ("out", "overlay")]
+    found = sorted({path for target in targets if target for path in leftovers(target)})
+    if found:
+        names = ", ".join(path.name for path in found)
+        print(f"ctpipe: note: {names}: left by an earlier run that was killed before it could clean up (SIGKILL, a "
+              f"crash, a power cut); nothing reads {'it' if len(found) == 1 else 'them'}; remove with: rm -rf -- "
+              f"{' '.join(shlex.quote(str(path)) for path in found)}", file=sys.stderr)
+
+
 def _run(args) -> int:
     """Run the parsed command; a user's error is one line on stderr and exit status 2.
 
@@ -739,6 +757,7 @@ def _run(args) -> int:
     was once there is room or a cluster.
     """
     try:
+        _name_leftovers(args)
         return args.run(args)
     except CtpipeError as exc:
         print(f"ctpipe: error: {exc}", file=sys.stderr)

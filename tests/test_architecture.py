@@ -172,7 +172,7 @@ _INTERNAL = {
     # logs (written through each format's corrected_angle_log), the scan folder's constants
     "ctpipe.io.outputs": {"atomic_write", "write_json", "write_csv", "write_files", "staged_folder", "json_bytes",
                           "csv_bytes", "to_jsonable", "check_output_dir", "check_output_file", "write_keypoints",
-                          "keypoints_writer"},
+                          "keypoints_writer", "leftovers"},
     "ctpipe.io.flatfield": {"mean_frame", "MAX_DEAD_FRACTION"},
     "ctpipe.io.nikon": {"write_nikon_angles"},
     "ctpipe.io.waygate": {"write_waygate_angles"},

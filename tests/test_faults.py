@@ -337,3 +337,105 @@ def test_a_signal_ends_a_real_long_run_within_two_seconds(granular_360, run, sig
     assert "Traceback" not in stderr
     assert took < 2.0, f"ended {took:.1f} s after the signal, {where}"
     assert sorted(p.name for p in granular_360.iterdir()) == before   # no output, no temporary left
+
+
+# Issue 36: a scan folder being written is many files, added one after another by the command's
+# thread while the main thread, signalled, removes the temporary folder. "writing" lets the real
+# writer run and marks the 200th file, so the signal lands while files keep coming.
+WRITING = """
+import sys
+from pathlib import Path
+
+import tifffile
+
+mark, real, written = Path(sys.argv[1]), tifffile.imwrite, [0]
+
+def imwrite(*args, **kwargs):
+    written[0] += 1
+    if written[0] == 200:
+        mark.touch()
+    return real(*args, **kwargs)
+
+tifffile.imwrite = imwrite
+sys.argv = ["ctpipe", *sys.argv[2:]]
+from ctpipe.cli import entry
+entry()
+"""
+
+#: 3,000 small views: a second or more of writing files on 2 cores, projected in a moment.
+MANY_SMALL_VIEWS = {"geometry": {"source_to_object_mm": 130.0, "source_to_detector_mm": 300.0, "detector_cols": 48,
+                                 "detector_rows": 32, "pixel_pitch_u_mm": 4.0, "pixel_pitch_v_mm": 4.0},
+                    "angles": {"n_views": 3000}, "jitter": [{"gaussian": {"sigma_deg": 0.2}}], "seed": 0}
+
+
+@pytest.fixture(scope="module")
+def many_small_views(tmp_path_factory):
+    import yaml
+
+    spec = tmp_path_factory.mktemp("spec") / "many.yaml"
+    spec.write_text(yaml.safe_dump(MANY_SMALL_VIEWS))
+    return spec
+
+
+def _contents(folder: Path) -> dict:
+    """Every file and folder under ``folder``, hidden ones too, with each file's modification time."""
+    return {str(p.relative_to(folder)): None if p.is_dir() else p.stat().st_mtime_ns for p in folder.rglob("*")}
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_simulation_stopped_while_it_writes_leaves_nothing_beside_its_output(tmp_path, many_small_views, overwrite,
+                                                                                sig, code):
+    from ctpipe.cli import main
+
+    work, out = tmp_path / "work", tmp_path / "work" / "out"
+    work.mkdir()
+    argv = ["simulate", "bead-cylinder", "--scan", str(many_small_views), "--out", str(out)]
+    before: dict = {}
+    if overwrite:
+        assert main(argv) == 0
+        before = _contents(work)
+        argv.append("--overwrite")
+    mark = tmp_path / "writing"
+    returncode, stderr, _, _ = _signal_once_marked([sys.executable, "-c", WRITING, str(mark), *argv], mark, sig,
+                                                   "the writing")
+    assert returncode == code and "Traceback" not in stderr, stderr
+    # Nothing of the stopped run, hidden or not; a replaced scan exactly as it was.
+    assert _contents(work) == before
+    assert sorted(p.name for p in work.iterdir()) == (["out"] if overwrite else [])
+
+
+def test_a_run_killed_outright_leaves_a_temporary_the_next_run_names_with_the_command_that_removes_it(
+        tmp_path, many_small_views):
+    """SIGKILL (or a power cut) runs no clean-up: the next run into the same place says what is left, and how to remove it."""
+    work = tmp_path / "work"
+    work.mkdir()
+    argv = ["simulate", "bead-cylinder", "--scan", str(many_small_views), "--out", str(work / "out")]
+    mark = tmp_path / "writing"
+    returncode, _, _, _ = _signal_once_marked([sys.executable, "-c", WRITING, str(mark), *argv], mark, signal.SIGKILL,
+                                              "the writing")
+    assert returncode == -signal.SIGKILL
+    (left,) = work.iterdir()
+    assert left.name.startswith(".out.ctpipe-") and left.name.endswith(".tmp")
+    again = subprocess.run([sys.executable, "-m", "ctpipe.cli", *argv], capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    (note,) = [line for line in again.stderr.splitlines() if left.name in line]
+    assert "killed" in note and "remove with: " in note
+    subprocess.run(note.split("remove with: ")[1], shell=True, check=True)
+    assert sorted(p.name for p in work.iterdir()) == ["out"]
+
+
+def test_a_temporary_of_a_run_still_going_is_not_named_a_leftover(tmp_path):
+    from ctpipe.io.outputs import leftovers
+
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        ours = tmp_path / f".out.ctpipe-{live.pid}-abc.tmp"
+        ours.mkdir()
+        gone = tmp_path / ".out.ctpipe-999999999-abc.tmp"
+        gone.mkdir()
+        (tmp_path / ".other.ctpipe-999999999-abc.tmp").mkdir()   # beside another output: not this one's
+        assert leftovers(tmp_path / "out") == [gone]
+    finally:
+        live.kill()
+        live.wait()

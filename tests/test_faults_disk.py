@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -105,3 +106,21 @@ def test_the_cli_says_a_full_disk_in_one_line_with_status_1(small_disk, small_sc
     assert code == 1, err
     assert err.count("\n") == 1 and err.startswith(f"ctpipe: error: {out}: no space left on the device"), err
     assert listing(small_disk) == before
+
+
+def test_an_estimate_that_finds_no_room_leaves_no_empty_output_folder(small_disk, small_scan_folder):
+    """Issue 36: the output folder made for the results goes again with them (a 300 kB disk: none of them fit)."""
+    disk = small_disk / "small"
+    disk.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=300k", "tmpfs", str(disk)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+    try:
+        run = subprocess.run([sys.executable, "-m", "ctpipe.cli", "estimate", str(small_scan_folder),
+                              "--out", str(disk / "o")], capture_output=True, text=True)
+        assert run.returncode == 1, run.stderr
+        assert run.stderr.strip().splitlines()[-1].startswith("ctpipe: error: ")
+        assert "no space left on the device" in run.stderr and "nothing was replaced" in run.stderr
+        assert list(disk.iterdir()) == []
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)

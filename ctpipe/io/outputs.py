@@ -8,6 +8,7 @@ import errno
 import io
 import json
 import os
+import re
 import shutil
 import tempfile
 import threading
@@ -19,12 +20,27 @@ import numpy as np
 from ctpipe.errors import InputError, OutputError
 
 __all__ = ["atomic_write", "write_json", "write_csv", "write_files", "staged_folder", "json_bytes", "csv_bytes",
-           "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer", "to_jsonable"]
+           "check_output_dir", "check_output_file", "write_keypoints", "keypoints_writer", "to_jsonable", "leftovers"]
 
 #: Held while renames put results in place (and while a replaced scan folder is swapped), so that
 #: a program ended by a signal never stops half-way through: :func:`discard_pending` takes it.
 COMMIT_LOCK = threading.RLock()
 _PENDING: set[Path] = set()
+#: Folders made for outputs not yet committed (an ``--out`` that did not exist): removed again, when
+#: empty, if the writing fails or the run is stopped.
+_MADE: list[Path] = []
+
+
+def temporary_prefix(target: Path) -> str:
+    """The start of a temporary's name beside ``target``: ``.NAME.ctpipe-PID-`` (see :func:`leftovers`)."""
+    return f".{target.name}.ctpipe-{os.getpid()}-"
+
+
+#: A temporary of this program: ``.NAME.ctpipe-PID-RANDOM.tmp`` (``.old``: what a commit moved aside;
+#: ``-discarded``: being removed); the process id tells one a killed run left from another run's work.
+_TEMPORARY = re.compile(r"^\.(?P<name>.+)\.ctpipe-(?P<pid>\d+)-[^/]+$")
+#: The names of earlier versions, without the process id: ``.NAME.RANDOM8.tmp`` or ``.old``.
+_TEMPORARY_BEFORE = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.(tmp|old)$")
 
 
 @contextlib.contextmanager
@@ -42,18 +58,115 @@ def discard_pending(timeout_s: float = 1.0) -> None:
 
     For a program that ends at once on Ctrl-C or SIGTERM while worker threads still run: what
     they have not committed is removed (the targets keep their previous contents), after any
-    commit in progress has finished (up to ``timeout_s``; the commits are renames).
+    commit in progress has finished (up to ``timeout_s``; the commits are renames), and so are
+    the output folders made for them, now empty.
     """
     locked = COMMIT_LOCK.acquire(timeout=timeout_s)
     try:
         for path in list(_PENDING):
-            if path.is_dir():
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                path.unlink(missing_ok=True)
+            _remove(path)
+        for folder in reversed(list(_MADE)):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
     finally:
         if locked:
             COMMIT_LOCK.release()
+
+
+def _remove(path: Path) -> None:
+    """Remove a temporary file, or a folder another thread may still be writing files into.
+
+    The folder is renamed first: a writer then finds no folder by its old name and can add
+    nothing more (``shutil.rmtree`` on the folder itself raced a writer that kept adding files,
+    and left it behind with the last few in it).
+    """
+    if not path.is_dir() or path.is_symlink():
+        path.unlink(missing_ok=True)
+        return
+    gone = path.with_name(f"{path.name}-discarded")
+    try:
+        os.rename(path, gone)
+    except OSError:
+        gone = path
+    for _ in range(5):   # a file whose creation was under way at the rename can still appear once
+        shutil.rmtree(gone, ignore_errors=True)
+        if not gone.exists():
+            return
+
+
+def _make_folders(folder: Path) -> list[Path]:
+    """Make ``folder`` and its missing parents; those made, outermost first (registered in ``_MADE``)."""
+    missing = []
+    for parent in (folder.absolute(), *folder.absolute().parents):
+        if parent.exists() or parent.is_symlink():
+            break
+        missing.append(parent)
+    made = []
+    for parent in reversed(missing):
+        try:
+            parent.mkdir()
+        except FileExistsError:
+            continue    # made by another writer meanwhile: not ours to remove
+        made.append(parent)
+        _MADE.append(parent)
+    return made
+
+
+@contextlib.contextmanager
+def _folders_for(folders: Iterable[Path]) -> Iterator[None]:
+    """Make the folders outputs go into for the block; those it made are removed again, if empty, when it fails."""
+    made: list[Path] = []
+    try:
+        for folder in folders:
+            made += _make_folders(Path(folder))
+        yield
+    except BaseException:
+        for folder in reversed(made):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+    finally:
+        for folder in made:
+            with contextlib.suppress(ValueError):
+                _MADE.remove(folder)
+
+
+def leftovers(path: str | Path) -> list[Path]:
+    """Temporaries that runs killed before they could clean up left beside ``path`` (or, for a folder, in it).
+
+    A SIGKILL, a crash of the machine or a power cut ends a run without its clean-up; what it was
+    staging stays, hidden by its leading dot (``.NAME.ctpipe-PID-RANDOM.tmp``). Nothing reads it.
+    One whose process is still running is another run's work in progress and is not listed.
+    """
+    path = Path(path)
+    places = [(path.parent, path.name)] + ([(path, None)] if path.is_dir() else [])
+    found = []
+    for folder, name in places:
+        try:
+            entries = list(folder.iterdir())
+        except OSError:
+            continue
+        for entry in entries:
+            match = _TEMPORARY.match(entry.name)
+            if match and (name is None or match["name"] == name) and not _running(int(match["pid"])):
+                found.append(entry)
+                continue
+            before = _TEMPORARY_BEFORE.match(entry.name)
+            if not match and before and (name is None or before["name"] == name):
+                found.append(entry)
+    return sorted(found)
+
+
+def _running(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True     # someone else's process
+    return True
 
 
 #: The errors of a write that found no room: the device (ENOSPC) or the user's quota (EDQUOT) is full.
@@ -169,7 +282,7 @@ def _commit_locked(moves: Sequence[tuple[Path, Path]]) -> None:
         for staged, target in moves:
             saved = None
             if target.exists():
-                fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent)
+                fd, name = tempfile.mkstemp(prefix=temporary_prefix(target), suffix=".old", dir=target.parent)
                 os.close(fd)
                 saved = Path(name)
                 os.replace(target, saved)
@@ -190,9 +303,9 @@ def _commit_locked(moves: Sequence[tuple[Path, Path]]) -> None:
 def _stage(path: Path, write: Callable[[io.BufferedWriter], None]) -> Path:
     """Write a temporary sibling of ``path`` with the permissions a plain ``open`` would give."""
     with disk_full_is_one_line(path):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        _PENDING.add(Path(tmp))  # until write_files renames or removes it
+        with COMMIT_LOCK:   # made and registered at once: a signal between the two would leave it
+            fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(path), suffix=".tmp", dir=path.parent)
+            _PENDING.add(Path(tmp))  # until write_files renames or removes it
         try:
             os.fchmod(fd, 0o666 & ~_umask())
             with os.fdopen(fd, "wb") as handle:
@@ -225,17 +338,19 @@ def write_files(files: Mapping[str | Path, Callable[[io.BufferedWriter], None]])
     The paths, in the mapping's order.
     """
     staged: list[tuple[Path, Path]] = []
-    try:
-        for path, write in files.items():
-            path = Path(path)
-            staged.append((_stage(path, write), path))
-        if staged:   # replacing a file first moves the old one aside, under a new name: that can find no room
-            with disk_full_is_one_line(staged[0][1] if len(staged) == 1 else staged[0][1].parent):
+    paths = [Path(path) for path in files]
+    # The folders made for the files go again if they fail (and so after their temporaries).
+    with disk_full_is_one_line(paths[0] if len(paths) == 1 else paths[0].parent) if paths else \
+            contextlib.nullcontext(), _folders_for(dict.fromkeys(path.parent for path in paths)):
+        try:
+            for path, write in zip(paths, files.values()):
+                staged.append((_stage(path, write), path))
+            if staged:   # replacing a file first moves the old one aside, under a new name: that can find no room
                 _commit(staged)
-    finally:
-        for tmp, _ in staged:
-            tmp.unlink(missing_ok=True)
-            _PENDING.discard(tmp)
+        finally:
+            for tmp, _ in staged:
+                tmp.unlink(missing_ok=True)
+                _PENDING.discard(tmp)
     return [path for _, path in staged]
 
 
@@ -272,14 +387,16 @@ def temporary_sibling(folder: Path) -> Iterator[Path]:
     whatever happened (once moved into place, there is nothing left to remove); a full disk on
     the way is one line naming ``folder`` (:func:`disk_full_is_one_line`).
     """
-    with disk_full_is_one_line(folder):
-        folder.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
-    try:
-        with pending(tmp), disk_full_is_one_line(folder):
-            yield tmp
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    with _folders_for([folder.parent]):
+        with disk_full_is_one_line(folder), COMMIT_LOCK:  # made and registered at once (see _stage)
+            tmp = Path(tempfile.mkdtemp(prefix=temporary_prefix(folder), suffix=".tmp", dir=folder.parent))
+            _PENDING.add(tmp)
+        try:
+            with disk_full_is_one_line(folder):
+                yield tmp
+        finally:
+            _remove(tmp)
+            _PENDING.discard(tmp)
 
 
 def to_jsonable(value):

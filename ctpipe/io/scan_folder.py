@@ -57,7 +57,7 @@ from ctpipe.errors import ConfigError, InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.hookspecs import hookimpl
 from ctpipe.io.flatfield import log_transform
-from ctpipe.io.outputs import COMMIT_LOCK, temporary_sibling, to_jsonable
+from ctpipe.io.outputs import COMMIT_LOCK, temporary_prefix, pending, temporary_sibling, to_jsonable
 from ctpipe.io.scans import ScanFiles, ViewFiles, ViewStack
 from ctpipe.stages import ParamSpec, check_value
 
@@ -355,7 +355,10 @@ def write_scan(folder: str | Path, projections, geometry: Geometry, nominal_angl
         text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None, width=100)
         (tmp / "scan.yaml").write_text(text, encoding="utf-8")
         with COMMIT_LOCK:
-            _swap_into_place(tmp, folder, overwrite)
+            old = _swap_into_place(tmp, folder, overwrite)
+        if old is not None:   # the scan replaced; a stop while it is removed finishes the removal (discard_pending)
+            with pending(old):
+                shutil.rmtree(old, ignore_errors=True)
     return folder
 
 
@@ -393,15 +396,16 @@ def _is_scan_folder(folder: Path) -> bool:
                for line in head.splitlines())
 
 
-def _swap_into_place(tmp: Path, folder: Path, overwrite: bool) -> None:
+def _swap_into_place(tmp: Path, folder: Path, overwrite: bool) -> Path | None:
+    """Rename ``tmp`` to ``folder``; the scan it replaced, moved aside, for the caller to remove (None if none)."""
     if folder.is_dir() and not any(folder.iterdir()):
         folder.rmdir()
     if not folder.exists():
         os.rename(tmp, folder)
-        return
+        return None
     if not overwrite:
         raise InputError(f"{folder}: appeared while the scan was written; not overwriting it")
-    old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".old", dir=folder.parent))
+    old = Path(tempfile.mkdtemp(prefix=temporary_prefix(folder), suffix=".old", dir=folder.parent))
     old.rmdir()
     os.rename(folder, old)
     try:
@@ -409,7 +413,7 @@ def _swap_into_place(tmp: Path, folder: Path, overwrite: bool) -> None:
     except BaseException:
         os.rename(old, folder)
         raise
-    shutil.rmtree(old, ignore_errors=True)
+    return old
 
 
 def _detect(path: Path) -> bool:
