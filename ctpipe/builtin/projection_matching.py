@@ -98,8 +98,9 @@ class ProjectionMatchingRefiner(Refiner):
                          "the drift is not taken for angle errors")
     detector: bool = param(True, doc="fit the centre of rotation's column and the detector's in-plane tilt with the "
                            "angles (reported in the refined geometry)")
-    static: bool = param(True, doc="match the views less their static part (the per-pixel median over the views: "
-                         "what does not turn with the sample), where the views span 180 deg or more")
+    static: bool = param(True, doc="match the views less their static part (what does not turn with the sample: the "
+                         "views' mean on a full turn, their per-pixel median on a short scan), where 16 views or "
+                         "more span 180 deg or more")
     select: bool = param(True, doc="start matching from whichever of the start and the nominal angles fits the "
                          "projections better, and return the matched angles only where they predict views held out "
                          "of the reference better than the nominal ones, beyond noise")

@@ -170,3 +170,27 @@ def test_held_out_evidence_short_of_the_threshold_changes_nothing(scan):
     plain = gate_angles(rows, s.geometry, nominal, estimate)
     weak = gate_angles(rows, s.geometry, nominal, estimate, held_out_z=-1.5)
     assert weak.chosen == plain.chosen == "nominal" and weak.reason == plain.reason
+
+
+@pytest.mark.parametrize("conjugate_z, returned", [(-1.7, False), (-2.5, True)])
+def test_strong_held_out_evidence_does_not_carry_conjugate_rays_that_see_too_little(conjugate_z, returned):
+    """Each line of evidence must show the estimate better on its own: a held-out z of -2.9 with a
+    conjugate z of -1.7 sums to -3.3, past one band's threshold, and is not enough (a sweep scan
+    whose matched angles had walked, a few views 2 deg off, came out 2 dB worse that way)."""
+    from ctpipe.solve.conjugate import ConjugateRayScore
+    from ctpipe.solve.gate import _backward
+
+    def scored(candidates, reference):
+        # Removing a band makes things worse (z > 0 against the estimate); the estimate against the
+        # nominal angles has the conjugate z asked for.
+        return {name: ConjugateRayScore(cost=1.0, u0_px=0.0, n_pairs=100, versus=reference,
+                                        delta=conjugate_z if name in ("returned", "estimate") and reference == "nominal"
+                                        else (0.0 if name == reference else 1.0), delta_se=1.0, dof=30)
+                for name in candidates}
+
+    theta = np.linspace(0.0, 360.0, 90, endpoint=False)
+    correction = np.random.default_rng(0).normal(0.0, 0.1, 90)
+    parts = split_bands(correction, theta, harmonics=3)
+    stands = _backward(scored, theta, correction, theta + correction, list(parts), parts, np.ones(90, bool), 2.0,
+                       -2.9)
+    assert (stands is not None) == returned
