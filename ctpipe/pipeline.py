@@ -456,6 +456,11 @@ class ScanResult:
             lines.append(f"refiner: projection matching from the {choice.matched_from} angles, kept the {kept} ones"
                          + ("" if evidence is None else f" (views held out of the reference: the matched angles "
                             f"z {evidence:+.1f} against the nominal ones)"))
+        balls = self.refiner_info.get("balls")
+        if isinstance(balls, dict):
+            lines.append(f"refiner: ball calibration, {balls['balls']} balls followed through the views, "
+                         f"{'the corrected angles kept' if balls['kept'] else 'the nominal angles returned'}: "
+                         f"{balls['reason']}")
         gate = self.gate
         if gate is not None:
             lines.append(_gate_line(gate, measured=self.before_after is not None and bool(self.before_after.scores)))

@@ -44,6 +44,7 @@ BUILTIN_STAGE_PLUGINS: tuple[str, ...] = (
     "ctpipe.builtin.refiners",
     "ctpipe.builtin.projection_matching",
     "ctpipe.builtin.bundle",
+    "ctpipe.builtin.ball_calibration",
 )
 
 #: Every built-in plugin module, registered by name like any third-party plugin.

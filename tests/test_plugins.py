@@ -88,7 +88,8 @@ def test_every_hook_has_a_test_and_a_docs_entry():
 def test_builtins_are_listed_in_one_tuple():
     assert BUILTIN_STAGE_PLUGINS == ("ctpipe.builtin.opencv_detectors", "ctpipe.builtin.surf", "ctpipe.builtin.beads",
                                      "ctpipe.builtin.matchers", "ctpipe.builtin.estimators", "ctpipe.builtin.refiners",
-                                     "ctpipe.builtin.projection_matching", "ctpipe.builtin.bundle")
+                                     "ctpipe.builtin.projection_matching", "ctpipe.builtin.bundle",
+                                     "ctpipe.builtin.ball_calibration")
     assert BUILTIN_FORMAT_PLUGINS == ("ctpipe.io.scan_folder", "ctpipe.io.nikon", "ctpipe.io.zeiss", "ctpipe.io.bruker",
                                       "ctpipe.io.waygate", "ctpipe.io.nsi", "ctpipe.io.tiff_stack")
     assert BUILTIN_PLUGINS == BUILTIN_STAGE_PLUGINS + BUILTIN_FORMAT_PLUGINS

@@ -26,7 +26,7 @@ _EXPORTS = {
     "Ransac1ptEstimator": "estimators", "HistogramEstimator": "estimators", "MedianEstimator": "estimators",
     "OpenCV5ptEstimator": "estimators",
     "LeastSquaresRefiner": "refiners", "BundleAdjustmentRefiner": "bundle",
-    "ProjectionMatchingRefiner": "projection_matching",
+    "ProjectionMatchingRefiner": "projection_matching", "BallCalibrationRefiner": "ball_calibration",
 }
 
 __all__ = list(_EXPORTS)

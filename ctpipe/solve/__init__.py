@@ -11,11 +11,13 @@ point per track, through the camera model of :mod:`~ctpipe.solve.camera`;
 :mod:`~ctpipe.solve.reprojection` matches every view against the reprojection of the scan's own
 reconstruction (projection matching); :mod:`~ctpipe.solve.conjugate` checks a set of angles
 against the projections alone, by the rays that two views half a turn apart both measure, and
-:mod:`~ctpipe.solve.gate` returns corrected angles only where that check shows them better. :mod:`~ctpipe.solve.simulated` draws observations of
+:mod:`~ctpipe.solve.gate` returns corrected angles only where that check shows them better;
+:mod:`~ctpipe.solve.balls` calibrates a ball phantom's angles and detector from all views at once. :mod:`~ctpipe.solve.simulated` draws observations of
 known points for testing the solvers without images. ``docs/wholescan.md`` has the methods and
 figures; the refiner stages that call these are in :mod:`ctpipe.builtin`.
 """
 
+from ctpipe.solve.balls import BallCalibration, calibrate_balls, ellipse_centres
 from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bundle_adjust, solve_bundle
 from ctpipe.solve.camera import pixels_to_rays, project_points
 from ctpipe.solve.conjugate import (ConjugateRayScore, conjugate_pairs, conjugate_ray_costs, conjugate_ray_mismatch,
@@ -39,4 +41,4 @@ __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pai
            "HELD_OUT_Z", "HeldOutScore", "held_out_scores", "static_part", "static_part_applies", "step_cap_deg",
            "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "midplane_row", "conjugate_pairs",
            "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "gate_angles", "GateDecision",
-           "split_bands", "needed_z", "BANDS"]
+           "split_bands", "needed_z", "BANDS", "calibrate_balls", "BallCalibration", "ellipse_centres"]

@@ -1,0 +1,62 @@
+"""The ``ball-calibration`` refiner: a ball phantom's angles and detector from all views at once."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ctpipe.data import ScanObservations, ScanSolution
+from ctpipe.hookspecs import hookimpl
+from ctpipe.solve.balls import calibrate_balls
+from ctpipe.solve.graph import solve_view_graph
+from ctpipe.stages import Refiner, param
+
+__all__ = ["BallCalibrationRefiner"]
+
+
+@dataclass(frozen=True)
+class BallCalibrationRefiner(Refiner):
+    """Every ball a 3-D point on a circle about the axis: balls found by their trajectories, one bundle adjustment.
+
+    Needs the ``beads`` detector's discs (centre, diameter, flag) and the nominal angles; the
+    pairs the matcher and estimator made are not used (:mod:`ctpipe.solve.balls`). Without
+    nominal angles it solves the pairs on the view graph, and says so. The corrected
+    angles are returned only where they explain the balls better than the nominal angles beyond
+    noise (an F test of the reprojection errors); otherwise the nominal angles, with the reason
+    in ``info["balls"]["reason"]``. The axis column, the principal row and the detector tilt
+    fitted are the refined geometry (``geometry_vectors.csv``, the summary).
+    """
+
+    max_error_deg: float = param(2.0, doc="largest error a nominal angle may have: where balls are looked for, and "
+                                 "the most a view is corrected by", gt=0, le=30)
+    fit_detector: bool = param(True, doc="fit the axis column, the principal row and the detector tilt with the angles")
+    p_value: float = param(1e-3, doc="keep the corrected angles where the F test of the balls' reprojection errors "
+                           "against the nominal angles' is below this", gt=0, lt=1)
+
+    def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
+        nominal = observations.nominal_angles_deg
+        if nominal is None or len(observations.features) != observations.n_views:
+            # Nothing to follow the balls from (no nominal angles) or no discs: the pair estimates
+            # on the view graph, as the least-squares refiner solves them, and the reason.
+            solution = solve_view_graph(observations)
+            why = "no nominal angles" if nominal is None else "no discs found per view"
+            return ScanSolution(solution.angles_rad, solution.pair_estimates,
+                                {**solution.info, "balls": f"skipped: {why}; the pair estimates on the view graph"})
+        detections = []
+        for features in observations.features:
+            flags = np.zeros(len(features.xy)) if features.class_id is None else np.asarray(features.class_id)
+            detections.append(np.column_stack([features.xy, 0.5 * np.asarray(features.size), flags]))
+        found = calibrate_balls(detections, observations.geometry, nominal, max_error_deg=self.max_error_deg,
+                                fit_detector=self.fit_detector, p_value=self.p_value)
+        angles = found.angles_deg
+        info = {"balls": found.to_dict(), "chosen": "corrected" if found.kept else "nominal"}
+        detector = ({"u0_px": found.u0_px, "v0_px": found.v0_px, "tilt_deg": found.tilt_deg}
+                    if found.kept and self.fit_detector else {})
+        return ScanSolution(np.deg2rad(angles - angles[0]), tuple(observations.estimates), info,
+                            angle_se_deg=found.angle_se_deg if found.kept else None, **detector)
+
+
+@hookimpl
+def ctpipe_register_stages(registry) -> None:
+    registry.add_refiner("ball-calibration", BallCalibrationRefiner)

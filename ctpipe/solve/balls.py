@@ -1,0 +1,467 @@
+"""Global ball-phantom calibration: every ball a 3-D point on a circle about the axis, all views at once.
+
+A ball phantom (a ball bar, balls in foam, a bead cloud) is the one scan where the answer can be
+exact: each ball's projected centre is a point of known motion. Pairwise correspondences of
+identical balls break on real scans (balls that merge or overlap, balls missed in some views,
+dust, a holder: issue 34 measured a real 17-view scan ending tens of degrees off), so here
+nothing is decided pair by pair:
+
+1. **Balls from trajectories.** Every pair of detections in two views well apart in angle is
+   triangulated with the nominal angles; a candidate ball is scored by the views in which a
+   detection lies where it projects (within what the nominal angles' error allows). The best
+   supported candidate is refined on its detections and kept, its detections claimed, and so
+   on (sequential RANSAC of 3-D points, as turntable structure from motion does:
+   Fitzgibbon, Cross and Zisserman 1998). Dust, a holder's edges and a merged blob follow no
+   3-D point through the scan and are left out.
+2. **One bundle adjustment** of every view's angle, every ball's position and the detector
+   (the axis column ``u0``, the principal row ``v0``, the in-plane tilt), robust (Huber at
+   one pixel), on the detections assigned to a ball one-to-one in each view; assignment and
+   adjustment alternate. Discs flagged as overlapping another or cut by the border locate a
+   ball for the assignment but do not enter the fit. A ball's projected disc is an ellipse
+   whose centre is not the projection of the ball's centre (Clackdoyle and Mennessier 2011):
+   the model predicts the ellipse's centre (:func:`ellipse_centres`).
+3. **A verdict from the balls themselves.** The same fit with the angles held at the nominal
+   ones; the corrected angles are kept only where they explain the balls better beyond noise
+   (an F test of the residuals, the angles' degrees of freedom against the rest), and none
+   moved further than the nominal angles' stated error allows.
+
+Gauges: the first view keeps its nominal angle (a common turn only turns the phantom); the
+magnification stays the nominal one (balls of unknown positions and size fix the geometry
+only up to scale: a phantom scaled about the source projects the same).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ctpipe.errors import InputError
+from ctpipe.geometry import Geometry
+from ctpipe.solve.camera import pixels_to_rays
+
+__all__ = ["BallCalibration", "calibrate_balls", "ellipse_centres"]
+
+
+@dataclass(frozen=True)
+class BallCalibration:
+    """What :func:`calibrate_balls` found.
+
+    Attributes
+    ----------
+    angles_deg : ndarray of shape (V,)
+        The returned angles: the corrected ones where the verdict keeps them, else the nominal ones.
+    corrected_deg : ndarray of shape (V,)
+        The bundle adjustment's angles, whatever the verdict.
+    angle_se_deg : ndarray of shape (V,)
+        Standard error of every corrected angle (NaN where a view had too few balls, or for view 0,
+        the gauge).
+    kept : bool
+        Whether the corrected angles are returned.
+    reason : str
+        Why, in words.
+    balls_mm : ndarray of shape (B, 3)
+        Every ball's fitted centre, object frame.
+    u0_px, v0_px, tilt_deg : float
+        The fitted detector: axis column, principal row, in-plane tilt (camera convention).
+    rms_px, nominal_rms_px : float
+        Reprojection RMS of the fitted observations with the corrected and with the nominal angles.
+    ball_rms_px : ndarray of shape (B,)
+        Each ball's reprojection RMS with the corrected angles.
+    f_statistic, p_value : float
+        The F test of the corrected against the nominal angles.
+    observations : int
+        Detections fitted (assigned to a ball, not flagged).
+    assigned : list of ndarray
+        Per view, the ball of each detection (-1: none).
+    """
+
+    angles_deg: np.ndarray
+    corrected_deg: np.ndarray
+    angle_se_deg: np.ndarray
+    kept: bool
+    reason: str
+    balls_mm: np.ndarray
+    u0_px: float
+    v0_px: float
+    tilt_deg: float
+    rms_px: float
+    nominal_rms_px: float
+    ball_rms_px: np.ndarray
+    f_statistic: float
+    p_value: float
+    observations: int
+    assigned: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"kept": self.kept, "reason": self.reason, "balls": len(self.balls_mm),
+                "balls_mm": np.round(self.balls_mm, 4).tolist(), "u0_px": self.u0_px, "v0_px": self.v0_px,
+                "tilt_deg": self.tilt_deg, "rms_px": self.rms_px, "nominal_rms_px": self.nominal_rms_px,
+                "ball_rms_px": np.round(self.ball_rms_px, 4).tolist(), "f_statistic": self.f_statistic,
+                "p_value": self.p_value, "observations": self.observations,
+                "views_per_ball": [int(sum(int(np.sum(a == b)) for a in self.assigned))
+                                   for b in range(len(self.balls_mm))]}
+
+
+def ellipse_centres(points_mm: np.ndarray, radii_mm: np.ndarray, angles_rad: np.ndarray, geometry: Geometry,
+                    u0_px: float, v0_px: float, tilt_rad: float) -> np.ndarray:
+    """Pixel centres of the discs (ellipses) balls of ``radii_mm`` at ``points_mm`` project to, shape (N, 2).
+
+    The cone of rays tangent to a ball of radius ``r`` whose centre lies at distance ``D`` from
+    the source, at angle ``gamma`` from the central ray, cuts the detector in an ellipse whose
+    centre lies, along the direction away from the principal point, at
+    ``SDD sin(2 gamma) / (cos(2 gamma) + cos(2 alpha))`` with ``sin(alpha) = r / D``, not at the
+    centre's projection ``SDD tan(gamma)`` (Clackdoyle and Mennessier 2011). The bias grows as
+    ``tan(gamma) alpha^2``: a few hundredths of a pixel for small balls near the axis, tenths of
+    a pixel for balls a hundred pixels across at the detector's edge.
+    """
+    c, s = np.cos(angles_rad), np.sin(angles_rad)
+    px = c * points_mm[:, 0] - s * points_mm[:, 2]
+    py = points_mm[:, 1]
+    z = s * points_mm[:, 0] + c * points_mm[:, 2] + geometry.source_to_object_mm
+    xn, yn = px / z, py / z
+    t = np.hypot(xn, yn)
+    distance = np.sqrt(px ** 2 + py ** 2 + z ** 2)
+    sin_alpha = np.clip(radii_mm / distance, 0.0, 0.99)
+    cos_2alpha = 1.0 - 2.0 * sin_alpha ** 2
+    gamma = np.arctan(t)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(t > 1e-12, np.sin(2 * gamma) / (np.cos(2 * gamma) + cos_2alpha) / t,
+                         1.0 / (0.5 * (1.0 + cos_2alpha)))
+    xn, yn = xn * scale, yn * scale
+    ct, st = math.cos(tilt_rad), math.sin(tilt_rad)
+    fu = geometry.source_to_detector_mm / geometry.pixel_pitch_u_mm
+    fv = geometry.source_to_detector_mm / geometry.pixel_pitch_v_mm
+    return np.stack([u0_px + fu * (ct * xn - st * yn), v0_px + fv * (st * xn + ct * yn)], axis=1)
+
+
+def _rays(xy_px: np.ndarray, angle_rad: float, geometry: Geometry) -> tuple[np.ndarray, np.ndarray]:
+    """Source (3,) and unit directions (N, 3) of the rays through pixels ``xy_px``, object frame."""
+    rays = pixels_to_rays(xy_px, geometry)
+    d = np.column_stack([rays, np.ones(len(rays))])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    # Camera P = R X + (0, 0, SOD), R = [[c, 0, -s], [0, 1, 0], [s, 0, c]]: X = R^T (P - (0, 0, SOD)).
+    rt = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    source = rt @ np.array([0.0, 0.0, -geometry.source_to_object_mm])
+    return source, d @ rt.T
+
+
+def _triangulate(s1, d1, s2, d2) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoints (N, M, 3) and gaps (N, M) of the closest approach of every ray of 1 with every ray of 2."""
+    w = s1 - s2
+    b = d1 @ d2.T                                   # (N, M)
+    d = (d1 @ w)[:, None]                           # (N, 1)
+    e = (d2 @ w)[None, :]                           # (1, M)
+    denom = np.maximum(1.0 - b ** 2, 1e-12)
+    t1 = (b * e - d) / denom
+    t2 = (e - b * d) / denom
+    p1 = s1 + t1[..., None] * d1[:, None, :]
+    p2 = s2 + t2[..., None] * d2[None, :, :]
+    return 0.5 * (p1 + p2), np.linalg.norm(p1 - p2, axis=-1)
+
+
+def _project(points, angles, geometry, u0, v0, tilt, radii=None):
+    radii = np.zeros(len(points)) if radii is None else radii
+    return ellipse_centres(points, radii, angles, geometry, u0, v0, tilt)
+
+
+def _tolerance_px(points: np.ndarray, geometry: Geometry, error_rad: float, radius_px: float) -> np.ndarray:
+    """How far a ball at ``points`` may lie from its nominal-angle projection: the angle error's sweep plus a margin."""
+    rho = np.hypot(points[:, 0], points[:, 2])
+    return geometry.magnification * rho * error_rad / min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm) \
+        + 0.5 * radius_px + 2.0
+
+
+def _support(point: np.ndarray, detections, angles, geometry, error_rad, radius_px, claimed) -> list[int]:
+    """Per view, the detection nearest where ``point`` projects, if within tolerance and unclaimed (-1: none)."""
+    uv = _project(np.repeat(point[None], len(angles), 0), angles, geometry, geometry.u0_px, geometry.v0_px, 0.0)
+    tol = _tolerance_px(point[None], geometry, error_rad, radius_px)[0]
+    chosen = []
+    for view, found in enumerate(detections):
+        if len(found) == 0:
+            chosen.append(-1)
+            continue
+        distance = np.hypot(*(found[:, :2] - uv[view]).T)
+        distance[claimed[view]] = np.inf
+        best = int(np.argmin(distance))
+        chosen.append(best if distance[best] <= tol else -1)
+    return chosen
+
+
+def _refine_point(point, chosen, detections, angles, geometry) -> np.ndarray:
+    """Least squares of one ball's centre on its detections (nominal angles, nominal detector)."""
+    from ctpipe.solve.camera import projection_jacobians
+
+    views = [v for v, k in enumerate(chosen) if k >= 0]
+    observed = np.array([detections[v][chosen[v], :2] for v in views])
+    for _ in range(10):
+        uv, _, d_point, _ = projection_jacobians(np.repeat(point[None], len(views), 0), angles[views], geometry)
+        residual = (observed - uv).reshape(-1)
+        jac = d_point.reshape(-1, 3)
+        step, *_ = np.linalg.lstsq(jac, residual, rcond=None)
+        point = point + step
+        if np.linalg.norm(step) < 1e-6:
+            break
+    return point
+
+
+def _find_balls(detections, angles, geometry, error_rad, radius_px, min_views) -> list[np.ndarray]:
+    """Balls as 3-D points supported by detections in ``min_views`` views or more (step 1 of the module)."""
+    V = len(angles)
+    candidates = []
+    reach_mm = 0.5 * geometry.detector_cols * geometry.pixel_pitch_u_mm / geometry.magnification
+    height_mm = 0.5 * geometry.detector_rows * geometry.pixel_pitch_v_mm / geometry.magnification
+    for a in range(V):
+        for b in range(a + 1, V):
+            if abs(math.sin(angles[b] - angles[a])) < 0.2 or len(detections[a]) == 0 or len(detections[b]) == 0:
+                continue
+            s1, d1 = _rays(detections[a][:, :2], angles[a], geometry)
+            s2, d2 = _rays(detections[b][:, :2], angles[b], geometry)
+            mid, gap = _triangulate(s1, d1, s2, d2)
+            limit = _tolerance_px(mid.reshape(-1, 3), geometry, error_rad, radius_px).reshape(gap.shape)
+            limit_mm = limit * min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm) / geometry.magnification
+            # A ball is in the field of view: inside the cylinder every view sees.
+            inside = (np.hypot(mid[..., 0], mid[..., 2]) <= reach_mm) & (np.abs(mid[..., 1]) <= height_mm)
+            keep = (gap <= limit_mm) & inside
+            candidates.extend(mid[keep])
+    if not candidates:
+        return []
+    candidates = np.array(candidates)
+    # Scores by support; the same ball is triangulated by many pairs, so a few hundred candidates suffice.
+    claimed = [np.zeros(len(d), bool) for d in detections]
+    balls = []
+    order = np.arange(len(candidates))
+    scores = np.array([sum(k >= 0 for k in _support(p, detections, angles, geometry, error_rad, radius_px, claimed))
+                       for p in candidates])
+    order = order[np.argsort(-scores, kind="stable")]
+    for index in order:
+        if scores[index] < min_views:
+            break
+        point = candidates[index]
+        chosen = _support(point, detections, angles, geometry, error_rad, radius_px, claimed)
+        if sum(k >= 0 for k in chosen) < min_views:
+            continue
+        point = _refine_point(point, chosen, detections, angles, geometry)
+        chosen = _support(point, detections, angles, geometry, error_rad, radius_px, claimed)
+        if sum(k >= 0 for k in chosen) < min_views:
+            continue
+        balls.append(point)
+        for view, k in enumerate(chosen):
+            if k >= 0:
+                claimed[view][k] = True
+    return balls
+
+
+def _assign(detections, balls, radii_mm, angles, geometry, u0, v0, tilt, tol_px) -> list[np.ndarray]:
+    """Per view, the ball of every detection (-1: none): one-to-one, nearest first, within ``tol_px``."""
+    from scipy.optimize import linear_sum_assignment
+
+    assigned = []
+    B = len(balls)
+    for view, found in enumerate(detections):
+        labels = np.full(len(found), -1)
+        if len(found) and B:
+            uv = _project(balls, np.full(B, angles[view]), geometry, u0, v0, tilt, radii_mm)
+            cost = np.hypot(found[:, None, 0] - uv[None, :, 0], found[:, None, 1] - uv[None, :, 1])
+            gated = np.where(cost <= tol_px[None, :], cost, 1e9)
+            rows, cols = linear_sum_assignment(gated)
+            for r, c in zip(rows, cols):
+                if gated[r, c] < 1e9:
+                    labels[r] = c
+        assigned.append(labels)
+    return assigned
+
+
+#: A disc that overlaps another or is cut by the border still places its ball, at a quarter of the
+#: weight (four times the error) of a clean one: its fitted centre is pulled by its neighbour.
+_FLAGGED_WEIGHT = 0.25
+
+
+@dataclass
+class _Fit:
+    angles: np.ndarray
+    balls: np.ndarray
+    detector: np.ndarray           # u0, v0, tilt_rad
+    residual: np.ndarray           # (M, 2) px
+    jac: np.ndarray | None
+    free_views: np.ndarray
+    n_params: int
+
+
+def _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry, *, free_views, fit_angles=True,
+            fit_detector=True, scale_px: float = 1.0) -> _Fit:
+    """Bundle adjustment of the free views' angles, the balls and the detector on the observations."""
+    from scipy.optimize import least_squares
+
+    B = len(balls)
+    n_free = len(free_views) if fit_angles else 0
+    n_det = 3 if fit_detector else 0
+
+    def unpack(x):
+        a = angles.copy()
+        if n_free:
+            a[free_views] = x[:n_free]
+        p = x[n_free:n_free + 3 * B].reshape(B, 3)
+        d = x[n_free + 3 * B:] if n_det else detector
+        return a, p, d
+
+    def residuals(x):
+        a, p, d = unpack(x)
+        uv = ellipse_centres(p[ball_of], radii_mm[ball_of], a[view_of], geometry, d[0], d[1], d[2])
+        return ((uv - observed) * weight[:, None]).reshape(-1)
+
+    x0 = np.concatenate([angles[free_views] if n_free else [], balls.reshape(-1), detector if n_det else []])
+    # The Jacobian's sparsity: each observation sees its view's angle, its ball and the detector.
+    from scipy.sparse import lil_matrix
+
+    M = len(observed)
+    sparsity = lil_matrix((2 * M, len(x0)), dtype=int)
+    column = {v: k for k, v in enumerate(free_views)} if n_free else {}
+    for m in range(M):
+        rows = [2 * m, 2 * m + 1]
+        if view_of[m] in column:
+            sparsity[rows, column[view_of[m]]] = 1
+        for j in range(3):
+            sparsity[rows, n_free + 3 * ball_of[m] + j] = 1
+        if n_det:
+            for j in range(3):
+                sparsity[rows, n_free + 3 * B + j] = 1
+    solved = least_squares(residuals, x0, jac_sparsity=sparsity, loss="huber", f_scale=scale_px, x_scale="jac",
+                           xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    a, p, d = unpack(solved.x)
+    return _Fit(a, p, np.asarray(d, dtype=np.float64), residuals(solved.x).reshape(-1, 2),
+                solved.jac.toarray() if hasattr(solved.jac, "toarray") else solved.jac,
+                np.asarray(free_views), len(x0))
+
+
+def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_error_deg: float = 2.0,
+                    fit_detector: bool = True, p_value: float = 1e-3, rounds: int = 3) -> BallCalibration:
+    """Every view's angle and the detector from the balls of a ball phantom (see the module docstring).
+
+    Parameters
+    ----------
+    detections : sequence of ndarray of shape (N_k, 4)
+        Per view, every disc found: ``x=col, y=row`` of its centre (px), its radius (px) and a flag
+        (0 clean, 1 overlapping another disc, 2 cut by the border), as the ``beads`` detector
+        reports them.
+    geometry : Geometry
+        The scanner's nominal geometry.
+    nominal_angles_deg : array_like of shape (V,)
+        The angles the stage was commanded to.
+    max_error_deg : float
+        The largest error a nominal angle may have: what the balls are looked for within, and
+        the most a view may be corrected by.
+    fit_detector : bool
+        Fit the axis column, the principal row and the detector tilt with the angles.
+    p_value : float
+        The corrected angles are kept where the F test's p-value is below this.
+    rounds : int
+        Alternations of assignment and adjustment.
+    """
+    from scipy import stats
+
+    nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
+    V = len(nominal)
+    if len(detections) != V:
+        raise InputError(f"detections: one array per view ({V}), got {len(detections)}")
+    detections = [np.asarray(d, dtype=np.float64).reshape(-1, 4) for d in detections]
+    theta0 = np.deg2rad(nominal)
+    error_rad = math.radians(max_error_deg)
+    radii_px = np.concatenate([d[:, 2] for d in detections])
+    if len(radii_px) == 0:
+        raise InputError("no balls were found in any view")
+    radius_px = float(np.median(radii_px))
+    min_views = max(3, int(math.ceil(0.4 * V)))
+    balls = _find_balls(detections, theta0, geometry, error_rad, radius_px, min_views)
+    if len(balls) < 2:
+        raise InputError(f"found {len(balls)} ball(s) followed through {min_views} or more of the {V} views; a "
+                         f"calibration needs two or more (are these balls, and the nominal angles within "
+                         f"{max_error_deg:g} deg?)")
+    balls = np.array(balls)
+    pitch = min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm)
+    reach_mm = 0.5 * geometry.detector_cols * geometry.pixel_pitch_u_mm / geometry.magnification
+    detector = np.array([geometry.u0_px, geometry.v0_px, 0.0])
+    angles = theta0.copy()
+    # A ball's radius (mm) from its discs: radius_px pitch over the magnification at its depth.
+    radii_mm = np.full(len(balls), radius_px * pitch / geometry.magnification)
+    tol = _tolerance_px(balls, geometry, error_rad, radius_px)
+    fit = None
+    done = 0
+    while done < rounds:   # a round that drops a ball does not count (at most all but two are dropped)
+        assigned = _assign(detections, balls, radii_mm, angles, geometry, *detector, tol)
+        view_of, ball_of, observed, disc_px, weight = [], [], [], [], []
+        for view, (found, labels) in enumerate(zip(detections, assigned)):
+            for k in np.flatnonzero(labels >= 0):
+                view_of.append(view), ball_of.append(labels[k]), observed.append(found[k, :2])
+                disc_px.append(found[k, 2]), weight.append(1.0 if found[k, 3] == 0 else _FLAGGED_WEIGHT)
+        view_of, ball_of, observed, weight = np.array(view_of), np.array(ball_of), np.array(observed), np.array(weight)
+        counts = np.bincount(view_of, minlength=V)
+        # Views with a single clean ball still fix their angle (two residuals, one unknown), if barely.
+        free_views = np.array([v for v in range(1, V) if counts[v] >= 2])
+        radii_mm = np.array([np.median(np.array(disc_px)[ball_of == b]) * pitch for b in range(len(balls))])
+        z = np.array([np.median(np.sin(angles[view_of[ball_of == b]]) * balls[b, 0]
+                                + np.cos(angles[view_of[ball_of == b]]) * balls[b, 2]) for b in range(len(balls))])
+        radii_mm = radii_mm * (z + geometry.source_to_object_mm) / geometry.source_to_detector_mm
+        fit = _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry,
+                      free_views=free_views, fit_detector=fit_detector)
+        angles, balls, detector = fit.angles, fit.balls, fit.detector
+        rms = float(np.sqrt(np.mean(fit.residual ** 2)))
+        # A "ball" that fits far worse than the others, or is seen in too few views, is not one (dust
+        # that lined up by chance, a merged pair): it is dropped and the adjustment made again.
+        per_ball = np.array([np.sqrt(np.mean(fit.residual[ball_of == b] ** 2)) if np.any(ball_of == b) else np.inf
+                             for b in range(len(balls))])
+        seen = np.bincount(ball_of, minlength=len(balls))
+        good = (per_ball <= max(5.0 * float(np.median(per_ball)), 1.0)) & (seen >= min_views) & \
+            np.all(np.isfinite(balls), axis=1) & (np.hypot(balls[:, 0], balls[:, 2]) <= 2.0 * reach_mm)
+        if not good.all() and good.sum() >= 2:
+            balls, tol = balls[good], tol[good]
+            angles, detector = theta0.copy(), np.array([geometry.u0_px, geometry.v0_px, 0.0])   # as it bent them
+            continue
+        done += 1
+        # Tighter for the next assignment: what the fit explains, plus room for a poorly fitted ball.
+        tol = np.full(len(balls), max(6.0 * rms + 1.0, 0.25 * radius_px))
+    nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
+                          free_views=free_views, fit_angles=False, fit_detector=fit_detector)
+    chi_corrected = float(np.sum(fit.residual ** 2))
+    chi_nominal = float(np.sum(nominal_fit.residual ** 2))
+    dof = fit.residual.size - fit.n_params
+    extra = len(free_views)
+    if dof > 0 and extra > 0 and chi_corrected > 0:
+        f_stat = ((chi_nominal - chi_corrected) / extra) / (chi_corrected / dof)
+        p = float(stats.f.sf(f_stat, extra, dof))
+    else:
+        f_stat, p = math.nan, math.nan
+    # Standard errors: the Gauss-Newton covariance of the angles, scaled by the residual variance.
+    se = np.full(V, np.nan)
+    if dof > 0 and extra > 0:
+        jtj = fit.jac.T @ fit.jac
+        try:
+            cov = np.linalg.pinv(jtj) * (chi_corrected / dof)
+            se[free_views] = np.rad2deg(np.sqrt(np.clip(np.diag(cov)[:extra], 0, None)))
+        except np.linalg.LinAlgError:
+            pass
+    corrected = np.rad2deg(angles)
+    change = corrected - nominal
+    moved = float(np.max(np.abs(change - np.median(change))))     # a common turn is no correction
+    rms = float(np.sqrt(np.mean(fit.residual ** 2)))
+    nominal_rms = float(np.sqrt(np.mean(nominal_fit.residual ** 2)))
+    if not math.isfinite(p):
+        kept, reason = False, "too few balls in too few views to test the correction"
+    elif moved > max_error_deg:
+        kept, reason = False, (f"a view moved {moved:.2f} deg, more than the nominal angles' error allows "
+                               f"({max_error_deg:g} deg): the balls are not followed reliably")
+    elif p >= p_value:
+        kept, reason = False, (f"the corrected angles explain the balls no better than the nominal ones beyond noise "
+                               f"(reprojection RMS {rms:.3f} px against {nominal_rms:.3f} px; F test p {p:.2g})")
+    else:
+        kept, reason = True, (f"the corrected angles explain the balls better: reprojection RMS {rms:.3f} px against "
+                              f"{nominal_rms:.3f} px with the nominal ones (F test p {p:.2g})")
+    ball_rms = np.array([np.sqrt(np.mean(fit.residual[ball_of == b] ** 2)) if np.any(ball_of == b) else np.nan
+                         for b in range(len(balls))])
+    return BallCalibration(angles_deg=corrected if kept else nominal.copy(), corrected_deg=corrected,
+                           angle_se_deg=se, kept=kept, reason=reason, balls_mm=balls, u0_px=float(detector[0]),
+                           v0_px=float(detector[1]), tilt_deg=math.degrees(detector[2]), rms_px=rms,
+                           nominal_rms_px=nominal_rms, ball_rms_px=ball_rms, f_statistic=float(f_stat), p_value=p,
+                           observations=int(len(observed)), assigned=assigned)
