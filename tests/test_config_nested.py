@@ -52,14 +52,14 @@ def test_the_words_keep_their_meaning_and_the_default_is_the_view_graph():
 
 @pytest.mark.parametrize("text, message", [
     ("refiner: {name: projection-matching, start: nope}",
-     "pipeline.refiner.start.name: unknown refiner 'nope'; registered refiners: bundle-adjustment, least-squares, "
-     "projection-matching"),
+     "pipeline.refiner.start.name: unknown refiner 'nope'; registered refiners: ball-calibration, bundle-adjustment, "
+     "least-squares, projection-matching"),
     ("refiner: {name: projection-matching, start: {name: bundle-adjustment, loss_scale_px: -1}}",
      "pipeline.refiner.start.loss_scale_px: must be a number > 0 and <= 1000, got -1"),
     ("refiner: {name: projection-matching, start: {name: bundle-adjustment, scale: 1}}",
      "pipeline.refiner.start.scale: unknown parameter of refiner 'bundle-adjustment'; allowed: loss, loss_scale_px"),
     ("refiner: {name: projection-matching, start: {loss_scale_px: 1}}",
-     "pipeline.refiner.start.name: missing; registered refiners: bundle-adjustment, least-squares"),
+     "pipeline.refiner.start.name: missing; registered refiners: ball-calibration, bundle-adjustment, least-squares"),
     ("refiner: {name: projection-matching, start: 3}",
      "pipeline.refiner.start: must be a refiner (its name, or a mapping with 'name' and its parameters) or one of "
      "'view-graph', 'nominal', got 3"),
@@ -74,7 +74,7 @@ def test_a_bad_nested_stage_is_named_by_its_yaml_path(text, message):
 def test_a_blocked_plugins_stage_cannot_be_the_start():
     registry = get_registry(blocked=("ctpipe.builtin.bundle",))
     with pytest.raises(ConfigError, match=r"^pipeline.refiner.start.name: unknown refiner 'bundle-adjustment'; "
-                                          r"registered refiners: least-squares, projection-matching$"):
+                                          r"registered refiners: ball-calibration, least-squares, projection-matching$"):
         parse("refiner: {name: projection-matching, start: bundle-adjustment}\n", registry)
     # and a Python stage naming it is refused when it is built through that registry
     with pytest.raises(ConfigError, match="^ProjectionMatchingRefiner.start.name: unknown refiner 'bundle-adjustment'"):

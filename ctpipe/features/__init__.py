@@ -19,6 +19,7 @@ from ctpipe._shared.lazy import lazy_exports
 _EXPORTS = {
     "compute_surf": "surf", "fast_hessian": "surf", "integral_image": "surf", "surf_descriptors": "surf",
     "find_balls": "balls", "noise_sigma": "balls", "despike": "balls", "render_ball_model": "balls",
+    "edge_centres": "ball_edges",
     "l2_neighbours": "nearest",
 }
 

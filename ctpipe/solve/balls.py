@@ -416,7 +416,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         good = (per_ball <= max(5.0 * float(np.median(per_ball)), 1.0)) & (seen >= min_views) & \
             np.all(np.isfinite(balls), axis=1) & (np.hypot(balls[:, 0], balls[:, 2]) <= 2.0 * reach_mm)
         if not good.all() and good.sum() >= 2:
-            balls, tol = balls[good], tol[good]
+            balls, tol, radii_mm = balls[good], tol[good], radii_mm[good]
             angles, detector = theta0.copy(), np.array([geometry.u0_px, geometry.v0_px, 0.0])   # as it bent them
             continue
         done += 1

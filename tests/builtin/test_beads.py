@@ -198,7 +198,7 @@ def test_registered_as_beads(capsys):
     ({"polarity": "white"}, "BeadDetector.polarity: must be one of 'auto', 'bright', 'dark', got 'white'"),
     ({"min_contrast_sigma": 0}, "BeadDetector.min_contrast_sigma: must be a number > 0 and <= 1000000, got 0"),
     ({"max_beads": 0}, "BeadDetector.max_beads: must be an integer >= 1 and <= 1000000, got 0"),
-    ({"centre_method": "moments"}, "BeadDetector.centre_method: must be one of 'fit', 'centroid', got 'moments'"),
+    ({"centre_method": "moments"}, "BeadDetector.centre_method: must be one of 'auto', 'fit', 'centroid', 'rim', got 'moments'"),
 ])
 def test_parameters_are_validated_with_one_line_messages(params, message):
     with pytest.raises(ConfigError) as error:

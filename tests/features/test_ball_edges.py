@@ -1,0 +1,60 @@
+"""A ball's centre from its outer rim (issue 34): hollow balls, overlaps and dust, where the disc fit is pulled off."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from ctpipe.builtin.beads import BeadDetector
+from ctpipe.features.ball_edges import edge_centres
+
+
+def _ball(shape, centre, radius, density, inner=0.0):
+    """Line integrals of a ball (hollow inside ``inner``), parallel rays: the chord through it."""
+    rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    rho2 = (cols - centre[0]) ** 2 + (rows - centre[1]) ** 2
+    chord = 2.0 * np.sqrt(np.clip(radius ** 2 - rho2, 0.0, None))
+    if inner:
+        chord -= 2.0 * np.sqrt(np.clip(inner ** 2 - rho2, 0.0, None))
+    return density * chord
+
+
+def _view(balls, shape=(1200, 1200), seed=0, dust=0):
+    rng = np.random.default_rng(seed)
+    image = sum(_ball(shape, *ball) for ball in balls)
+    for _ in range(dust):
+        r0, c0 = rng.uniform(0, shape[0]), rng.uniform(0, shape[1])
+        image = image + 0.3 * _ball(shape, (c0, r0), rng.uniform(2, 4), 0.2)
+    image = ndimage.gaussian_filter(image, 0.7)
+    return (image + rng.normal(0.0, 0.01, shape)).astype(np.float32)
+
+
+def _nearest(found, centre):
+    distance = np.hypot(*(found.xy - centre).T)
+    return found.xy[np.argmin(distance)], found.class_id[np.argmin(distance)]
+
+
+@pytest.mark.parametrize("inner", [0.0, 45.0])
+def test_solid_and_coated_balls_are_placed_on_their_rim_within_five_hundredths_of_a_pixel(inner):
+    centres = [(400.3, 500.7), (820.6, 610.2)]
+    view = _view([(centres[0], 80.0, 0.05, inner), (centres[1], 70.0, 0.02)])
+    rim = BeadDetector(centre_method="rim", fit_radius_px=16.0).detect(view)
+    assert len(rim.xy) == 2
+    for centre in centres:
+        xy, _ = _nearest(rim, centre)
+        assert np.hypot(*(xy - centre)) < 0.05
+
+
+def test_overlapping_balls_and_dust_keep_their_centres():
+    """From centres 2.5 px off, each rim (a sixth of it inside the other ball, specks on it) still gives the centre."""
+    centres = [(500.0, 600.0), (610.0, 640.0)]          # 117 px apart, radii 80 and 75: they overlap
+    view = _view([(centres[0], 80.0, 0.05), (centres[1], 75.0, 0.05)], dust=20)
+    balls = np.array([[c[0] + 2.0, c[1] - 1.5, r, 1.0, 0.0] for c, r in zip(centres, (80.0, 75.0))])
+    refined = edge_centres(view, balls)
+    for k, centre in enumerate(centres):
+        assert np.hypot(refined[k, 0] - centre[0], refined[k, 1] - centre[1]) < 0.1
+
+
+def test_nothing_to_refine_is_nothing():
+    assert edge_centres(np.zeros((64, 64)), np.zeros((0, 5))).shape == (0, 5)
