@@ -123,6 +123,8 @@ def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, execu
         geometry = load_geometry(args.geometry)
         projections = read_projections(source)
         inputs, n_views = (projections, geometry), len(projections)
+    if args.pipeline is None:
+        pipeline = _ball_phantom_pipeline(args, inputs[0] if scan is None else scan.projections, pipeline)
     with _progress(n_views, "views", quiet=args.json or not progress) as advance:
         result = pipeline.run(*inputs, progress=advance, executor=executor)
     if scan is not None and scan.true_angles_deg is not None:
@@ -153,6 +155,26 @@ def _with_before_after(result, projections):
         return result
     comparison = before_after(projections, result.geometry, result.nominal_angles_deg, estimated)
     return dataclasses.replace(result, before_after=comparison)
+
+
+def _ball_phantom_pipeline(args, projections, pipeline):
+    """The ball calibration where the views show a ball phantom (and no pipeline was asked for), else ``pipeline``."""
+    from ctpipe.config import BALL_PHANTOM_PIPELINE, parse_pipeline
+    from ctpipe.features.ball_phantom import looks_like_ball_phantom
+    from ctpipe.pipeline import Pipeline
+
+    registry = _registry(args)
+    try:
+        balls = Pipeline.from_config(parse_pipeline(BALL_PHANTOM_PIPELINE, registry), registry=registry)
+    except ConfigError:
+        return pipeline     # a blocked plugin holds one of its stages
+    yes, why = looks_like_ball_phantom(projections)
+    if not yes:
+        return pipeline
+    if not args.json:
+        print(f"ctpipe: a ball phantom ({why}): running the ball calibration, as configs/calibration-beads.yaml "
+              "does; --pipeline configs/default.yaml runs the default pipeline instead", file=sys.stderr, flush=True)
+    return balls
 
 
 def _estimate_batch(args, config, pipeline, sources: list[Path], outs: dict, executor) -> int:

@@ -60,6 +60,22 @@ DEFAULT_STAGES = {
 }
 
 
+#: The ball-phantom pipeline (``configs/calibration-beads.yaml``, which says why each stage): what
+#: ``ctpipe estimate`` runs, without a ``--pipeline``, on views that show a ball phantom
+#: (:func:`ctpipe.features.ball_phantom.looks_like_ball_phantom`).
+BALL_PHANTOM_PIPELINE = {
+    "detector": {"name": "beads"},
+    "gate": "off",
+    "matcher": {"name": "all-pairs", "max_row_shift_px": 30.0},
+    "estimator": {"name": "ransac-1pt", "hypotheses": "all", "scoring": "msac", "min_consensus": 0.0,
+                  "one_to_one": True, "min_inliers": 3, "sampson_threshold": 1.0e-3},
+    "refiner": {"name": "ball-calibration", "max_error_deg": 2.0},
+    "pairs": {"baselines": [1, 2], "loop_closure": True},
+    "preprocess": {"static_background": "off"},
+    "seed": 0,
+}
+
+
 #: Nodes that aliases may add to a document beyond the ones written out. Real configurations
 #: alias a few small mappings; nested aliases ("billion laughs") multiply, and a few hundred
 #: bytes can stand for billions of values that a consumer (or an error message) then walks.

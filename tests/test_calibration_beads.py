@@ -31,7 +31,7 @@ def ball_bar_scan():
     return simulate(load_phantom("ball-bar"), spec, rng=np.random.default_rng(3)), spec
 
 
-def test_every_view_of_a_16_view_ball_bar_scan_within_two_hundredths_of_a_degree(ball_bar_scan, monkeypatch):
+def test_every_view_of_a_16_view_ball_bar_scan_within_a_hundredth_of_a_degree(ball_bar_scan, monkeypatch):
     from pathlib import Path
 
     monkeypatch.chdir(Path(__file__).resolve().parents[1])
@@ -73,3 +73,35 @@ def test_the_calibration_experiments_parse():
         settings = load_validate_settings(root / name, get_registry())
         assert settings.pipeline.detector.name == "beads"
     assert yaml.safe_load((root.parent / "calibration-beads.yaml").read_text())["matcher"]["name"] == "all-pairs"
+
+
+def test_the_built_in_ball_pipeline_is_configs_calibration_beads():
+    from pathlib import Path
+
+    from ctpipe.config import BALL_PHANTOM_PIPELINE, load_yaml, parse_pipeline
+    from ctpipe.plugins import get_registry
+
+    registry = get_registry()
+    written = load_yaml(Path(__file__).resolve().parents[1] / CONFIG)
+    assert parse_pipeline(written, registry) == parse_pipeline(BALL_PHANTOM_PIPELINE, registry)
+
+
+def test_the_default_estimate_recognises_a_ball_phantom_and_says_so(ball_bar_scan, tmp_path, capsys):
+    scan, spec = ball_bar_scan
+    folder = write_simulated_scan(tmp_path / "balls", scan, phantom=load_phantom("ball-bar"), spec=spec, seed=3)
+    capsys.readouterr()
+    assert main(["estimate", str(folder)]) == 0
+    said = capsys.readouterr()
+    assert "ctpipe: a ball phantom (3 views show 7 (" in said.err and "running the ball calibration" in said.err
+    assert "ball calibration, 7 balls followed through the views, the corrected angles kept" in said.out
+
+
+def test_a_sample_is_not_taken_for_a_ball_phantom():
+    from ctpipe.features import looks_like_ball_phantom
+    from ctpipe.sim import parse_scan_spec
+
+    spec = parse_scan_spec({**_spec(3, 0).to_dict(), "noise": None, "jitter": []})
+    for name in ("granular", "shepp-logan-3d", "metal-insert"):
+        views = simulate(load_phantom(name), spec, rng=np.random.default_rng(0)).projections
+        yes, why = looks_like_ball_phantom(views)
+        assert not yes, f"{name}: {why}"

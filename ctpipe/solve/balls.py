@@ -207,39 +207,59 @@ def _refine_point(point, chosen, detections, angles, geometry) -> np.ndarray:
     return point
 
 
+#: Views balls are triangulated between and first scored on: at most this many, spread over the scan.
+_ANCHOR_VIEWS = 24
+
+
 def _find_balls(detections, angles, geometry, error_rad, radius_px, min_views) -> list[np.ndarray]:
-    """Balls as 3-D points supported by detections in ``min_views`` views or more (step 1 of the module)."""
+    """Balls as 3-D points supported by detections in ``min_views`` views or more (step 1 of the module).
+
+    Candidates are triangulated between up to :data:`_ANCHOR_VIEWS` views spread over the scan,
+    merged where they fall within half a ball's radius of each other, and scored on those views
+    at once; the best are then followed through every view, best first.
+    """
     V = len(angles)
-    candidates = []
+    anchors = np.unique(np.linspace(0, V - 1, min(V, _ANCHOR_VIEWS)).round().astype(int))
     reach_mm = 0.5 * geometry.detector_cols * geometry.pixel_pitch_u_mm / geometry.magnification
     height_mm = 0.5 * geometry.detector_rows * geometry.pixel_pitch_v_mm / geometry.magnification
-    for a in range(V):
-        for b in range(a + 1, V):
+    pitch = min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm)
+    candidates = []
+    for i, a in enumerate(anchors):
+        for b in anchors[i + 1:]:
             if abs(math.sin(angles[b] - angles[a])) < 0.2 or len(detections[a]) == 0 or len(detections[b]) == 0:
                 continue
             s1, d1 = _rays(detections[a][:, :2], angles[a], geometry)
             s2, d2 = _rays(detections[b][:, :2], angles[b], geometry)
             mid, gap = _triangulate(s1, d1, s2, d2)
             limit = _tolerance_px(mid.reshape(-1, 3), geometry, error_rad, radius_px).reshape(gap.shape)
-            limit_mm = limit * min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm) / geometry.magnification
             # A ball is in the field of view: inside the cylinder every view sees.
             inside = (np.hypot(mid[..., 0], mid[..., 2]) <= reach_mm) & (np.abs(mid[..., 1]) <= height_mm)
-            keep = (gap <= limit_mm) & inside
-            candidates.extend(mid[keep])
-    if not candidates:
+            candidates.append(mid[(gap <= limit * pitch / geometry.magnification) & inside])
+    candidates = np.concatenate(candidates) if candidates else np.zeros((0, 3))
+    if not len(candidates):
         return []
-    candidates = np.array(candidates)
-    # Scores by support; the same ball is triangulated by many pairs, so a few hundred candidates suffice.
+    # The same ball is triangulated by many pairs: one candidate per cell of half a ball's radius.
+    cell_mm = max(0.5 * radius_px * pitch / geometry.magnification, 1e-6)
+    _, first = np.unique(np.floor(candidates / cell_mm).astype(np.int64), axis=0, return_index=True)
+    candidates = candidates[np.sort(first)]
+    scores = np.zeros(len(candidates), int)
+    tolerance = _tolerance_px(candidates, geometry, error_rad, radius_px)
+    for view in anchors:
+        found = detections[view]
+        if not len(found):
+            continue
+        uv = _project(candidates, np.full(len(candidates), angles[view]), geometry, geometry.u0_px, geometry.v0_px, 0.0)
+        nearest = np.min(np.hypot(uv[:, None, 0] - found[None, :, 0], uv[:, None, 1] - found[None, :, 1]), axis=1)
+        scores += nearest <= tolerance
+    needed = max(3, int(math.ceil(min_views * len(anchors) / V)))
     claimed = [np.zeros(len(d), bool) for d in detections]
     balls = []
-    order = np.arange(len(candidates))
-    scores = np.array([sum(k >= 0 for k in _support(p, detections, angles, geometry, error_rad, radius_px, claimed))
-                       for p in candidates])
-    order = order[np.argsort(-scores, kind="stable")]
-    for index in order:
-        if scores[index] < min_views:
+    for index in np.argsort(-scores, kind="stable"):
+        if scores[index] < needed:
             break
         point = candidates[index]
+        if any(np.linalg.norm(point - ball) < 2.0 * cell_mm for ball in balls):
+            continue
         chosen = _support(point, detections, angles, geometry, error_rad, radius_px, claimed)
         if sum(k >= 0 for k in chosen) < min_views:
             continue
