@@ -5,7 +5,8 @@ defaults to "off", and a scan without the section is simulated exactly as before
 
     detector: {scatter_fraction: 0.05, scatter_sigma_px: 50, psf_sigma_px: 0.8,
                dead_pixels: 20, hot_pixels: 10, dead_columns: 1,
-               gain_sigma: 0.05, gain_drift_sigma: 0.005, lag_fraction: 0.02}
+               gain_sigma: 0.05, gain_drift_sigma: 0.005, lag_fraction: 0.02,
+               dust_specks: 30, saturation_fraction: 0.9}
 
 One frame of a pixel is recorded in this order (``p`` the line integral, ``I0`` the
 unattenuated counts of :class:`~ctpipe.sim.acquisition.NoiseModel`)::
@@ -15,8 +16,12 @@ unattenuated counts of :class:`~ctpipe.sim.acquisition.NoiseModel`)::
     counts   = Poisson(primary + scatter)                                  (photons arrive)
     counts   = G(psf_sigma_px) * counts                                    (scintillator blur)
     signal_v = (1 - lag_fraction) counts_v + lag_fraction signal_(v-1)     (charge left over)
-    frame    = gain * signal + Poisson(dark_counts)
+    frame    = min(gain * signal + Poisson(dark_counts), saturation_fraction I0)
     dead pixels and columns read 0, hot pixels the full scale, in every frame
+
+Dust that settled after the flats were taken multiplies the projections' mean counts (before the
+photons arrive) and is not in the flats: a flat-field residue, a few dark specks fixed on the
+detector in every view.
 
 ``G(s) *`` is a Gaussian blur of standard deviation ``s`` pixels (reflected at the detector
 edges). The scatter source ``p exp(-p)`` is the single-scatter estimate of the photons a ray
@@ -47,7 +52,7 @@ intensities, as any noise-free scan.
 
 The pattern (which pixels are dead, hot or in a dead column; the gains) is drawn once per scan
 from the scan's ``rng``, before the detector noise, in this order and each only when its key is
-non-zero: stuck pixels, dead columns, gains, gain drifts. Frames are made one view at a time:
+non-zero: stuck pixels, dead columns, gains, gain drifts, dust. Frames are made one view at a time:
 the scan needs a float64 frame or two, never a float64 copy of the stack.
 """
 
@@ -88,6 +93,12 @@ _FIELDS = {
                                   ge=0, le=0.5),
     "lag_fraction": ParamSpec("lag_fraction", float, 0.0,
                               "fraction of a frame's signal carried into the next frame", ge=0, lt=1),
+    "dust_specks": ParamSpec("dust_specks", int, 0,
+                             "specks of dust on the detector since the flats were taken (a flat-field residue)",
+                             ge=0, le=100_000),
+    "saturation_fraction": ParamSpec("saturation_fraction", float, 0.0,
+                                     "full well as a fraction of the open beam's counts: frames clip there, the "
+                                     "background reads flat (0: no clipping)", ge=0, le=10),
 }
 
 
@@ -114,6 +125,13 @@ class DetectorModel:
         Relative standard deviation of the per-pixel gain change from the flats to the projections.
     lag_fraction : float
         Fraction of each frame's signal read again in the next frame, in [0, 1).
+    dust_specks : int
+        Specks of dust that settled on the detector after the flats were taken: each a Gaussian
+        of 1-3 px standard deviation absorbing 5-40 % at its centre, in the projections only.
+    saturation_fraction : float
+        The detector's full well as a fraction of the open beam's counts ``I0``: every frame
+        (flats included) clips there, so where the beam reaches it the flat-corrected line
+        integral reads exactly 0 and a faint edge is cut (0: no clipping).
     """
 
     scatter_fraction: float = 0.0
@@ -125,6 +143,8 @@ class DetectorModel:
     gain_sigma: float = 0.0
     gain_drift_sigma: float = 0.0
     lag_fraction: float = 0.0
+    dust_specks: int = 0
+    saturation_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         for key, spec in _FIELDS.items():
@@ -171,12 +191,15 @@ class DetectorPattern:
         Pixels that read 0 (dead pixels and columns), pixels stuck at the full scale.
     flat_gain, projection_gain : ndarray of shape (rows, cols), float64, or None
         Gains of the flat fields and of the projections (None: 1 everywhere).
+    dust : ndarray of shape (rows, cols), float64, or None
+        Transmission of the dust on the detector in the projections (None: no dust).
     """
 
     dead: np.ndarray
     hot: np.ndarray
     flat_gain: np.ndarray | None
     projection_gain: np.ndarray | None
+    dust: np.ndarray | None = None
 
 
 def draw_pattern(model: DetectorModel, shape: tuple[int, int], rng: np.random.Generator) -> DetectorPattern:
@@ -204,7 +227,17 @@ def draw_pattern(model: DetectorModel, shape: tuple[int, int], rng: np.random.Ge
         projection_gain = drift if flat_gain is None else flat_gain * drift
     elif flat_gain is not None:
         projection_gain = flat_gain
-    return DetectorPattern(dead, hot, flat_gain, projection_gain)
+    dust = None
+    if model.dust_specks:
+        # Centre (row, col), standard deviation 1-3 px and depth 5-40 % of each speck, drawn at once.
+        specks = rng.uniform([0.0, 0.0, 1.0, 0.05], [rows, cols, 3.0, 0.4], size=(model.dust_specks, 4))
+        dust = np.ones(shape)
+        for row, col, sigma, depth in specks:
+            r0, r1 = max(int(row - 4 * sigma), 0), min(int(row + 4 * sigma) + 1, rows)
+            c0, c1 = max(int(col - 4 * sigma), 0), min(int(col + 4 * sigma) + 1, cols)
+            rr, cc = np.mgrid[r0:r1, c0:c1]
+            dust[r0:r1, c0:c1] *= 1.0 - depth * np.exp(-((rr - row) ** 2 + (cc - col) ** 2) / (2.0 * sigma ** 2))
+    return DetectorPattern(dead, hot, flat_gain, projection_gain, dust)
 
 
 def _blur(frame: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -266,6 +299,8 @@ class _Frames:
             signal = signal + self.rng.poisson(self.dark, size=signal.shape)
         elif self.dark > 0:
             signal = signal + self.dark
+        if self.model.saturation_fraction > 0:
+            signal = np.minimum(signal, self.model.saturation_fraction * self.i0)
         signal = np.where(self.pattern.dead, 0.0, signal)
         return np.where(self.pattern.hot, self.full_scale, signal)
 
@@ -274,6 +309,8 @@ class _Frames:
         mean = self.i0 * np.exp(-p)
         if self.model.scatter_fraction > 0:
             mean = mean + scatter_counts(mean, p, self.model)
+        if self.pattern.dust is not None:
+            mean = mean * self.pattern.dust
         signal = self._detect(mean)
         lag = self.model.lag_fraction
         if lag > 0:
@@ -300,7 +337,7 @@ def _views(line_integrals) -> np.ndarray:
 def _pattern(model, shape, rng, pattern: DetectorPattern | None) -> DetectorPattern:
     if pattern is None:
         return draw_pattern(model, shape, rng)
-    for name in ("dead", "hot", "flat_gain", "projection_gain"):
+    for name in ("dead", "hot", "flat_gain", "projection_gain", "dust"):
         value = getattr(pattern, name)
         if value is not None and np.shape(value) != tuple(shape):
             raise InputError(f"pattern.{name}: must have the detector's shape {tuple(shape)}, got {np.shape(value)}")

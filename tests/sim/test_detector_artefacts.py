@@ -219,3 +219,22 @@ def test_bad_detector_values_are_one_line_naming_the_key(section, message):
         parse_scan_spec({**SPEC, "detector": section})
     assert "\n" not in str(info.value)
     assert parse_detector(None) is None
+
+
+def test_dust_since_the_flats_stays_as_fixed_dark_specks_in_every_view():
+    p = _flat_stack([0.0, 1.0, 2.0], shape=(64, 96))
+    model = DetectorModel(dust_specks=5)
+    pattern = draw_pattern(model, (64, 96), np.random.default_rng(3))
+    out = detected_line_integrals(p, model, np.random.default_rng(3))
+    residue = -np.log(pattern.dust)
+    assert residue.max() > 0.04 and np.mean(residue > 1e-2) < 0.3           # specks, not a veil
+    np.testing.assert_allclose(out, p + residue[None], atol=1e-6)          # the same in every view, on top
+
+
+def test_a_saturated_detector_reads_its_background_flat_and_cuts_faint_edges():
+    p = _flat_stack([0.0, 0.02, 0.5])
+    out = detected_line_integrals(p, DetectorModel(saturation_fraction=0.9), np.random.default_rng(0))
+    # The flats clip at 0.9 I0: a line integral below -log(0.9) = 0.105 reads 0, one above it that much less.
+    np.testing.assert_allclose(out[0], 0.0, atol=1e-6)
+    np.testing.assert_allclose(out[1], 0.0, atol=1e-6)
+    np.testing.assert_allclose(out[2], 0.5 + np.log(0.9), atol=1e-6)
