@@ -193,8 +193,14 @@ def find_balls(image, *, min_diameter_px: float | None = None, max_diameter_px: 
     else:
         beads = _centroid_all(tophat, candidates)
         beads = np.column_stack([beads, np.zeros(len(beads))])
-    return _select(beads, image.shape, min_height, r_min / _DIAMETER_TOLERANCE, r_max * _DIAMETER_TOLERANCE,
-                   max_beads)
+    found = _select(beads, image.shape, min_height, r_min / _DIAMETER_TOLERANCE, r_max * _DIAMETER_TOLERANCE,
+                    max_beads)
+    if auto and not len(found):
+        # The strongest blobs were a crowd whose size no ball has (a ball bar seen along its rod,
+        # its balls in a chain): look again over the whole default range, the size not narrowed.
+        return find_balls(image, min_diameter_px=d_min, max_diameter_px=d_max, polarity=polarity,
+                          min_contrast_sigma=min_contrast_sigma, max_beads=max_beads, centre_method=centre_method)
+    return found
 
 
 def render_ball_model(balls: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
