@@ -6,7 +6,7 @@ import numpy as np
 
 from ctpipe.errors import InputError
 
-__all__ = ["check_image", "to_uint8"]
+__all__ = ["check_image", "to_uint8", "block_mean"]
 
 
 def check_image(image, name: str = "image") -> np.ndarray:
@@ -43,3 +43,10 @@ def to_uint8(image) -> np.ndarray:
     if high <= low:
         return np.zeros(image.shape, dtype=np.uint8)
     return np.rint((image - low) * (255.0 / (high - low))).astype(np.uint8)
+
+
+def block_mean(image, factor: int) -> np.ndarray:
+    """Means of ``factor`` x ``factor`` blocks of a 2-D image, float64; the last partial rows and columns dropped."""
+    rows, cols = (image.shape[0] // factor) * factor, (image.shape[1] // factor) * factor
+    blocks = np.asarray(image[:rows, :cols], dtype=np.float64).reshape(rows // factor, factor, cols // factor, factor)
+    return blocks.mean(axis=(1, 3))

@@ -25,8 +25,9 @@ import numpy as np
 
 from ctpipe.data import Features
 from ctpipe.errors import ConfigError
-from ctpipe.features import edge_centres, find_balls
+from ctpipe.features import bright_view, edge_centres, find_balls
 from ctpipe.hookspecs import hookimpl
+from ctpipe.images import block_mean
 from ctpipe.stages import Detector, param
 
 __all__ = ["BeadDetector"]
@@ -88,7 +89,7 @@ class BeadDetector(Detector):
         # fit was 0.6-1.7 px off on hollow and overlapping ones). Small ones: the disc fit, 0.0008
         # deg on the 16-view ball bar against 0.0099 by the rim.
         method = self.centre_method if self.centre_method != "auto" else "rim" if factor > 1 else "fit"
-        work = image if factor == 1 else _block_mean(image, factor)
+        work = image if factor == 1 else block_mean(image, factor)
         options = dict(min_diameter_px=None if self.min_diameter_px is None else self.min_diameter_px * scale,
                        max_diameter_px=None if self.max_diameter_px is None else self.max_diameter_px * scale,
                        polarity=self.polarity, min_contrast_sigma=self.min_contrast_sigma, max_beads=self.max_beads)
@@ -105,7 +106,7 @@ class BeadDetector(Detector):
             beads[:, :2] = (beads[:, :2] + 0.5) * factor - 0.5
             beads[:, 2] *= factor
         if method == "rim":
-            beads = edge_centres(_bright(image, self.polarity), beads)
+            beads = edge_centres(bright_view(image, self.polarity), beads)
         return Features.build(xy=beads[:, :2], size=2.0 * beads[:, 2], angle_deg=np.full(len(beads), np.nan),
                               response=beads[:, 3], class_id=beads[:, 4].astype(np.int32),
                               descriptors=beads[:, 2:4].astype(np.float32), norm="L2")
@@ -119,31 +120,13 @@ class BeadDetector(Detector):
         if self.fit_radius_px is None or min(image.shape) < 512:
             return 1
         coarse = max(1, min(image.shape) // 256)
-        look = find_balls(_block_mean(image, coarse), polarity=self.polarity,
+        look = find_balls(block_mean(image, coarse), polarity=self.polarity,
                           min_contrast_sigma=self.min_contrast_sigma, max_beads=self.max_beads,
                           centre_method="centroid")
         if not len(look):
             return 1
         radius_px = float(np.median(look[:, 2])) * coarse
         return max(1, int(radius_px // self.fit_radius_px))
-
-
-def _bright(image: np.ndarray, polarity: str) -> np.ndarray:
-    """``image`` as line integrals (balls bright): raw counts (dark balls on a bright field) through ``-log``."""
-    f = np.asarray(image, dtype=np.float64)
-    dark = polarity == "dark" or (polarity == "auto" and float(np.median(f)) > 0.5 * (float(f.min()) + float(f.max())))
-    if not dark:
-        return f
-    if f.min() <= 0.0 and not np.issubdtype(np.asarray(image).dtype, np.integer):
-        return -f
-    return -np.log(np.maximum(f, 0.5))
-
-
-def _block_mean(image: np.ndarray, factor: int) -> np.ndarray:
-    """Means of ``factor`` x ``factor`` blocks (the last partial rows and columns dropped), float32."""
-    rows, cols = (image.shape[0] // factor) * factor, (image.shape[1] // factor) * factor
-    blocks = np.asarray(image[:rows, :cols], dtype=np.float32).reshape(rows // factor, factor, cols // factor, factor)
-    return blocks.mean(axis=(1, 3))
 
 
 @hookimpl

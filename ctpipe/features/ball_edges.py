@@ -22,7 +22,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["edge_centres"]
+__all__ = ["edge_centres", "bright_view"]
 
 #: Rays per ball, and the step along them (px).
 _RAYS, _STEP_PX = 180, 0.25
@@ -85,6 +85,22 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0) -> n
         if clean < _MIN_CLEAN * _RAYS:
             out[k, 4] = max(out[k, 4], 1.0)
     return out
+
+
+def bright_view(image, polarity: str = "auto") -> np.ndarray:
+    """``image`` as line integrals, balls bright (float64): raw counts (dark balls on a bright field) through ``-log``.
+
+    ``auto`` takes an image whose median is above the middle of its range as counts; integer
+    counts of 0 are taken as half a count, and a float image with pixels <= 0 cannot be counts
+    and is only negated (as :func:`ctpipe.features.find_balls` reads them).
+    """
+    f = np.asarray(image, dtype=np.float64)
+    dark = polarity == "dark" or (polarity == "auto" and float(np.median(f)) > 0.5 * (float(f.min()) + float(f.max())))
+    if not dark:
+        return f
+    if f.min() <= 0.0 and not np.issubdtype(np.asarray(image).dtype, np.integer):
+        return -f
+    return -np.log(np.maximum(f, 0.5))
 
 
 def _robust_circle(points: np.ndarray, iterations: int = 10):

@@ -15,6 +15,9 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from ctpipe.features.ball_edges import bright_view
+from ctpipe.images import block_mean
+
 
 __all__ = ["ball_phantom_share", "looks_like_ball_phantom"]
 
@@ -30,14 +33,8 @@ _LOOK_PX = 512
 
 def _line_integrals(view: np.ndarray) -> np.ndarray:
     """``view`` binned to at most :data:`_LOOK_PX` a side, as line integrals (balls bright)."""
-    f = np.asarray(view, dtype=np.float64)
-    factor = max(1, int(math.ceil(max(f.shape) / _LOOK_PX)))
-    if factor > 1:
-        rows, cols = (f.shape[0] // factor) * factor, (f.shape[1] // factor) * factor
-        f = f[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor).mean(axis=(1, 3))
-    if float(np.median(f)) > 0.5 * (float(f.min()) + float(f.max())):     # dark balls on a bright field: counts
-        f = -np.log(np.maximum(f, 0.5) / max(float(f.max()), 1.0)) if f.min() > 0 else -f
-    return f
+    factor = max(1, int(math.ceil(max(view.shape) / _LOOK_PX)))
+    return bright_view(view if factor == 1 else block_mean(view, factor))
 
 
 def ball_phantom_share(view: np.ndarray) -> tuple[float, int]:
