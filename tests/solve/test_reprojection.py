@@ -323,3 +323,18 @@ def test_the_views_own_and_common_unknowns_are_solved_as_one_least_squares_probl
     assert informative.all()
     np.testing.assert_allclose(solution[:, :per_view].ravel(), exact[:n_views * per_view], atol=1e-7)
     np.testing.assert_allclose(solution[0, per_view:], exact[n_views * per_view:], atol=1e-7)
+
+
+@pytest.mark.parametrize("shape", [(3, 40, 52), (2, 5, 9)])
+@pytest.mark.parametrize("band", [(0.7, 4.0), (0.0, 2.0)])
+def test_band_pass_is_scipys_difference_of_gaussians(shape, band):
+    """The fused kernel is SciPy's Gaussian filter pair (4-sigma kernels, mirrored edges), even
+    where a kernel is wider than the image."""
+    from scipy.ndimage import gaussian_filter
+
+    images = np.random.default_rng(3).random(shape).astype(np.float32)
+    low, high = band
+    fine = gaussian_filter(images, (0, low, low)) if low > 0 else images
+    expected = fine - gaussian_filter(images, (0, high, high))
+    np.testing.assert_allclose(band_pass(images, low, high), expected, atol=2e-6)
+    np.testing.assert_allclose(band_pass(images[0], low, high), expected[0], atol=2e-6)
