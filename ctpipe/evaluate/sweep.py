@@ -23,8 +23,9 @@ validate scenarios/NNN.yaml`` runs again.
 
 Each scenario runs as ``ctpipe validate`` would, as a task on the execution layer (a thread
 pool, or Dask workers), and becomes one row: its draw, the nominal and estimated per-view RMS
-angle errors (and the refiner's own, ``ungated_rms_deg``, before the gate), the PSNR gains of
-the estimated angles over the nominal ones against the jitter-free scan and the phantom, how much
+angle errors (views the pipeline gave no angle count at their nominal one, as they are
+reconstructed; ``views_estimated`` says how many had one) and the refiner's own before the
+gate (``ungated_rms_deg``), the PSNR gains of the estimated angles over the nominal ones against the jitter-free scan and the phantom, how much
 the true angles gain (``visible_db``), the recoveries, what the refiner kept and what the gate
 returned (:mod:`ctpipe.solve.gate`), seconds.
 A scenario is *worse than nominal* when its per-view RMS is above the nominal angles', or its
@@ -52,7 +53,7 @@ from ctpipe.errors import ConfigError, CtpipeError
 from ctpipe.registry import StageRegistry
 
 __all__ = ["SweepSettings", "SweepReport", "DISTRIBUTIONS", "parse_sweep", "load_sweep_settings", "draw_scenario",
-           "run_scenario", "run_sweep", "write_sweep_outputs", "worse_than_nominal"]
+           "run_scenario", "report_row", "run_sweep", "write_sweep_outputs", "worse_than_nominal"]
 
 #: The distributions a ``draw`` entry may name.
 DISTRIBUTIONS = ("choice", "uniform", "loguniform", "integer", "log_integer")
@@ -60,8 +61,8 @@ DISTRIBUTIONS = ("choice", "uniform", "loguniform", "integer", "log_integer")
 MAX_SCENARIOS = 10_000
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 #: The columns of ``sweep.csv`` after the drawn keys.
-COLUMNS = ("scenario", "status", "nominal_rms_deg", "estimated_rms_deg", "ungated_rms_deg", "worse_than_nominal",
-           "gain_db", "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate",
+COLUMNS = ("scenario", "status", "nominal_rms_deg", "estimated_rms_deg", "views_estimated", "ungated_rms_deg",
+           "worse_than_nominal", "gain_db", "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate",
            "se_views", "se_within_2", "seconds", "reason")
 #: How far below the nominal angles' PSNR a reconstruction may fall and still count as no worse (dB).
 WORSE_DB = 0.05
@@ -244,40 +245,53 @@ def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> 
     except Exception as exc:  # a bug in one scenario must not end the others; its row says what it was
         row["reason"] = f"{type(exc).__name__}: {_one_line(exc)}"
     else:
-        views = report.angle_tables["views"]
-        failed = report.failed
-
-        def gain(reference: str, label: str = "estimated") -> float | None:
-            if label in failed or "nominal" in failed:
-                return None
-            metrics = report.metrics[reference]
-            return float(metrics[label]["psnr_db"] - metrics["nominal"]["psnr_db"])
-
-        gains = (gain("reference"), gain("phantom"))
-        nominal_rms, estimated_rms = float(views["nominal"]["rms_deg"]), float(views["estimated"]["rms_deg"])
-        gate = report.pipeline_result.gate
-        coverage = report.se_coverage or {"views": 0, "within": 0}
-        row.update({
-            "status": "ok",
-            "nominal_rms_deg": nominal_rms,
-            "estimated_rms_deg": estimated_rms,
-            # The refiner's angles before the gate: how close the estimate came, where the gate held it back.
-            "ungated_rms_deg": float(views.get("before the gate", views["estimated"])["rms_deg"]),
-            "gain_db": gains[0],
-            "gain_phantom_db": gains[1],
-            "visible_db": gain("reference", "true"),
-            "worse_than_nominal": None if None in gains else worse_than_nominal(
-                estimated_rms, nominal_rms, gains[0], gains[1], gain("reference", "true")),
-            "recovery_reference": float(report.recovery["reference"]),
-            "recovery_phantom": float(report.recovery["phantom"]),
-            "refiner_kept": report.pipeline_result.refiner_info.get("chosen", ""),
-            "gate": "" if gate is None else gate.chosen if gate.decided else "undecided",
-            "se_views": coverage["views"],
-            "se_within_2": coverage["within"],
-            "reason": "; ".join(report.problems),
-        })
+        row.update(report_row(report))
     row["seconds"] = time.perf_counter() - start
     return row
+
+
+def report_row(report) -> dict:
+    """The measured columns of one scored run (a :class:`~ctpipe.evaluate.validate.ValidateReport`), ``status: ok``."""
+    views = report.angle_tables["views"]
+    failed = report.failed
+
+    def gain(reference: str, label: str = "estimated") -> float | None:
+        if label in failed or "nominal" in failed:
+            return None
+        metrics = report.metrics[reference]
+        return float(metrics[label]["psnr_db"] - metrics["nominal"]["psnr_db"])
+
+    gains = (gain("reference"), gain("phantom"))
+    from ctpipe.evaluate.scoring import view_errors_deg
+
+    nominal_rms, estimated_rms = float(views["nominal"]["rms_deg"]), float(views["estimated"]["rms_deg"])
+    if views["estimated"]["estimated"] < views["estimated"]["total"]:
+        # Views the pipeline gave no angle keep their nominal one, in the reconstruction as here: the
+        # RMS of the angles the user gets, not of the few estimated (one view alone would score 0).
+        errors = view_errors_deg(report.estimated_deg, report.true_deg)
+        estimated_rms = float(np.sqrt(np.mean(errors ** 2)))
+    gate = report.pipeline_result.gate
+    coverage = report.se_coverage or {"views": 0, "within": 0}
+    return {
+        "status": "ok",
+        "nominal_rms_deg": nominal_rms,
+        "estimated_rms_deg": estimated_rms,
+        "views_estimated": int(views["estimated"]["estimated"]),
+        # The refiner's angles before the gate: how close the estimate came, where the gate held it back.
+        "ungated_rms_deg": float(views.get("before the gate", views["estimated"])["rms_deg"]),
+        "gain_db": gains[0],
+        "gain_phantom_db": gains[1],
+        "visible_db": gain("reference", "true"),
+        "worse_than_nominal": None if None in gains else worse_than_nominal(
+            estimated_rms, nominal_rms, gains[0], gains[1], gain("reference", "true")),
+        "recovery_reference": float(report.recovery["reference"]),
+        "recovery_phantom": float(report.recovery["phantom"]),
+        "refiner_kept": report.pipeline_result.refiner_info.get("chosen", ""),
+        "gate": "" if gate is None else gate.chosen if gate.decided else f"undecided: {gate.chosen}",
+        "se_views": coverage["views"],
+        "se_within_2": coverage["within"],
+        "reason": "; ".join(report.problems),
+    }
 
 
 def worse_than_nominal(estimated_rms_deg: float, nominal_rms_deg: float, gain_db: float, gain_phantom_db: float,

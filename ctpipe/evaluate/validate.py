@@ -62,6 +62,7 @@ from ctpipe.registry import StageRegistry
 from ctpipe.stages import ParamSpec, check_value
 
 __all__ = ["ValidateSettings", "load_validate_settings", "parse_validate", "check_experiment", "run_validate",
+           "SimulatedExperiment", "simulate_experiment", "score_pipeline",
            "ValidateReport", "write_validate_outputs", "bin_detector", "binned_geometry", "pair_chained_deg",
            "estimate_problems"]
 
@@ -362,7 +363,7 @@ class ValidateReport:
             lines.append(f"  recovery {self.recovery[reference]:+.3f}")
         gate = self.pipeline_result.gate
         if gate is not None:
-            lines.append(f"gate: {gate.chosen if gate.decided else 'undecided'}: {gate.reason}")
+            lines.append(f"gate: {gate.chosen if gate.decided else 'undecided, ' + gate.chosen}: {gate.reason}")
         coverage = self.se_coverage
         if coverage is not None:
             lines.append(f"standard errors: {coverage['within']}/{coverage['views']} views "
@@ -449,45 +450,135 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
         return _run_validate(settings, registry, progress)
 
 
-def _run_validate(settings: ValidateSettings, registry: StageRegistry, progress) -> ValidateReport:
-    from ctpipe.pipeline import Pipeline
-    from ctpipe.recon.feldkamp import covers_full_circle, fdk, short_scan_minimum_deg
-    from ctpipe.evaluate.scoring import (align_offset, error_table, pair_errors_deg, recovery, support_mask,
-                                         view_errors_deg, volume_metrics)
+@dataclass
+class SimulatedExperiment:
+    """What every pipeline scored on one experiment shares (:func:`simulate_experiment`).
+
+    The jittered scan and its jitter-free reference, the jittered scan reconstructed with the
+    nominal and the true angles, the reference reconstruction, the voxelised phantom, and those
+    reconstructions' scores. ``experiment compare`` makes one per scenario and scores every
+    pipeline on it (:func:`score_pipeline`), so the pipelines see the same projections.
+    """
+
+    settings: ValidateSettings
+    jittered: Any
+    reference_scan: Any
+    grid: VolumeGrid
+    binned: np.ndarray
+    binned_geometry: Any
+    short_scan: bool
+    nominal_aligned: np.ndarray
+    volumes: dict[str, np.ndarray]
+    reference_volume: np.ndarray
+    phantom_volume: np.ndarray
+    mask: np.ndarray
+    timings_s: dict[str, float]
+
+
+def simulate_experiment(settings: ValidateSettings, *, progress: Progress | None = None) -> SimulatedExperiment:
+    """Simulate the experiment's scans and reconstruct what does not depend on the pipeline.
+
+    Raises as :func:`run_validate` does; the memory check covers one pipeline's run on top.
+    """
+    check_experiment(settings)
+    what, n_bytes, of, hint = _run_size(settings, "experiment")
+    with memory_guard(what, n_bytes, of=of, hint=hint):
+        return _simulate(settings, progress)
+
+
+def _bar(progress: Progress | None, step: str, total: int):
+    return progress(step, total) if progress is not None else nullcontext(None)
+
+
+def _simulate(settings: ValidateSettings, progress: Progress | None) -> SimulatedExperiment:
+    from ctpipe.recon.feldkamp import covers_full_circle, fdk
+    from ctpipe.evaluate.scoring import align_offset, support_mask
     from ctpipe.sim.simulator import simulate, voxelise_phantom
 
-    def bar(step: str, total: int):
-        return progress(step, total) if progress is not None else nullcontext(None)
-
     timings: dict[str, float] = {}
-    notes: list[str] = []
     rng = np.random.default_rng(settings.seed)
     scan, phantom = settings.scan, settings.phantom
     geometry = scan.geometry
     n_views = scan.n_views
 
     start = time.perf_counter()
-    with bar("projecting (jittered scan)", n_views) as advance:
+    with _bar(progress, "projecting (jittered scan)", n_views) as advance:
         jittered = simulate(phantom, scan, rng=rng, progress=advance)
-    with bar("projecting (jitter-free reference)", n_views) as advance:
+    with _bar(progress, "projecting (jitter-free reference)", n_views) as advance:
         reference_scan = simulate(phantom, scan, rng=rng, jitter=False, progress=advance)
     timings["simulate"] = time.perf_counter() - start
     nominal, truth = jittered.nominal_angles_deg, jittered.true_angles_deg
 
+    grid = _grid(settings)
+    binning = settings.reconstruction.detector_binning
     start = time.perf_counter()
-    pipeline = Pipeline.from_config(settings.pipeline, registry=registry)
-    with bar("estimating angles (detect)", n_views) as advance:
-        result = pipeline.run(jittered.projections, geometry, nominal_angles_deg=nominal, progress=advance)
+    projections, recon_geometry = bin_detector(jittered.projections, geometry, binning)
+    reference_projections, _ = bin_detector(reference_scan.projections, geometry, binning)
+    nominal_aligned, _ = align_offset(nominal, truth)
+    # Every angle set is weighted as the nominal scan is (full or Parker short scan): a diverged
+    # estimate spanning more than a turn must not switch the estimated reconstruction's weighting.
+    short_scan = not covers_full_circle(nominal)
+    volumes = {}
+    with _bar(progress, "reconstructing (FDK x 3)", 3 * n_views) as advance:
+        for label, angles in (("nominal", nominal_aligned), ("true", truth)):
+            volumes[label] = fdk(projections, recon_geometry, angles, grid, filter=settings.reconstruction.filter,
+                                 short_scan=short_scan, progress=advance)
+        reference_volume = fdk(reference_projections, recon_geometry, reference_scan.true_angles_deg, grid,
+                               filter=settings.reconstruction.filter, short_scan=short_scan, progress=advance)
+    timings["reconstruct"] = time.perf_counter() - start
+    start = time.perf_counter()
+    phantom_volume = voxelise_phantom(phantom, grid)
+    mask = support_mask(grid, phantom.radius_mm, phantom.half_height_mm, margin_voxels=2.0)
+    timings["score"] = time.perf_counter() - start
+    return SimulatedExperiment(settings=settings, jittered=jittered, reference_scan=reference_scan, grid=grid,
+                               binned=projections, binned_geometry=recon_geometry, short_scan=short_scan,
+                               nominal_aligned=nominal_aligned, volumes=volumes, reference_volume=reference_volume,
+                               phantom_volume=phantom_volume, mask=mask, timings_s=timings)
+
+
+def _run_validate(settings: ValidateSettings, registry: StageRegistry, progress) -> ValidateReport:
+    return score_pipeline(_simulate(settings, progress), settings.pipeline, registry, progress=progress)
+
+
+def score_pipeline(simulated: SimulatedExperiment, pipeline_config: PipelineConfig, registry: StageRegistry, *,
+                   progress: Progress | None = None, pipeline_run: Callable[..., Any] | None = None) -> ValidateReport:
+    """Run one pipeline on a :class:`SimulatedExperiment` and score it as ``ctpipe validate`` does.
+
+    ``pipeline_run(pipeline, projections, geometry, nominal_angles_deg, advance)`` replaces
+    ``pipeline.run`` (``experiment compare`` runs the stages one by one to measure each).
+    """
+    import dataclasses
+
+    from ctpipe.pipeline import Pipeline
+    from ctpipe.recon.feldkamp import fdk, short_scan_minimum_deg
+    from ctpipe.evaluate.scoring import (align_offset, error_table, pair_errors_deg, recovery, view_errors_deg,
+                                         volume_metrics)
+
+    settings = dataclasses.replace(simulated.settings, pipeline=pipeline_config)
+    scan = settings.scan
+    geometry = scan.geometry
+    n_views = scan.n_views
+    jittered = simulated.jittered
+    timings = {"simulate": simulated.timings_s["simulate"]}
+    notes: list[str] = []
+    nominal, truth = jittered.nominal_angles_deg, jittered.true_angles_deg
+
+    start = time.perf_counter()
+    pipeline = Pipeline.from_config(pipeline_config, registry=registry)
+    with _bar(progress, "estimating angles (detect)", n_views) as advance:
+        if pipeline_run is None:
+            result = pipeline.run(jittered.projections, geometry, nominal_angles_deg=nominal, progress=advance)
+        else:
+            result = pipeline_run(pipeline, jittered.projections, geometry, nominal, advance)
     timings["estimate"] = time.perf_counter() - start
 
     estimated_rel = result.angles_deg
     estimated, n_filled = align_offset(estimated_rel, truth, fallback_deg=nominal)
-    nominal_aligned, _ = align_offset(nominal, truth)
     if n_filled:
         notes.append(f"{n_filled} views were not connected to view 0 by estimated pairs; they keep their nominal angle")
     problems = estimate_problems(estimated_rel, truth, scan.angles.range_deg)
     gate = result.gate
-    if gate is not None and gate.decided and gate.chosen != "estimate":
+    if gate is not None and gate.chosen != "estimate":
         returned = "the nominal angles" if gate.chosen == "nominal" else f"only the {gate.chosen} of the correction"
         problems.insert(0, f"the gate returned {returned}: {gate.reason}")
     chosen = result.refiner_info.get("chosen")
@@ -498,7 +589,7 @@ def _run_validate(settings: ValidateSettings, registry: StageRegistry, progress)
                    "pair-chained": view_errors_deg(pair_chained_deg(result.pairs, result.pair_angles_deg, nominal),
                                                    truth),
                    "estimated": view_errors_deg(estimated_rel, truth)}
-    if gate is not None and gate.decided and gate.chosen != "estimate":
+    if gate is not None and gate.chosen != "estimate":
         # What the gate held back: the refiner's angles, scored as if they had been returned.
         view_errors["before the gate"] = view_errors_deg(gate.estimate_deg, truth)
     pair_truth_errors = pair_errors_deg(result.pairs, result.pair_angles_deg, truth)
@@ -509,60 +600,45 @@ def _run_validate(settings: ValidateSettings, registry: StageRegistry, progress)
                   "nominal": error_table(pair_errors_deg(result.pairs, nominal_pairs, truth))},
     }
 
-    grid = _grid(settings)
-    binning = settings.reconstruction.detector_binning
+    grid = simulated.grid
     start = time.perf_counter()
-    projections, recon_geometry = bin_detector(jittered.projections, geometry, binning)
-    reference_projections, _ = bin_detector(reference_scan.projections, geometry, binning)
-    volumes, failed = {}, {}
-    angle_sets = {"nominal": nominal_aligned, "estimated": estimated, "true": truth}
-    # Every angle set is weighted as the nominal scan is (full or Parker short scan): a diverged
-    # estimate spanning more than a turn must not switch the estimated reconstruction's weighting.
-    short_scan = not covers_full_circle(nominal)
-    minimum = short_scan_minimum_deg(recon_geometry)
-    with bar("reconstructing (FDK x 4)", 4 * n_views) as advance:
-        for label, angles in angle_sets.items():
-            span = float(np.ptp(angles))
-            if label == "estimated" and short_scan and span < minimum - _SPAN_TOLERANCE_DEG:
-                # Said in the experiment's terms: FDK's own advice (an argument) means nothing in YAML.
-                failed[label] = (f"the estimated angles span {span:.2f} deg, less than the {minimum:.2f} deg "
-                                 f"(180 + fan angle) a short scan of this geometry needs; widen "
-                                 f"scan.angles.range_deg in the experiment to leave a margin")
-                if advance is not None:
-                    advance(n_views)
-                continue
+    volumes, failed = {"nominal": simulated.volumes["nominal"]}, {}
+    minimum = short_scan_minimum_deg(simulated.binned_geometry)
+    span = float(np.ptp(estimated))
+    with _bar(progress, "reconstructing (FDK, estimated angles)", n_views) as advance:
+        if simulated.short_scan and span < minimum - _SPAN_TOLERANCE_DEG:
+            # Said in the experiment's terms: FDK's own advice (an argument) means nothing in YAML.
+            failed["estimated"] = (f"the estimated angles span {span:.2f} deg, less than the {minimum:.2f} deg "
+                                   f"(180 + fan angle) a short scan of this geometry needs; widen "
+                                   f"scan.angles.range_deg in the experiment to leave a margin")
+        else:
             try:
-                volumes[label] = fdk(projections, recon_geometry, angles, grid, filter=settings.reconstruction.filter,
-                                     short_scan=short_scan, progress=advance)
+                volumes["estimated"] = fdk(simulated.binned, simulated.binned_geometry, estimated, grid,
+                                           filter=settings.reconstruction.filter, short_scan=simulated.short_scan,
+                                           progress=advance)
             except InputError as exc:
-                if label != "estimated":
-                    raise
-                failed[label] = f"FDK refused the estimated angles: {exc}"
-                if advance is not None:
-                    advance(n_views)
-        reference_volume = fdk(reference_projections, recon_geometry, reference_scan.true_angles_deg, grid,
-                               filter=settings.reconstruction.filter, short_scan=short_scan, progress=advance)
-    timings["reconstruct"] = time.perf_counter() - start
+                failed["estimated"] = f"FDK refused the estimated angles: {exc}"
+    volumes["true"] = simulated.volumes["true"]
+    timings["reconstruct"] = simulated.timings_s["reconstruct"] + time.perf_counter() - start
 
     start = time.perf_counter()
-    phantom_volume = voxelise_phantom(phantom, grid)
-    mask = support_mask(grid, phantom.radius_mm, phantom.half_height_mm, margin_voxels=2.0)
+    angle_sets = ("nominal", "estimated", "true")
     unscored = {"rmse": math.nan, "relative_rmse": math.nan, "psnr_db": math.nan, "ssim": math.nan}
     metrics = {
-        name: {label: volume_metrics(volumes[label], target, mask) if label in volumes else dict(unscored)
+        name: {label: volume_metrics(volumes[label], target, simulated.mask) if label in volumes else dict(unscored)
                for label in angle_sets}
-        for name, target in (("phantom", phantom_volume), ("reference", reference_volume))
+        for name, target in (("phantom", simulated.phantom_volume), ("reference", simulated.reference_volume))
     }
     gains = {ref: recovery(m["estimated"]["psnr_db"], m["nominal"]["psnr_db"], m["true"]["psnr_db"])
              for ref, m in metrics.items()}
-    timings["score"] = time.perf_counter() - start
+    timings["score"] = simulated.timings_s["score"] + time.perf_counter() - start
     for ref, m in metrics.items():
         if not m["true"]["psnr_db"] > m["nominal"]["psnr_db"]:
             notes.append(f"against the {ref}, the true angles do not reconstruct better than the nominal ones: the "
                          "jitter is not visible at this grid; recovery is undefined")
     return ValidateReport(settings=settings, grid=grid, nominal_deg=nominal, true_deg=truth, estimated_deg=estimated,
-                          pipeline_result=result, volumes=volumes, phantom_volume=phantom_volume,
-                          reference_volume=reference_volume, metrics=metrics, recovery=gains,
+                          pipeline_result=result, volumes=volumes, phantom_volume=simulated.phantom_volume,
+                          reference_volume=simulated.reference_volume, metrics=metrics, recovery=gains,
                           angle_tables=angle_tables, view_errors=view_errors, timings_s=timings, notes=notes,
                           problems=problems, failed=failed)
 
