@@ -25,7 +25,7 @@ from ctpipe.model import wrap_deg
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
 from ctpipe.solve.conjugate import midplane_rows
-from ctpipe.solve.gate import GateDecision, gate_angles, split_bands
+from ctpipe.solve.gate import GateDecision, cannot_tell, gate_angles, split_bands
 from ctpipe.solve.graph import view_pairs
 from ctpipe.solve.reprojection import as_line_integrals
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner
@@ -394,7 +394,7 @@ class ScanResult:
             columns["recorded_deg"] = recorded
             columns["estimated_minus_recorded_deg"] = estimated - recorded
         gate = self.gate
-        if gate is not None and gate.decided and gate.chosen != "estimate":
+        if gate is not None and gate.chosen != "estimate":
             # What the refiner said, before the gate replaced it (nominal frame, as angle_deg).
             columns["refiner_deg"] = gate.estimate_deg
         if self.angle_errors is not None:
@@ -505,7 +505,8 @@ def _gate_line(gate: GateDecision, *, measured: bool = False) -> str:
     With ``measured`` (a before/after line follows with the same measure) it says only what was returned.
     """
     if not gate.decided:
-        return f"gate: {gate.reason}; the refiner's angles are returned unchecked"
+        return (f"gate: {gate.reason} (the refiner's angles are in angles.csv as refiner_deg; gate: off returns "
+                "them)")
     if gate.chosen == "nominal":
         return (f"gate: returned the NOMINAL angles: {gate.reason} (the refiner's angles are in angles.csv as "
                 f"refiner_deg; gate: off returns them)")
@@ -907,10 +908,15 @@ def _angle_se_deg(refiner_se_deg: np.ndarray | None, gate: GateDecision | None,
     if refiner_se_deg is None:
         return None
     se = np.asarray(refiner_se_deg, dtype=np.float64)
-    if gate is None or not gate.decided or gate.chosen == "estimate" or nominal_deg is None:
+    if gate is None or gate.chosen == "estimate" or nominal_deg is None:
         return se
     left_out = wrap_deg(gate.estimate_deg - gate.angles_deg)
-    bands = split_bands(wrap_deg(left_out - np.median(left_out)), nominal_deg, gate.harmonics)
+    known = np.isfinite(left_out)
+    if not known.any():
+        return se
+    # A view the refiner gave no angle left nothing out.
+    left_out = np.where(known, wrap_deg(left_out - np.median(left_out[known])), 0.0)
+    bands = split_bands(left_out, nominal_deg, gate.harmonics)
     fast = float(np.sqrt(np.mean(bands["fast"] ** 2)))
     return np.sqrt(se**2 + fast**2 + (bands["slow-odd"] + bands["slow-even"]) ** 2)
 
@@ -920,11 +926,11 @@ def _gate(observations: ScanObservations, solution: ScanSolution) -> GateDecisio
     estimate = np.rad2deg(solution.angles_rad)
     projections = observations.projections
     if projections is None:
-        return GateDecision("estimate", estimate, False, "not gated: no projections to check the angles against")
+        return cannot_tell(observations.nominal_angles_deg, estimate, "no projections to check the angles against")
     try:
         rows, slopes = midplane_rows(projections, observations.geometry, slopes=True)
     except InputError as error:
-        return GateDecision("estimate", estimate, False, f"not gated: {error}")
+        return cannot_tell(observations.nominal_angles_deg, estimate, str(error))
     # Intensities (a bright field around a dark object) become line integrals, as projection matching takes them.
     line_integrals, converted = as_line_integrals(rows[:, None, :])
     if converted:   # d(-log I)/dv = -(dI/dv) / I

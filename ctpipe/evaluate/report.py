@@ -227,7 +227,10 @@ def estimate_angles_png(result: ScanResult) -> bytes | None:
     scan = result.scan
     title = f"{scan.format} scan {scan.path.name}" if scan is not None else ""
     gate = result.gate
-    if gate is not None and gate.decided:
+    if gate is not None and not gate.decided and gate.chosen == "nominal":
+        verdict = "nominal angles returned: the projections could not be asked"
+        title = f"{title}\ngate: {verdict}" if title else f"gate: {verdict}"
+    elif gate is not None and gate.decided:
         verdict = ("nominal angles returned: the projections do not show the correction better" if gate.chosen == "nominal"
                    else f"{gate.chosen} returned: conjugate rays agree {gate.improvement:.0%} better than nominal")
         title = f"{title}\ngate: {verdict}" if title else f"gate: {verdict}"

@@ -48,6 +48,7 @@ the bands are selected as above.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -58,7 +59,7 @@ from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.model import wrap_deg
 from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_pairs, conjugate_ray_costs
 
-__all__ = ["GateDecision", "split_bands", "gate_angles", "needed_z", "BANDS"]
+__all__ = ["GateDecision", "split_bands", "gate_angles", "cannot_tell", "needed_z", "BANDS"]
 
 #: The bands of a correction, in the order they are reported.
 BANDS = ("fast", "slow-odd", "slow-even")
@@ -116,8 +117,8 @@ class GateDecision:
     ----------
     chosen : str
         ``estimate`` (every band added and every view seen), ``nominal`` (no band), or the bands
-        added, e.g. ``fast + slow-odd``; ``estimate`` also when the gate could not decide (see
-        ``decided``).
+        added, e.g. ``fast + slow-odd``; ``nominal`` also when the projections could not be asked
+        (``decided`` False, :func:`cannot_tell`).
     angles_deg : ndarray of shape (V,)
         The angles returned, in the estimate's frame.
     decided : bool
@@ -144,7 +145,7 @@ class GateDecision:
         round asks more (``needed``).
     estimate_deg : ndarray of shape (V,) or None
         The refiner's angles as they came, in the nominal angles' frame (their median offset
-        from them removed); None when the gate could not decide.
+        from them removed).
     held_out_z : float or None
         The refiner's own evidence, where it gave some: how many standard errors better its
         angles predict views held out of the reference than the nominal angles do (negative:
@@ -181,6 +182,23 @@ class GateDecision:
                 "harmonics": self.harmonics, "z": self.z, "improvement": self.improvement,
                 "held_out_z": self.held_out_z,
                 "scores": {name: score.to_dict() for name, score in self.scores.items()}}
+
+
+def cannot_tell(nominal_deg, estimate_deg, why: str, **fields) -> GateDecision:
+    """The gate's answer where the projections cannot be asked: the nominal angles, saying why.
+
+    A correction nothing has checked is not returned as one (on sweep scans where conjugate
+    rays could not be asked, pair-only pipelines returned angles tens of degrees off, the
+    user none the wiser). ``estimate_deg`` is kept as ``estimate_deg`` (the nominal frame) for
+    ``refiner_deg``; ``gate: off`` returns it.
+    """
+    nominal = np.asarray(nominal_deg, dtype=np.float64)
+    estimate = np.asarray(estimate_deg, dtype=np.float64)
+    finite = np.isfinite(estimate)
+    shift = float(np.median(wrap_deg(estimate[finite] - nominal[finite]))) if finite.any() else 0.0
+    return GateDecision("nominal", nominal + shift, False,
+                        f"cannot tell whether the correction helped: {why}; the nominal angles are returned",
+                        estimate_deg=np.where(finite, estimate - shift, np.nan), **fields)
 
 
 def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg, *, z: float = 2.0,
@@ -238,19 +256,30 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     if not (z > 0 and math.isfinite(z)) or not (1 <= harmonics <= 32):
         raise InputError(f"z must be > 0 and harmonics 1 to 32, got {z!r} and {harmonics!r}")
     finite = np.isfinite(estimate)
-    if not finite.all():
-        return GateDecision("estimate", estimate, False, f"{int((~finite).sum())} views have no estimate; not gated",
-                            harmonics=harmonics, z=z, held_out_z=held_out_z)
-    # The estimate in the nominal frame: its median offset from the nominal angles removed.
+    if not finite.any():
+        return cannot_tell(nominal, estimate, "the refiner gave no view an angle", harmonics=harmonics, z=z,
+                           held_out_z=held_out_z)
+    # The estimate in the nominal frame: its median offset from the nominal angles removed. Views
+    # the refiner gave no angle keep their nominal one, and the rest are gated as they are.
     difference = wrap_deg(estimate - nominal)
-    shift = float(np.median(wrap_deg(difference - difference[0]))) + float(difference[0])
+    anchor = int(np.flatnonzero(finite)[0])
+    shift = float(np.median(wrap_deg(difference[finite] - difference[anchor]))) + float(difference[anchor])
+    unestimated = int((~finite).sum())
+    if unestimated:
+        estimate = np.where(finite, estimate, nominal + shift)
+        difference = wrap_deg(estimate - nominal)
     correction = wrap_deg(difference - shift)
     search = max(3.0, 0.02 * g.detector_cols) if fit_u0_px is None else float(fit_u0_px)
     first, second = conjugate_pairs(nominal, g, margin_px=1.0 + search)
     if len(first) == 0:
-        return GateDecision("estimate", estimate, False, "not gated: no two views are half a turn apart with their "
-                            "common ray on the detector (a scan must cover 180 deg plus the fan angle)",
-                            harmonics=harmonics, z=z)
+        return cannot_tell(nominal, estimate, "no two views are half a turn apart with their common ray on the "
+                           "detector (a scan must cover 180 deg plus the fan angle)", harmonics=harmonics, z=z,
+                           held_out_z=held_out_z)
+    if unestimated:
+        decision = gate_angles(rows, g, nominal, estimate, z=z, harmonics=harmonics, fit_u0_px=fit_u0_px,
+                               slopes=slopes, fit_tilt_deg=fit_tilt_deg, held_out_z=held_out_z)
+        return dataclasses.replace(decision, reason=f"{decision.reason}; {unestimated} views the refiner gave no "
+                                                    "angle keep their nominal one")
     seen = np.zeros(len(nominal), bool)
     seen[first] = seen[second] = True
     parts = {name: np.where(seen, part, 0.0) for name, part in split_bands(correction, nominal, harmonics, seen).items()}

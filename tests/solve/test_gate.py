@@ -116,12 +116,28 @@ def test_views_no_conjugate_ray_reaches_keep_their_nominal_angle():
     assert "keep their nominal angle" in decision.reason
 
 
-def test_without_conjugate_rays_the_gate_says_it_cannot_decide(scan):
+def test_without_conjugate_rays_the_gate_cannot_tell_and_returns_the_nominal_angles(scan):
     s, rows = scan
-    decision = gate_angles(rows[:30], s.geometry, s.nominal_angles_deg[:30], s.true_angles_deg[:30])
-    assert not decision.decided and decision.chosen == "estimate" and "half a turn" in decision.reason
-    assert decision.angles_deg is not None
+    nominal, estimate = s.nominal_angles_deg[:30], s.true_angles_deg[:30] + 7.0
+    decision = gate_angles(rows[:30], s.geometry, nominal, estimate)
+    assert not decision.decided and decision.chosen == "nominal" and "half a turn" in decision.reason
+    assert "cannot tell" in decision.reason and "nominal angles are returned" in decision.reason
+    # The nominal angles in the estimate's frame; the refiner's kept, in the nominal frame, for refiner_deg.
+    offset = decision.angles_deg - nominal
+    assert np.ptp(offset) < 1e-9 and abs(offset[0] - np.median(estimate - nominal)) < 1e-9
+    np.testing.assert_allclose(decision.estimate_deg - nominal, estimate - nominal - offset[0], atol=1e-9)
     assert decision.improvement is None
+
+
+def test_views_without_an_estimate_keep_their_nominal_angle_and_the_rest_is_gated(scan):
+    s, rows = scan
+    estimate = s.true_angles_deg.copy()
+    estimate[5:9] = np.nan
+    decision = gate_angles(rows, s.geometry, s.nominal_angles_deg, estimate)
+    assert decision.decided and "4 views the refiner gave no angle keep their nominal one" in decision.reason
+    assert np.all(np.isfinite(decision.angles_deg))
+    everything = gate_angles(rows, s.geometry, s.nominal_angles_deg, np.full_like(estimate, np.nan))
+    assert not everything.decided and everything.chosen == "nominal" and "no view" in everything.reason
 
 
 def test_bad_arguments_are_one_clear_error(scan):
