@@ -1,4 +1,4 @@
-"""Command line: ``ctpipe plugins | estimate | detect | simulate | validate | experiment synthetic | sweep``.
+"""Command line: ``ctpipe plugins | estimate | detect | simulate | validate | experiment synthetic | sweep | compare``.
 
 Errors caused by the user's input print one line ``ctpipe: error: ...`` on stderr and exit
 with status 2; nothing half-written is left behind: every output path is checked before the
@@ -482,6 +482,62 @@ def _cmd_experiment_sweep(args) -> int:
     return 0
 
 
+def _cmd_experiment_compare(args) -> int:
+    from ctpipe.evaluate.compare import (CompareSettings, builtin_pipelines, file_scenarios, load_pipelines,
+                                         run_compare, sweep_scenarios, write_compare_outputs)
+    from ctpipe.io.outputs import check_output_dir, staged_folder, to_jsonable
+
+    check_output_dir(args.out)
+    registry = _registry(args)
+    if args.builtin is not None:
+        pipelines = builtin_pipelines(args.builtin, registry)
+        # Files given beside a built-in comparison join it: e.g. a variant scored against the built-ins.
+        pipelines = pipelines + load_pipelines(args.pipelines, registry, minimum=0)
+    else:
+        pipelines = load_pipelines(args.pipelines, registry)
+    names = [p.name for p in pipelines]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"pipelines: two are named alike ({', '.join(names)}); rename a file")
+    if args.scenario:
+        for option, value in (("--n", args.n), ("--seed", args.seed), ("--sweep", args.sweep)):
+            if value is not None:
+                raise ConfigError(f"{option}: only with scenarios drawn from a sweep, not with --scenario files")
+        scenarios, source = file_scenarios(args.scenario, registry), "experiment files"
+    else:
+        scenarios, source = sweep_scenarios(args.sweep, registry, n=args.n or 6, seed=args.seed)
+    settings = CompareSettings(pipelines=pipelines, scenarios=scenarios, source=source)
+    executor = None
+    if args.dask is not None:
+        from ctpipe.execution import DaskExecutor
+
+        executor = DaskExecutor.connect(args.dask or None)
+        print(f"ctpipe: {executor.describe()}", file=sys.stderr, flush=True)
+    try:
+        with _progress(len(scenarios), "scenarios", quiet=args.json,
+                       description=f"compare ({len(pipelines)} pipelines)") as advance:
+            report = run_compare(settings, executor=executor, blocked=tuple(args.block_plugin), progress=advance)
+    finally:
+        if executor is not None:
+            executor.close()
+    with staged_folder(args.out) as tmp:
+        write_compare_outputs(report, tmp)
+    if args.json:
+        print(json.dumps(to_jsonable({"summary": report.summary_lines(), "pairs": report.pairs(),
+                                      "rows": report.rows}), indent=2))
+        return 0
+    for row in report.rows:
+        if row["status"] == "ok":
+            print(f"scenario {row['scenario']} ({row['class']}), {row['pipeline']}: RMS {row['nominal_rms_deg']:.4f} -> "
+                  f"{row['estimated_rms_deg']:.4f} deg, recovery {row['recovery_reference']:+.3f}, "
+                  f"gate {row['gate'] or '-'}, {row['seconds']:.0f} s")
+        else:
+            print(f"scenario {row['scenario']} ({row['class']}), {row['pipeline']}: failed: {row['reason']}")
+    for line in report.summary_lines():
+        print(line)
+    print(f"results in {args.out}: compare.csv, compare.json, compare.png, summary.txt, scenarios/")
+    return 0
+
+
 def _cmd_experiment_synthetic(args) -> int:
     from ctpipe.evaluate.experiments import load_synthetic_settings, run_synthetic
     from ctpipe.evaluate.report import synthetic_table, write_synthetic_outputs
@@ -642,6 +698,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run the scenarios on a Dask cluster (a scheduler address or file; none: a LocalCluster)")
     p.add_argument("--json", action="store_true", help="print the summary and rows as JSON")
     p.set_defaults(run=_cmd_experiment_sweep)
+    p = experiments.add_parser("compare", help="score pipelines against each other on the same simulated scans")
+    p.add_argument("pipelines", nargs="*", metavar="PIPELINE.yaml", help="pipeline YAML files (at least two, or "
+                   "--builtin); the first is the one the others are drawn against")
+    p.add_argument("--builtin", choices=("detectors", "refiners"),
+                   help="a built-in comparison: the paper's three detectors end to end, or the whole-scan refiners")
+    p.add_argument("--sweep", help="draw the scenarios from this sweep YAML (default: the built-in sweep)")
+    p.add_argument("--scenario", nargs="+", metavar="EXPERIMENT.yaml",
+                   help="validate experiment files to run instead of drawn scenarios (their pipeline is replaced)")
+    p.add_argument("--n", type=_int_at_least(1), help="scenarios to draw from the sweep (default 6)")
+    p.add_argument("--seed", type=_int_at_least(0), help="random seed of the draws (default: the sweep's)")
+    p.add_argument("--out", default="results/compare",
+                   help="directory for compare.csv, compare.json, compare.png, summary.txt and scenarios/ "
+                        "(default: results/compare)")
+    p.add_argument("--dask", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="run the scenarios on a Dask cluster (a scheduler address or file; none: a LocalCluster)")
+    p.add_argument("--json", action="store_true", help="print the summary, the paired tests and the rows as JSON")
+    p.set_defaults(run=_cmd_experiment_compare)
     return parser
 
 

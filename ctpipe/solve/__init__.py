@@ -22,7 +22,7 @@ from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bu
 from ctpipe.solve.camera import pixels_to_rays, project_points
 from ctpipe.solve.conjugate import (ConjugateRayScore, conjugate_pairs, conjugate_ray_costs, conjugate_ray_mismatch,
                                      midplane_row, midplane_rows)
-from ctpipe.solve.gate import BANDS, GateDecision, gate_angles, needed_z, split_bands
+from ctpipe.solve.gate import BANDS, GateDecision, cannot_tell, gate_angles, needed_z, split_bands
 from ctpipe.solve.graph import (PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
                                 solve_view_graph, turn_pairs, unwrap_pair_angles_deg, view_pairs)
 from ctpipe.solve.losses import LOSSES, check_loss, robust_loss, robust_weight
@@ -41,4 +41,4 @@ __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pai
            "HELD_OUT_Z", "HeldOutScore", "held_out_scores", "static_part", "static_part_applies", "step_cap_deg",
            "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "midplane_row", "conjugate_pairs",
            "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "gate_angles", "GateDecision",
-           "split_bands", "needed_z", "BANDS", "calibrate_balls", "BallCalibration", "ellipse_centres"]
+           "split_bands", "needed_z", "cannot_tell", "BANDS", "calibrate_balls", "BallCalibration", "ellipse_centres"]
