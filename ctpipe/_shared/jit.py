@@ -1,4 +1,4 @@
-"""The fast-math flags every numba kernel of ctpipe compiles with.
+"""The fast-math flags every numba kernel of ctpipe compiles with, and where their cache goes.
 
 ``fastmath=True`` is LLVM's ``fast``, which includes ``nsz`` (signed zeros may be ignored).
 With ``reassoc`` and ``nsz`` together, the code numba compiles in a process and the code it
@@ -10,6 +10,8 @@ backprojection within 1 % of ``fastmath=True``). Hence ``fastmath=FASTMATH`` eve
 """
 
 from __future__ import annotations
+
+import os
 
 import numba
 
@@ -59,3 +61,46 @@ def njit(*args, **options):
     """
     options.setdefault("nogil", NOGIL)
     return numba.njit(*args, **options)
+
+
+def _cache_outside_the_package() -> None:
+    """Keep numba's on-disk cache of ctpipe's kernels (``cache=True``) out of the installed package.
+
+    numba writes it next to the source, into ``ctpipe/*/__pycache__``, wherever that is
+    writable: in an environment's ``site-packages`` too. ``pip uninstall`` removes only the
+    files it installed, so those folders stayed behind, and after ``pip install .`` then ``pip
+    install -e .`` (the README's two commands, run in one environment) Python found
+    ``site-packages/ctpipe`` first as a namespace package without ``__init__``: ``import
+    ctpipe`` gave a package without ``Pipeline``. ctpipe's kernels are cached in numba's
+    user-wide cache folder instead (``~/.cache/numba`` on Linux; one subfolder per source
+    folder, so two installs do not mix), as numba does for a read-only package.
+    ``NUMBA_CACHE_DIR`` set by the user still wins. Uses numba's cache locators
+    (``numba.core.caching``); with a numba that has them elsewhere, numba's default stands.
+    """
+    try:
+        from numba.core import caching
+    except ImportError:   # pragma: no cover - numba moved its caching module
+        return
+    user_wide = getattr(caching, "UserWideCacheLocator", None)
+    classes = getattr(getattr(caching, "CacheImpl", None), "_locator_classes", None)
+    if user_wide is None or not isinstance(classes, list):   # pragma: no cover - numba's internals changed
+        return
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
+
+    class CtpipeCacheLocator(user_wide):
+        """numba's user-wide cache folder for ctpipe's own source files (see above)."""
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if numba.config.CACHE_DIR or not os.path.abspath(py_file).startswith(package):
+                return None
+            return super().from_function(py_func, py_file)
+
+    if any(getattr(c, "__name__", "") == CtpipeCacheLocator.__name__ for c in classes):
+        return
+    # After a cache folder the user named (UserProvidedCacheLocator), before numba's in-tree one.
+    named = [k for k, c in enumerate(classes) if getattr(c, "__name__", "") == "UserProvidedCacheLocator"]
+    classes.insert(named[0] + 1 if named else 0, CtpipeCacheLocator)
+
+
+_cache_outside_the_package()

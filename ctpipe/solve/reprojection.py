@@ -71,8 +71,9 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
+from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.feldkamp import FILTERS, bin_detector, covers_full_circle, fdk
@@ -279,7 +280,7 @@ def _gaussian_taps(sigma: float) -> np.ndarray:
     return taps / taps.sum()
 
 
-@njit(inline="always")
+@njit(cache=True, inline="always")
 def _mirror(index: int, n: int) -> int:
     """``mode="reflect"``: (d c b a | a b c d | d c b a)."""
     period = 2 * n
@@ -287,7 +288,7 @@ def _mirror(index: int, n: int) -> int:
     return index if index < n else period - 1 - index
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _difference_of_gaussians(images, fine_taps, coarse_taps, out):
     """``out = G(fine) * images - G(coarse) * images`` per image (V, rows, cols), rows then columns."""
     n_images, rows, cols = images.shape
