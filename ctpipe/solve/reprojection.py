@@ -814,8 +814,13 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
         history.append(_entry(factor, 0, "start", fit, None, start, shifts_px, tilt))
         state = (fit, angles, shifts_px, tilt)
 
-        def attempt(iteration: int, proposals) -> bool:
-            """Try ``(kind, angle step, shift step, tilt step)`` in turn; keep the first that lowers the cost."""
+        def attempt(iteration: int, proposals, *, last: bool = False) -> bool:
+            """Try ``(kind, angle step, shift step, tilt step)`` in turn; keep the first that lowers the cost.
+
+            The ``last`` step of a level needs only its cost: no step is taken from it (the next
+            level starts with a fit of its own), so it is one reconstruction and one projection,
+            not a Gauss-Newton evaluation; its standard errors are the fit's before it.
+            """
             nonlocal state
             fit, angles, shifts_px, tilt = state
             for kind, angle_step, shift_step, tilt_step in proposals:
@@ -825,7 +830,8 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
                 trial_tilt = tilt + tilt_step
                 level.align(trial_shifts / factor, trial_tilt)
                 try:
-                    trial = level.fit(trial_angles, **options)
+                    trial = (_Fit(level.cost(trial_angles), noise_deg=fit.noise_deg, noise_drop=fit.noise_drop)
+                             if last else level.fit(trial_angles, **options))
                 except InputError as exc:
                     notes.append(f"binning {factor}, step {iteration}: {exc}")
                     trial = None
@@ -865,7 +871,7 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
                          if extra is not None and np.any(extra) else [])
             proposals += [("step", step, shift_step, tilt_step),
                           ("half step", 0.5 * step, 0.5 * shift_step, 0.5 * tilt_step)]
-            if not attempt(iteration, proposals):
+            if not attempt(iteration, proposals, last=iteration == int(count)):
                 notes.append(f"binning {factor}: stopped after {iteration - 1} steps, no step lowered the cost")
                 break
             taken = history[-1]
