@@ -20,8 +20,8 @@ time; exits with status 1 when a view is beyond 0.01 deg.
 
     python benchmarks/bench_ball_scan_2k.py [--seed 0] [--no-defects] [--runs 2]
 
-For a cold compile, empty the numba cache first (``find ctpipe -name __pycache__ -path '*'
--exec rm -rf {} +`` removes the ``*.nbi``/``*.nbc`` files with the bytecode).
+For a cold compile, point numba at an empty cache folder (``NUMBA_CACHE_DIR=$(mktemp -d)``);
+ctpipe's kernels are otherwise cached in numba's user-wide folder (``~/.cache/numba``).
 """
 
 from __future__ import annotations
