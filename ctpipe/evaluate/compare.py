@@ -484,6 +484,7 @@ def _plot(report: CompareReport, lines: list[str]) -> bytes:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     names = report.names
     labels = [label for label, _, _ in report.settings.scenarios]
@@ -500,6 +501,9 @@ def _plot(report: CompareReport, lines: list[str]) -> bytes:
         offset = (k - (len(names) - 1) / 2) * width
         rms = report.rms(name)
         rms_ax.bar(x + offset, np.nan_to_num(rms, nan=0.0), width, color=colours(k % 10), label=name)
+        own = report.rms(name, key="ungated_rms_deg")
+        rms_ax.scatter(x + offset, own, facecolors="none", edgecolors="black", s=18, zorder=4,
+                       label="the refiner's own, before the gate" if k == 0 else None)
         failed = ~np.isfinite(rms)
         if failed.any():
             rms_ax.scatter(x[failed] + offset, np.full(failed.sum(), np.nanmin(nominal) if np.isfinite(nominal).any()
@@ -514,35 +518,42 @@ def _plot(report: CompareReport, lines: list[str]) -> bytes:
     finite = np.array([v for v in nominal if np.isfinite(v)] + [v for n in names for v in report.rms(n) if np.isfinite(v)])
     if finite.size and finite.min() > 0:
         rms_ax.set_yscale("log")
-    rms_ax.set(xticks=x, ylabel="per-view RMS error against the truth (deg)",
-               title="returned angles per scenario (x: failed; dash: nominal)")
+    rms_ax.set(xticks=x, ylabel="per-view RMS error against the truth (deg)")
+    rms_ax.set_title("RMS per scenario (bars: returned; dash: nominal; x: failed)", fontsize=9)
     rms_ax.set_xticklabels(ticks, fontsize=7, rotation=45, ha="right")
-    rms_ax.legend(fontsize=7)
+    rms_ax.legend(fontsize=6, loc="best")
     rec_ax.axhline(0.0, color="0.4", lw=1)
     rec_ax.axhline(1.0, color="0.6", lw=1, ls="--")
-    rec_ax.set(xticks=x, ylabel="recovery against the jitter-free scan (1: all the true angles gain)",
-               title="recovery per scenario (clipped to [-1, 1.5]; n/a: jitter not visible or failed)")
+    rec_ax.set(xticks=x, ylabel="recovery vs the jitter-free scan (1: what the true angles gain)")
+    rec_ax.set_title("recovery per scenario (clipped to [-1, 1.5]; n/a: not visible or failed)", fontsize=9)
     rec_ax.set_xticklabels(ticks, fontsize=7, rotation=45, ha="right")
     first = report.rms(names[0])
+    first_own = report.rms(names[0], key="ungated_rms_deg")
     for k, name in enumerate(names[1:], start=1):
         other = report.rms(name)
         pair_ax.scatter(first, other, color=colours(k % 10), label=f"{name} (below the diagonal: closer than "
                                                                    f"{names[0]})")
+        pair_ax.scatter(first_own, report.rms(name, key="ungated_rms_deg"), facecolors="none",
+                        edgecolors=colours(k % 10), label=f"{name}, before the gate")
         for label, a, b in zip(labels, first, other):
             if np.isfinite(a) and np.isfinite(b):
                 pair_ax.annotate(label, (a, b), fontsize=6, xytext=(3, 3), textcoords="offset points")
-    pair = np.concatenate([first, *(report.rms(n) for n in names[1:])])
+    pair = np.concatenate([first, first_own, *(report.rms(n, key=key) for n in names[1:]
+                                               for key in ("estimated_rms_deg", "ungated_rms_deg"))])
     pair = pair[np.isfinite(pair) & (pair > 0)]
     if pair.size:
         low, high = pair.min() / 1.5, pair.max() * 1.5
         pair_ax.plot([low, high], [low, high], color="0.6", lw=1)
         pair_ax.set(xscale="log", yscale="log", xlim=(low, high), ylim=(low, high))
-    pair_ax.set(xlabel=f"{names[0]}: per-view RMS (deg)", ylabel="other pipeline: per-view RMS (deg)",
-                title=f"each pipeline against {names[0]}, scenario by scenario")
+    pair_ax.set(xlabel=f"{names[0]}: per-view RMS (deg)", ylabel="other pipeline: per-view RMS (deg)")
+    pair_ax.set_title(f"each pipeline against {names[0]}, scenario by scenario", fontsize=9)
     pair_ax.legend(fontsize=7, loc="upper left")
+    for axis in (rms_ax.yaxis, pair_ax.xaxis, pair_ax.yaxis):
+        axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     pairs = [line for line in lines if " vs " in line and not line.startswith("    ")]
     fig.suptitle("\n".join(pairs[:4]), fontsize=8)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=100)
     plt.close(fig)
