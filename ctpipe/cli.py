@@ -12,6 +12,7 @@ See docs/errors.md.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -74,14 +75,8 @@ def _cmd_estimate(args) -> int:
     registry = _registry(args)
     config = parse_pipeline(load_yaml(args.pipeline) if args.pipeline else None, registry)
     pipeline = Pipeline.from_config(config, registry=registry)
-    executor = None
-    if args.dask is not None:
-        from ctpipe.execution import DaskExecutor
-
-        address = args.dask if _is_address(args.dask) else None
-        executor = DaskExecutor.connect(address)
-        print(f"ctpipe: {executor.describe()}", file=sys.stderr, flush=True)
-    try:
+    address = args.dask if args.dask is not None and _is_address(args.dask) else None
+    with _dask_executor(args.dask, address) as executor:
         if not batch:
             report, summary, warning = _estimate_scan(args, config, pipeline, sources[0], outs[sources[0]], executor,
                                                       progress=True)
@@ -90,9 +85,25 @@ def _cmd_estimate(args) -> int:
                 print(warning, file=sys.stderr)
             return 0
         return _estimate_batch(args, config, pipeline, sources, outs, executor)
+
+
+@contextlib.contextmanager
+def _dask_executor(option: str | None, address: str | None):
+    """The Dask executor ``--dask`` asks for (None without the option), said on stderr, closed after the block.
+
+    ``address`` is the scheduler to connect to; None starts a LocalCluster.
+    """
+    if option is None:
+        yield None
+        return
+    from ctpipe.execution import DaskExecutor
+
+    executor = DaskExecutor.connect(address)
+    print(f"ctpipe: {executor.describe()}", file=sys.stderr, flush=True)
+    try:
+        yield executor
     finally:
-        if executor is not None:
-            executor.close()
+        executor.close()
 
 
 def _estimate_scan(args, config, pipeline, source: Path, out: Path | None, executor, *, progress: bool):
@@ -163,14 +174,14 @@ def _ball_phantom_pipeline(args, projections, pipeline):
     from ctpipe.features.ball_phantom import looks_like_ball_phantom
     from ctpipe.pipeline import Pipeline
 
+    yes, why = looks_like_ball_phantom(projections)
+    if not yes:
+        return pipeline
     registry = _registry(args)
     try:
         balls = Pipeline.from_config(parse_pipeline(BALL_PHANTOM_PIPELINE, registry), registry=registry)
     except ConfigError:
         return pipeline     # a blocked plugin holds one of its stages
-    yes, why = looks_like_ball_phantom(projections)
-    if not yes:
-        return pipeline
     if not args.json:
         print(f"ctpipe: a ball phantom ({why}): running the ball calibration, as configs/calibration-beads.yaml "
               "does; --pipeline configs/default.yaml runs the default pipeline instead", file=sys.stderr, flush=True)
@@ -451,19 +462,9 @@ def _cmd_experiment_sweep(args) -> int:
     if args.seed is not None:
         settings = dataclasses.replace(settings, seed=args.seed)
     count = args.n or settings.n
-    executor = None
-    if args.dask is not None:
-        from ctpipe.execution import DaskExecutor
-
-        executor = DaskExecutor.connect(args.dask or None)
-        print(f"ctpipe: {executor.describe()}", file=sys.stderr, flush=True)
-    try:
-        with _progress(count, "scenarios", quiet=args.json, description="sweep") as advance:
-            report = run_sweep(settings, n=count, executor=executor, blocked=tuple(args.block_plugin),
-                               progress=advance)
-    finally:
-        if executor is not None:
-            executor.close()
+    with _dask_executor(args.dask, args.dask or None) as executor, \
+            _progress(count, "scenarios", quiet=args.json, description="sweep") as advance:
+        report = run_sweep(settings, n=count, executor=executor, blocked=tuple(args.block_plugin), progress=advance)
     with staged_folder(args.out) as tmp:
         write_sweep_outputs(report, tmp)
     if args.json:
@@ -506,19 +507,10 @@ def _cmd_experiment_compare(args) -> int:
     else:
         scenarios, source = sweep_scenarios(args.sweep, registry, n=args.n or 6, seed=args.seed)
     settings = CompareSettings(pipelines=pipelines, scenarios=scenarios, source=source)
-    executor = None
-    if args.dask is not None:
-        from ctpipe.execution import DaskExecutor
-
-        executor = DaskExecutor.connect(args.dask or None)
-        print(f"ctpipe: {executor.describe()}", file=sys.stderr, flush=True)
-    try:
-        with _progress(len(scenarios), "scenarios", quiet=args.json,
-                       description=f"compare ({len(pipelines)} pipelines)") as advance:
-            report = run_compare(settings, executor=executor, blocked=tuple(args.block_plugin), progress=advance)
-    finally:
-        if executor is not None:
-            executor.close()
+    with _dask_executor(args.dask, args.dask or None) as executor, \
+            _progress(len(scenarios), "scenarios", quiet=args.json,
+                      description=f"compare ({len(pipelines)} pipelines)") as advance:
+        report = run_compare(settings, executor=executor, blocked=tuple(args.block_plugin), progress=advance)
     with staged_folder(args.out) as tmp:
         write_compare_outputs(report, tmp)
     if args.json:
