@@ -25,7 +25,7 @@ from ctpipe.evaluate.report import (angle_errors_png, estimate_angles_png, keypo
 from ctpipe.evaluate.scoring import (align_offset, error_table, keypoint_agreement, pair_errors_deg, recovery,
                                      score_against_truth, se_coverage, support_mask, view_errors_deg, volume_metrics)
 from ctpipe.evaluate.sweep import (DISTRIBUTIONS, SweepReport, SweepSettings, draw_scenario, load_sweep_settings,
-                                   parse_sweep, report_row, run_scenario, run_sweep, worse_than_nominal,
+                                   parse_sweep, report_row, failure_reason, run_scenario, run_sweep, worse_than_nominal,
                                    write_sweep_outputs)
 from ctpipe.evaluate.synthetic import Cylinder, cylinder_points, make_correspondences
 from ctpipe.evaluate.validate import (SimulatedExperiment, ValidateReport, ValidateSettings, check_experiment,
@@ -40,7 +40,7 @@ __all__ = ["run_validate", "load_validate_settings", "parse_validate", "check_ex
            "angle_errors_png", "estimate_angles_png", "keypoints_png", "Cylinder", "cylinder_points",
            "make_correspondences", "run_sweep", "load_sweep_settings", "parse_sweep", "draw_scenario", "run_scenario",
            "write_sweep_outputs", "worse_than_nominal", "SweepSettings", "SweepReport", "DISTRIBUTIONS", "BeforeAfter", "before_after",
-           "before_after_png", "se_coverage", "report_row", "SimulatedExperiment", "simulate_experiment",
+           "before_after_png", "se_coverage", "report_row", "failure_reason", "SimulatedExperiment", "simulate_experiment",
            "score_pipeline", "ALPHA", "BUILTIN_COMPARISONS", "ComparedPipeline", "CompareReport", "CompareSettings",
            "builtin_pipelines", "file_scenarios", "load_pipelines", "paired_comparison", "run_compare",
            "run_compare_scenario", "sweep_scenarios", "write_compare_outputs"]

@@ -3,8 +3,8 @@
 Every pipeline runs on every scenario, and every scenario is simulated once and shared: the same
 jittered projections, the same jitter-free reference and the same reconstructions with the
 nominal and the true angles (:func:`ctpipe.evaluate.validate.simulate_experiment`). Each
-(scenario, pipeline) is scored as ``ctpipe validate`` scores it (:func:`~ctpipe.evaluate.sweep.report_row`):
-per-view RMS against the truth, recovery against the jitter-free scan and the phantom, the
+(scenario, pipeline) is scored as ``ctpipe validate`` scores it
+(:func:`~ctpipe.evaluate.sweep.report_row`): per-view RMS against the truth, recovery against the jitter-free scan and the phantom, the
 refiner's answer before the gate, how many views lie within two standard errors of the truth,
 the seconds of each stage and the memory the stages added at their peak.
 
@@ -14,14 +14,16 @@ The scenarios are drawn from a sweep (the built-in ``ctpipe/evaluate/sweep.yaml`
 
 **Which pipeline is better, and is it beyond noise?** For every pair of pipelines, on the
 scenarios where both ran (on the angles returned, and again on the refiners' own angles before
-the gate, which tell detectors apart where the gate returned the nominal angles for all): on how many the first has the lower per-view RMS, on how many the
-second, and on how many they tie (equal to 1e-9 relative: both returned the nominal angles, say).
-Two paired tests over the scenarios (:func:`paired_comparison`): the sign test on wins and
-losses (``scipy.stats.binomtest``), and Wilcoxon's signed-rank test on the log of the RMS
-ratio (``scipy.stats.wilcoxon``; the log so that a scenario with large errors does not outweigh
-one with small ones). A difference is called beyond noise at a two-sided p below
+the gate, which tell detectors apart where the gate returned the nominal angles for all): on
+how many the first has the lower per-view RMS, on how many the second, and on how many they
+tie (equal to 1e-9 relative: both returned the nominal angles, say). Two paired tests over the
+scenarios (:func:`paired_comparison`): the sign test on wins and losses
+(``scipy.stats.binomtest``), and Wilcoxon's signed-rank test on the log of the RMS ratio
+(``scipy.stats.wilcoxon``; the log so that a scenario with large errors does not outweigh one
+with small ones). A difference is called beyond noise at a two-sided p below
 :data:`ALPHA` in the signed-rank test. The same is done per scenario class (the phantom): with
-a handful of scenarios per class the tests cannot reach it, and the summary says "cannot tell".
+a handful of scenarios per class the tests cannot reach it, and the summary says "not beyond
+noise" (or "the same on every scenario", or "cannot tell" where no scenario has both).
 A pipeline that failed on a scenario has no RMS there: the pair is left out of the test and
 its failures are counted beside it.
 
@@ -37,7 +39,9 @@ share a process (a Dask worker with several threads) the figures mix them.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import dataclasses
 import itertools
 import math
 import threading
@@ -52,7 +56,7 @@ import numpy as np
 
 from ctpipe.config import PipelineConfig, load_yaml, parse_pipeline
 from ctpipe.evaluate.sweep import VISIBLE_DB
-from ctpipe.errors import ConfigError, CtpipeError
+from ctpipe.errors import ConfigError
 from ctpipe.registry import StageRegistry
 
 __all__ = ["ComparedPipeline", "CompareSettings", "CompareReport", "BUILTIN_COMPARISONS", "ALPHA", "load_pipelines",
@@ -72,10 +76,9 @@ BUILTIN_COMPARISONS = {
 STAGES = ("detect", "match", "estimate", "refine", "reconstruct", "score")
 #: The columns of ``compare.csv``.
 COLUMNS = ("scenario", "class", "pipeline", "status", "nominal_rms_deg", "estimated_rms_deg", "views_estimated",
-           "ungated_rms_deg",
-           "worse_than_nominal", "gain_db", "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom",
-           "refiner_kept", "gate", "se_views", "se_within_2",
-           *(f"{stage}_s" for stage in STAGES), "observe_peak_mb", "refine_peak_mb", "seconds", "reason")
+           "ungated_rms_deg", "worse_than_nominal", "gain_db", "gain_phantom_db", "visible_db", "recovery_reference",
+           "recovery_phantom", "refiner_kept", "gate", "se_views", "se_within_2", *(f"{stage}_s" for stage in STAGES),
+           "observe_peak_mb", "refine_peak_mb", "seconds", "reason")
 
 
 @dataclass(frozen=True)
@@ -158,8 +161,6 @@ def _phantom_class(experiment: Mapping[str, Any]) -> str:
 def sweep_scenarios(path: str | Path | None, registry: StageRegistry, *, n: int | None = None,
                     seed: int | None = None) -> tuple[tuple[tuple[str, dict, str], ...], str]:
     """``n`` scenarios drawn from a sweep (None: the built-in one) as ``experiment sweep`` draws them."""
-    import dataclasses
-
     from ctpipe.evaluate.sweep import MAX_SCENARIOS, draw_scenario, load_sweep_settings
 
     settings = load_sweep_settings(path, registry)
@@ -219,33 +220,27 @@ class _PeakMemory:
         with open("/proc/self/statm") as statm:
             return int(statm.read().split()[1]) * self._page
 
+    @contextlib.contextmanager
     def stage(self, name: str):
-        memory = self
+        if not self.available:
+            yield
+            return
+        base = peak = self._rss()
+        stop = threading.Event()
 
-        class _Stage:
-            def __enter__(self):
-                if not memory.available:
-                    return self
-                self.base = self.peak = memory._rss()
-                self.stop = threading.Event()
+        def sample() -> None:
+            nonlocal peak
+            while not stop.wait(0.02):
+                peak = max(peak, self._rss())
 
-                def sample() -> None:
-                    while not self.stop.wait(0.02):
-                        self.peak = max(self.peak, memory._rss())
-
-                self.thread = threading.Thread(target=sample, daemon=True, name=f"ctpipe-memory-{name}")
-                self.thread.start()
-                return self
-
-            def __exit__(self, *exc) -> None:
-                if not memory.available:
-                    return
-                self.stop.set()
-                self.thread.join()
-                self.peak = max(self.peak, memory._rss())
-                memory.peaks[name] = (self.peak - self.base) / 2**20
-
-        return _Stage()
+        thread = threading.Thread(target=sample, daemon=True, name=f"ctpipe-memory-{name}")
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            thread.join()
+            self.peaks[name] = (max(peak, self._rss()) - base) / 2**20
 
 
 def run_compare_scenario(experiment: Mapping[str, Any], pipelines: Sequence[tuple[str, dict]],
@@ -255,23 +250,16 @@ def run_compare_scenario(experiment: Mapping[str, Any], pipelines: Sequence[tupl
     A task of the execution layer (a thread or a Dask worker). A scenario that cannot be
     simulated gives every pipeline a failed row with its reason; a pipeline that fails, its own.
     """
-    from ctpipe.evaluate.sweep import _one_line, report_row
+    from ctpipe.evaluate.sweep import failure_reason, report_row
     from ctpipe.evaluate.validate import parse_validate, score_pipeline, simulate_experiment
     from ctpipe.plugins import get_registry
-
-    def failure(exc: BaseException) -> str:
-        if isinstance(exc, CtpipeError):
-            return _one_line(exc)
-        if isinstance(exc, MemoryError):
-            return "out of memory"
-        return f"{type(exc).__name__}: {_one_line(exc)}"
 
     start = time.perf_counter()
     try:
         registry = get_registry(blocked=tuple(blocked))
         simulated = simulate_experiment(parse_validate(dict(experiment), registry, path="scenario"))
     except Exception as exc:  # one scenario must not end the others; its rows say what it was
-        reason = f"scenario: {failure(exc)}"
+        reason = f"scenario: {failure_reason(exc)}"
         return [{"pipeline": name, "status": "failed", "reason": reason, "seconds": time.perf_counter() - start}
                 for name, _ in pipelines]
     shared_s = time.perf_counter() - start
@@ -291,7 +279,7 @@ def run_compare_scenario(experiment: Mapping[str, Any], pipelines: Sequence[tupl
             config = parse_pipeline(mapping, registry, path=name)
             report = score_pipeline(simulated, config, registry, pipeline_run=staged)
         except Exception as exc:  # a broken pipeline is its own row; the others still run
-            row["reason"] = failure(exc)
+            row["reason"] = failure_reason(exc)
         else:
             row.update(report_row(report))
             timings = report.pipeline_result.timings_s

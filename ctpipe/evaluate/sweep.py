@@ -25,9 +25,10 @@ Each scenario runs as ``ctpipe validate`` would, as a task on the execution laye
 pool, or Dask workers), and becomes one row: its draw, the nominal and estimated per-view RMS
 angle errors (views the pipeline gave no angle count at their nominal one, as they are
 reconstructed; ``views_estimated`` says how many had one) and the refiner's own before the
-gate (``ungated_rms_deg``), the PSNR gains of the estimated angles over the nominal ones against the jitter-free scan and the phantom, how much
-the true angles gain (``visible_db``), the recoveries, what the refiner kept and what the gate
-returned (:mod:`ctpipe.solve.gate`), seconds.
+gate (``ungated_rms_deg``), the PSNR gains of the estimated angles over the nominal ones
+against the jitter-free scan and the phantom, how much the true angles gain (``visible_db``),
+the recoveries, what the refiner kept and what the gate returned (:mod:`ctpipe.solve.gate`),
+seconds.
 A scenario is *worse than nominal* when its per-view RMS is above the nominal angles', or its
 reconstruction falls more than :data:`WORSE_DB` below theirs against the phantom, or against the
 jitter-free scan by more than the true angles' own reconstruction does. A scenario that the experiment refuses or that fails is a row with its
@@ -53,7 +54,7 @@ from ctpipe.errors import ConfigError, CtpipeError
 from ctpipe.registry import StageRegistry
 
 __all__ = ["SweepSettings", "SweepReport", "DISTRIBUTIONS", "parse_sweep", "load_sweep_settings", "draw_scenario",
-           "run_scenario", "report_row", "run_sweep", "write_sweep_outputs", "worse_than_nominal"]
+           "run_scenario", "report_row", "failure_reason", "run_sweep", "write_sweep_outputs", "worse_than_nominal"]
 
 #: The distributions a ``draw`` entry may name.
 DISTRIBUTIONS = ("choice", "uniform", "loguniform", "integer", "log_integer")
@@ -62,8 +63,8 @@ MAX_SCENARIOS = 10_000
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 #: The columns of ``sweep.csv`` after the drawn keys.
 COLUMNS = ("scenario", "status", "nominal_rms_deg", "estimated_rms_deg", "views_estimated", "ungated_rms_deg",
-           "worse_than_nominal", "gain_db", "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom", "refiner_kept", "gate",
-           "se_views", "se_within_2", "seconds", "reason")
+           "worse_than_nominal", "gain_db", "gain_phantom_db", "visible_db", "recovery_reference", "recovery_phantom",
+           "refiner_kept", "gate", "se_views", "se_within_2", "seconds", "reason")
 #: How far below the nominal angles' PSNR a reconstruction may fall and still count as no worse (dB).
 WORSE_DB = 0.05
 #: The true angles must gain this much PSNR over the nominal ones (against the jitter-free scan) for
@@ -223,6 +224,15 @@ def _one_line(exc: BaseException) -> str:
     return (text[0] if text else type(exc).__name__)[:300]
 
 
+def failure_reason(exc: Exception) -> str:
+    """A failed row's reason in one line: the user's error as it is, a bug with its type."""
+    if isinstance(exc, CtpipeError):
+        return _one_line(exc)
+    if isinstance(exc, MemoryError):
+        return "out of memory"
+    return f"{type(exc).__name__}: {_one_line(exc)}"
+
+
 def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> dict:
     """Run one scenario as ``ctpipe validate`` would; the result row's measured columns.
 
@@ -238,12 +248,8 @@ def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> 
     try:
         registry = get_registry(blocked=tuple(blocked))
         report = run_validate(parse_validate(experiment, registry, path="scenario"), registry)
-    except CtpipeError as exc:
-        row["reason"] = _one_line(exc)
-    except MemoryError:
-        row["reason"] = "out of memory"
     except Exception as exc:  # a bug in one scenario must not end the others; its row says what it was
-        row["reason"] = f"{type(exc).__name__}: {_one_line(exc)}"
+        row["reason"] = failure_reason(exc)
     else:
         row.update(report_row(report))
     row["seconds"] = time.perf_counter() - start
@@ -252,6 +258,8 @@ def run_scenario(experiment: Mapping[str, Any], blocked: Sequence[str] = ()) -> 
 
 def report_row(report) -> dict:
     """The measured columns of one scored run (a :class:`~ctpipe.evaluate.validate.ValidateReport`), ``status: ok``."""
+    from ctpipe.evaluate.scoring import view_errors_deg
+
     views = report.angle_tables["views"]
     failed = report.failed
 
@@ -262,8 +270,6 @@ def report_row(report) -> dict:
         return float(metrics[label]["psnr_db"] - metrics["nominal"]["psnr_db"])
 
     gains = (gain("reference"), gain("phantom"))
-    from ctpipe.evaluate.scoring import view_errors_deg
-
     nominal_rms, estimated_rms = float(views["nominal"]["rms_deg"]), float(views["estimated"]["rms_deg"])
     if views["estimated"]["estimated"] < views["estimated"]["total"]:
         # Views the pipeline gave no angle keep their nominal one, in the reconstruction as here: the
