@@ -46,7 +46,7 @@ import platform
 import time
 from collections.abc import Callable
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -454,24 +454,24 @@ def run_validate(settings: ValidateSettings, registry: StageRegistry, *,
 class SimulatedExperiment:
     """What every pipeline scored on one experiment shares (:func:`simulate_experiment`).
 
-    The jittered scan and its jitter-free reference, the jittered scan reconstructed with the
-    nominal and the true angles, the reference reconstruction, the voxelised phantom, and those
-    reconstructions' scores. ``experiment compare`` makes one per scenario and scores every
-    pipeline on it (:func:`score_pipeline`), so the pipelines see the same projections.
+    The jittered scan (and its views binned for FDK), the jittered scan reconstructed with the
+    nominal and the true angles, the reconstruction of the jitter-free reference scan, the
+    voxelised phantom, and the scores of the nominal and true reconstructions against both
+    (``metrics[reference][label]``). ``experiment compare`` makes one per scenario and scores
+    every pipeline on it (:func:`score_pipeline`), so the pipelines see the same projections.
     """
 
     settings: ValidateSettings
     jittered: Any
-    reference_scan: Any
     grid: VolumeGrid
     binned: np.ndarray
     binned_geometry: Any
     short_scan: bool
-    nominal_aligned: np.ndarray
     volumes: dict[str, np.ndarray]
     reference_volume: np.ndarray
     phantom_volume: np.ndarray
     mask: np.ndarray
+    metrics: dict[str, dict[str, dict[str, float]]]
     timings_s: dict[str, float]
 
 
@@ -492,7 +492,7 @@ def _bar(progress: Progress | None, step: str, total: int):
 
 def _simulate(settings: ValidateSettings, progress: Progress | None) -> SimulatedExperiment:
     from ctpipe.recon.feldkamp import covers_full_circle, fdk
-    from ctpipe.evaluate.scoring import align_offset, support_mask
+    from ctpipe.evaluate.scoring import align_offset, support_mask, volume_metrics
     from ctpipe.sim.simulator import simulate, voxelise_phantom
 
     timings: dict[str, float] = {}
@@ -529,11 +529,13 @@ def _simulate(settings: ValidateSettings, progress: Progress | None) -> Simulate
     start = time.perf_counter()
     phantom_volume = voxelise_phantom(phantom, grid)
     mask = support_mask(grid, phantom.radius_mm, phantom.half_height_mm, margin_voxels=2.0)
+    metrics = {name: {label: volume_metrics(volume, target, mask) for label, volume in volumes.items()}
+               for name, target in (("phantom", phantom_volume), ("reference", reference_volume))}
     timings["score"] = time.perf_counter() - start
-    return SimulatedExperiment(settings=settings, jittered=jittered, reference_scan=reference_scan, grid=grid,
-                               binned=projections, binned_geometry=recon_geometry, short_scan=short_scan,
-                               nominal_aligned=nominal_aligned, volumes=volumes, reference_volume=reference_volume,
-                               phantom_volume=phantom_volume, mask=mask, timings_s=timings)
+    return SimulatedExperiment(settings=settings, jittered=jittered, grid=grid, binned=projections,
+                               binned_geometry=recon_geometry, short_scan=short_scan, volumes=volumes,
+                               reference_volume=reference_volume, phantom_volume=phantom_volume, mask=mask,
+                               metrics=metrics, timings_s=timings)
 
 
 def _run_validate(settings: ValidateSettings, registry: StageRegistry, progress) -> ValidateReport:
@@ -547,14 +549,12 @@ def score_pipeline(simulated: SimulatedExperiment, pipeline_config: PipelineConf
     ``pipeline_run(pipeline, projections, geometry, nominal_angles_deg, advance)`` replaces
     ``pipeline.run`` (``experiment compare`` runs the stages one by one to measure each).
     """
-    import dataclasses
-
     from ctpipe.pipeline import Pipeline
     from ctpipe.recon.feldkamp import fdk, short_scan_minimum_deg
     from ctpipe.evaluate.scoring import (align_offset, error_table, pair_errors_deg, recovery, view_errors_deg,
                                          volume_metrics)
 
-    settings = dataclasses.replace(simulated.settings, pipeline=pipeline_config)
+    settings = replace(simulated.settings, pipeline=pipeline_config)
     scan = settings.scan
     geometry = scan.geometry
     n_views = scan.n_views
@@ -622,13 +622,14 @@ def score_pipeline(simulated: SimulatedExperiment, pipeline_config: PipelineConf
     timings["reconstruct"] = simulated.timings_s["reconstruct"] + time.perf_counter() - start
 
     start = time.perf_counter()
-    angle_sets = ("nominal", "estimated", "true")
     unscored = {"rmse": math.nan, "relative_rmse": math.nan, "psnr_db": math.nan, "ssim": math.nan}
-    metrics = {
-        name: {label: volume_metrics(volumes[label], target, simulated.mask) if label in volumes else dict(unscored)
-               for label in angle_sets}
-        for name, target in (("phantom", simulated.phantom_volume), ("reference", simulated.reference_volume))
-    }
+    metrics = {}
+    for name, target in (("phantom", simulated.phantom_volume), ("reference", simulated.reference_volume)):
+        shared = simulated.metrics[name]
+        estimated_metrics = (volume_metrics(volumes["estimated"], target, simulated.mask) if "estimated" in volumes
+                             else dict(unscored))
+        metrics[name] = {"nominal": dict(shared["nominal"]), "estimated": estimated_metrics,
+                         "true": dict(shared["true"])}
     gains = {ref: recovery(m["estimated"]["psnr_db"], m["nominal"]["psnr_db"], m["true"]["psnr_db"])
              for ref, m in metrics.items()}
     timings["score"] = simulated.timings_s["score"] + time.perf_counter() - start
