@@ -227,12 +227,13 @@ def estimate_angles_png(result: ScanResult) -> bytes | None:
     scan = result.scan
     title = f"{scan.format} scan {scan.path.name}" if scan is not None else ""
     gate = result.gate
+    verdict = None
     if gate is not None and not gate.decided and gate.chosen == "nominal":
         verdict = "nominal angles returned: the projections could not be asked"
-        title = f"{title}\ngate: {verdict}" if title else f"gate: {verdict}"
     elif gate is not None and gate.decided:
         verdict = ("nominal angles returned: the projections do not show the correction better" if gate.chosen == "nominal"
                    else f"{gate.chosen} returned: conjugate rays agree {gate.improvement:.0%} better than nominal")
+    if verdict is not None:
         title = f"{title}\ngate: {verdict}" if title else f"gate: {verdict}"
     named = {k[:-4] if k.endswith(" deg") else k: v for k, v in curves.items()}
     # The returned angles set the scale; a refiner's answer the gate held back may be far off.

@@ -184,6 +184,15 @@ class GateDecision:
                 "scores": {name: score.to_dict() for name, score in self.scores.items()}}
 
 
+def _frame_offset_deg(nominal: np.ndarray, estimate: np.ndarray) -> float:
+    """The estimate's frame against the nominal one: the median of their differences over the views
+    with an estimate, taken about the first such view so that it does not split across +-180 deg."""
+    difference = wrap_deg(estimate - nominal)
+    finite = np.isfinite(difference)
+    anchor = float(difference[np.flatnonzero(finite)[0]])
+    return float(np.median(wrap_deg(difference[finite] - anchor))) + anchor
+
+
 def cannot_tell(nominal_deg, estimate_deg, why: str, **fields) -> GateDecision:
     """The gate's answer where the projections cannot be asked: the nominal angles, saying why.
 
@@ -195,7 +204,7 @@ def cannot_tell(nominal_deg, estimate_deg, why: str, **fields) -> GateDecision:
     nominal = np.asarray(nominal_deg, dtype=np.float64)
     estimate = np.asarray(estimate_deg, dtype=np.float64)
     finite = np.isfinite(estimate)
-    shift = float(np.median(wrap_deg(estimate[finite] - nominal[finite]))) if finite.any() else 0.0
+    shift = _frame_offset_deg(nominal, estimate) if finite.any() else 0.0
     return GateDecision("nominal", nominal + shift, False,
                         f"cannot tell whether the correction helped: {why}; the nominal angles are returned",
                         estimate_deg=np.where(finite, estimate - shift, np.nan), **fields)
@@ -262,8 +271,7 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     # The estimate in the nominal frame: its median offset from the nominal angles removed. Views
     # the refiner gave no angle keep their nominal one, and the rest are gated as they are.
     difference = wrap_deg(estimate - nominal)
-    anchor = int(np.flatnonzero(finite)[0])
-    shift = float(np.median(wrap_deg(difference[finite] - difference[anchor]))) + float(difference[anchor])
+    shift = _frame_offset_deg(nominal, estimate)
     unestimated = int((~finite).sum())
     if unestimated:
         estimate = np.where(finite, estimate, nominal + shift)
