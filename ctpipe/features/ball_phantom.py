@@ -92,7 +92,6 @@ def looks_like_ball_phantom(projections, views: int = 3) -> tuple[bool, str]:
     """
     picked = np.unique(np.linspace(0, len(projections) - 1, min(views, len(projections))).round().astype(int))
     found = [ball_phantom_share(np.asarray(projections[k])) for k in picked]
-    shares, counts = [s for s, _ in found], [n for _, n in found]
     yes = bool(found) and all(2 <= n <= MAX_BALLS and s >= BALL_PHANTOM_SHARE for s, n in found)
     what = ", ".join(f"{n} ({s:.0%})" for s, n in found)
     return yes, (f"{len(picked)} views show {what} round blobs (their share of the views' structure); a ball phantom "

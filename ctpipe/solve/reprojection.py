@@ -288,45 +288,49 @@ def _mirror(index: int, n: int) -> int:
     return index if index < n else period - 1 - index
 
 
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _blur_down(image, taps, out):
+    """``out`` = ``image`` (rows, cols) convolved along its rows' axis with ``taps``, mirrored edges."""
+    rows, cols = image.shape
+    radius = len(taps) // 2
+    for i in range(rows):
+        out[i, :] = 0.0
+        for k in range(-radius, radius + 1):
+            weight = np.float32(taps[k + radius])
+            source = image[_mirror(i + k, rows)]
+            for j in range(cols):
+                out[i, j] += weight * source[j]
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _add_blurred_across(row, taps, sign, padded, out):
+    """``out += sign * (row convolved with taps)``, mirrored edges; ``padded``: scratch of len(row) + len(taps) - 1."""
+    cols = len(row)
+    radius = len(taps) // 2
+    for j in range(cols + 2 * radius):
+        padded[j] = row[_mirror(j - radius, cols)]
+    for k in range(2 * radius + 1):
+        weight = np.float32(sign * taps[k])
+        for j in range(cols):
+            out[j] += weight * padded[j + k]
+
+
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
 def _difference_of_gaussians(images, fine_taps, coarse_taps, out):
     """``out = G(fine) * images - G(coarse) * images`` per image (V, rows, cols), rows then columns."""
     n_images, rows, cols = images.shape
-    rf, rc = len(fine_taps) // 2, len(coarse_taps) // 2
     for index in prange(n_images):
         fine = np.empty((rows, cols), dtype=np.float32)
         coarse = np.empty((rows, cols), dtype=np.float32)
-        image = images[index]
+        _blur_down(images[index], fine_taps, fine)
+        _blur_down(images[index], coarse_taps, coarse)
+        padded_fine = np.empty(cols + len(fine_taps) - 1, dtype=np.float32)
+        padded_coarse = np.empty(cols + len(coarse_taps) - 1, dtype=np.float32)
         for i in range(rows):
-            fine[i, :] = 0.0
-            coarse[i, :] = 0.0
-            for k in range(-rf, rf + 1):
-                weight = np.float32(fine_taps[k + rf])
-                source = image[_mirror(i + k, rows)]
-                for j in range(cols):
-                    fine[i, j] += weight * source[j]
-            for k in range(-rc, rc + 1):
-                weight = np.float32(coarse_taps[k + rc])
-                source = image[_mirror(i + k, rows)]
-                for j in range(cols):
-                    coarse[i, j] += weight * source[j]
-        padded_fine = np.empty(cols + 2 * rf, dtype=np.float32)
-        padded_coarse = np.empty(cols + 2 * rc, dtype=np.float32)
-        for i in range(rows):
-            for j in range(cols + 2 * rf):
-                padded_fine[j] = fine[i, _mirror(j - rf, cols)]
-            for j in range(cols + 2 * rc):
-                padded_coarse[j] = coarse[i, _mirror(j - rc, cols)]
             row = out[index, i]
             row[:] = 0.0
-            for k in range(2 * rf + 1):
-                weight = np.float32(fine_taps[k])
-                for j in range(cols):
-                    row[j] += weight * padded_fine[j + k]
-            for k in range(2 * rc + 1):
-                weight = np.float32(coarse_taps[k])
-                for j in range(cols):
-                    row[j] -= weight * padded_coarse[j + k]
+            _add_blurred_across(fine[i], fine_taps, 1.0, padded_fine, row)
+            _add_blurred_across(coarse[i], coarse_taps, -1.0, padded_coarse, row)
 
 
 def as_line_integrals(projections: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -463,8 +467,7 @@ class _Level:
 
         # SciPy's resampling lets go of the GIL: one thread per numba thread.
         with ThreadPoolExecutor(max_workers=numba.get_num_threads()) as pool:
-            for _ in pool.map(one, range(len(self.raw))):
-                pass
+            list(pool.map(one, range(len(self.raw))))
 
     def cost(self, angles_deg: np.ndarray) -> float:
         """Band-passed residual energy of the data against the reprojection of their FDK, relative to the data's."""
