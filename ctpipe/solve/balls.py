@@ -299,6 +299,24 @@ def _assign(detections, balls, radii_mm, angles, geometry, u0, v0, tilt, tol_px)
 _FLAGGED_WEIGHT = 0.25
 
 
+def _ball_weights(residual_px: np.ndarray, ball_of: np.ndarray, n_balls: int) -> np.ndarray:
+    """Each ball's weight: the balls' median residual spread over its own, at most 1.
+
+    Balls of one phantom are not located equally well: a faint ball (ruby, polymer) whose rim
+    crosses a holder's edge or a clipped background is off by a pixel in some views where a
+    steel ball is off by a few hundredths. One weight for all lets those views' angles follow the
+    faint ball; each ball weighted by its own spread (robust: 1.4826 times its median absolute
+    residual) is the usual remedy of a bundle adjustment with unequal observation noise.
+    """
+    spread = np.full(n_balls, np.nan)
+    for b in range(n_balls):
+        mine = residual_px[ball_of == b]
+        if mine.size:
+            spread[b] = max(1.4826 * float(np.median(np.abs(mine))), 1e-3)
+    reference = float(np.nanmedian(spread)) if np.isfinite(spread).any() else 1.0
+    return np.where(np.isfinite(spread), np.minimum(reference / spread, 1.0), 1.0)
+
+
 @dataclass
 class _Fit:
     angles: np.ndarray
@@ -424,13 +442,15 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     fit = None
     done = 0
     scale_px = 1.0      # Huber's corner: a pixel at first, then three robust deviations of the residuals
+    ball_weight = np.ones(len(balls))   # each ball's weight from its own residuals' spread, after the first round
     while done < rounds:   # a round that drops a ball does not count (at most all but two are dropped)
         assigned = _assign(detections, balls, radii_mm, angles, geometry, *detector, tol)
         view_of, ball_of, observed, disc_px, weight = [], [], [], [], []
         for view, (found, labels) in enumerate(zip(detections, assigned)):
             for k in np.flatnonzero(labels >= 0):
                 view_of.append(view), ball_of.append(labels[k]), observed.append(found[k, :2])
-                disc_px.append(found[k, 2]), weight.append(1.0 if found[k, 3] == 0 else _FLAGGED_WEIGHT)
+                disc_px.append(found[k, 2])
+                weight.append((1.0 if found[k, 3] == 0 else _FLAGGED_WEIGHT) * ball_weight[labels[k]])
         view_of, ball_of, observed, weight = np.array(view_of), np.array(ball_of), np.array(observed), np.array(weight)
         counts = np.bincount(view_of, minlength=V)
         # Views with a single clean ball still fix their angle (two residuals, one unknown), if barely.
@@ -451,7 +471,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         good = (per_ball <= max(5.0 * float(np.median(per_ball)), 1.0)) & (seen >= min_views) & \
             np.all(np.isfinite(balls), axis=1) & (np.hypot(balls[:, 0], balls[:, 2]) <= 2.0 * reach_mm)
         if not good.all() and good.sum() >= 2:
-            balls, tol, radii_mm = balls[good], tol[good], radii_mm[good]
+            balls, tol, radii_mm, ball_weight = balls[good], tol[good], radii_mm[good], ball_weight[good]
             angles, detector = theta0.copy(), np.array([geometry.u0_px, geometry.v0_px, 0.0])   # as it bent them
             continue
         done += 1
@@ -460,6 +480,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         # A disc pulled by a neighbour or by dust is off by tenths of a pixel where the others are
         # off by hundredths: Huber's corner at three robust deviations lets it count linearly.
         scale_px = max(3.0 * 1.4826 * float(np.median(np.abs(fit.residual))), 0.1)
+        ball_weight = _ball_weights(fit.residual / weight[:, None], ball_of, len(balls))
     nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
                           free_views=free_views, fit_angles=False, fit_detector=fit_detector, scale_px=scale_px)
     chi_corrected = float(np.sum(fit.residual ** 2))
