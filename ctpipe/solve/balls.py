@@ -464,8 +464,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         angles, balls, detector = fit.angles, fit.balls, fit.detector
         rms = float(np.sqrt(np.mean(fit.residual ** 2)))
         # A "ball" that fits far worse than the others, or is seen in too few views, is not one (dust
-        # that lined up by chance, a merged pair): it is dropped and the adjustment made again.
-        per_ball = np.array([np.sqrt(np.mean(fit.residual[ball_of == b] ** 2)) if np.any(ball_of == b) else np.inf
+        # that lined up by chance, a merged pair): it is dropped and the adjustment made again. Judged
+        # without its own weight, which would otherwise hide how badly it fits.
+        judged = fit.residual / ball_weight[ball_of][:, None]
+        per_ball = np.array([np.sqrt(np.mean(judged[ball_of == b] ** 2)) if np.any(ball_of == b) else np.inf
                              for b in range(len(balls))])
         seen = np.bincount(ball_of, minlength=len(balls))
         good = (per_ball <= max(5.0 * float(np.median(per_ball)), 1.0)) & (seen >= min_views) & \
