@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ctpipe import gpu
 from ctpipe.errors import ClusterError, ConfigError, CtpipeError, InputError, OutputError
 
 __all__ = ["main"]
@@ -611,6 +612,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ctpipe", description="Estimate the rotation angle of every view of a cone-beam CT scan.")
     parser.add_argument("--block-plugin", action="append", default=[], metavar="NAME",
                         help="do not load this plugin (entry-point name or built-in module); repeatable")
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
+                        help="where the projectors and FDK run: a CUDA GPU when numba-cuda sees one (auto, the "
+                             "default), or as named; cuda falls back to the CPU with the reason when it cannot be used")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("plugins", help="list the registered stages and scan formats")
@@ -845,7 +849,9 @@ def _run(args) -> int:
     """
     try:
         _name_leftovers(args)
-        return args.run(args)
+        device = getattr(args, "device", None)
+        with gpu.use(device) if device is not None else contextlib.nullcontext():
+            return args.run(args)
     except CtpipeError as exc:
         print(f"ctpipe: error: {exc}", file=sys.stderr)
         return 1 if isinstance(exc, (OutputError, ClusterError)) else 2

@@ -299,15 +299,18 @@ class PipelineConfig:
     static_background: str = "auto"
     gate: str = "auto"
     detect_max_px: int | None = 1024
+    device: str = "auto"
 
     def to_dict(self) -> dict:
         return {"detector": self.detector.to_dict(), "matcher": self.matcher.to_dict(),
                 "estimator": self.estimator.to_dict(), "refiner": self.refiner.to_dict(),
                 "pairs": {"baselines": list(self.baselines), "loop_closure": self.loop_closure},
                 "preprocess": {"static_background": self.static_background, "detect_max_px": self.detect_max_px},
-                "gate": self.gate, "seed": self.seed}
+                "gate": self.gate, "seed": self.seed, "device": self.device}
 
 
+_DEVICE = ParamSpec("device", Literal["auto", "cpu", "cuda"], "auto",
+                     "where the refiner's projector and FDK run: a CUDA GPU when there is one (auto), or as named")
 _PAIRS_BASELINES = ParamSpec("baselines", tuple[int, ...], (1,), "view offsets", ge=1)
 _PAIRS_LOOP_CLOSURE = ParamSpec("loop_closure", bool, True, "pair the last views of a full turn with the first")
 _STATIC_BACKGROUND = ParamSpec("static_background", Literal["auto", "on", "off"], "auto",
@@ -331,7 +334,7 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
     if mapping is None:
         mapping = {}
     check_keys(mapping, path, allowed=("detector", "matcher", "estimator", "refiner", "pairs", "preprocess", "gate",
-                                       "seed"))
+                                       "seed", "device"))
     stages = {kind: parse_stage(mapping.get(kind, default), kind, registry, f"{path}.{kind}")
               for kind, default in DEFAULT_STAGES.items()}
     pairs = check_keys(mapping.get("pairs", {}), f"{path}.pairs", allowed=("baselines", "loop_closure"))
@@ -346,8 +349,9 @@ def parse_pipeline(mapping: Any, registry: StageRegistry, path: str = "pipeline"
                                 f"{path}.preprocess.detect_max_px")
     seed = check_value(_SEED, mapping.get("seed", 0), f"{path}.seed")
     gate = check_value(_GATE, _on_off(mapping.get("gate", "auto"), "auto"), f"{path}.gate")
+    device = check_value(_DEVICE, mapping.get("device", "auto"), f"{path}.device")
     return PipelineConfig(**stages, baselines=tuple(sorted(set(baselines))), seed=seed, loop_closure=loop_closure,
-                          static_background=static_background, gate=gate, detect_max_px=detect_max_px)
+                          static_background=static_background, gate=gate, detect_max_px=detect_max_px, device=device)
 
 
 _GEOMETRY_FIELDS = {name: ParamSpec(name, annotation, None, "", **bounds)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -12,6 +13,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from ctpipe._shared import device as gpu
 from ctpipe._shared.checks import short_repr
 from ctpipe.config import PipelineConfig, StageSpec, build_stage, load_yaml, parse_geometry, parse_pipeline
 from ctpipe.data import Features, ScanObservations, ScanSolution
@@ -557,6 +559,7 @@ class Pipeline:
     static_background: str = "auto"
     gate: str = "auto"
     detect_max_px: int | None = 1024
+    device: str = "auto"
     config: PipelineConfig | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -572,6 +575,9 @@ class Pipeline:
                                                    and 64 <= self.detect_max_px <= 65536):
             raise InputError(f"detect_max_px: must be an integer from 64 to 65536 (pixels a side) or None (the full "
                              f"views), got {self.detect_max_px!r}")
+        if self.device not in gpu.DEVICES:
+            raise InputError(f"device: must be one of {', '.join(gpu.DEVICES)} (where the refiner's projector and "
+                             f"FDK run), got {self.device!r}")
         if self.gate not in ("auto", "off"):
             raise InputError(f"gate: must be 'auto' (return corrected angles only where the projections show them "
                              f"better than the nominal ones) or 'off', got {self.gate!r}")
@@ -597,7 +603,7 @@ class Pipeline:
         return cls(*(build_stage(getattr(config, kind), registry) for kind in ("detector", "matcher", "estimator", "refiner")),
                    baselines=config.baselines, seed=config.seed, loop_closure=config.loop_closure,
                    static_background=config.static_background, gate=config.gate,
-                   detect_max_px=config.detect_max_px, config=config)
+                   detect_max_px=config.detect_max_px, device=config.device, config=config)
 
     def run(self, projections: np.ndarray | ViewStack | ScanFiles, geometry: Geometry | None = None, *,
             nominal_angles_deg=None, pairs: np.ndarray | None = None, progress: Callable[[int], None] | None = None,
@@ -741,7 +747,7 @@ class Pipeline:
         seed = np.random.SeedSequence(self.seed).spawn(len(observations.pairs) + 1)[-1]
         gate = self.gate == "auto" and observations.nominal_angles_deg is not None
         if executor is None:
-            solution, decision = _refine_task(self.refiner, observations, None, None, seed, gate)
+            solution, decision = _refine_task(self.refiner, observations, None, None, seed, gate, self.device)
         else:
             # The features and projections already where the tasks run are passed as handles, not sent again.
             if placed is not None:
@@ -752,7 +758,7 @@ class Pipeline:
                 source = None if projections is None else executor.scatter(_shippable(projections))
                 features, observations_out = None, dataclasses.replace(observations, projections=None)
             task = executor.submit(_refine_task, self.refiner, observations_out, source, features, seed, gate,
-                                   name="refine")
+                                   self.device, name="refine")
             (solution, decision), = executor.gather([task])
         timings["refine"] = time.perf_counter() - start
 
@@ -885,14 +891,19 @@ def _estimate_pairs(estimator: Estimator, matched: list, seeds: list) -> list:
 
 
 def _refine_task(refiner: Refiner, observations: ScanObservations, source, features: list | None,
-                 seed, gate: bool = False) -> tuple[ScanSolution, GateDecision | None]:
-    """The refiner's solution and, with ``gate``, the gate's decision on it (where the projections are)."""
+                 seed, gate: bool = False, device: str = "auto") -> tuple[ScanSolution, GateDecision | None]:
+    """The refiner's solution and, with ``gate``, the gate's decision on it (where the projections are).
+
+    ``device`` other than ``"auto"`` runs the heavy kernels there (:mod:`ctpipe.gpu`); ``"auto"``
+    leaves what the process asked for (``--device``, ``CTPIPE_DEVICE``).
+    """
     changes = {} if features is None else {"features": tuple(features)}
     if source is not None:
         changes["projections"] = _views(source)
     observations = dataclasses.replace(observations, **changes)
-    solution = refiner.refine(observations, rng=np.random.default_rng(seed))
-    return solution, (_gate(observations, solution) if gate else None)
+    with gpu.use(device) if device != "auto" else contextlib.nullcontext():
+        solution = refiner.refine(observations, rng=np.random.default_rng(seed))
+        return solution, (_gate(observations, solution) if gate else None)
 
 
 def _angle_se_deg(refiner_se_deg: np.ndarray | None, gate: GateDecision | None,

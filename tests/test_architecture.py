@@ -35,6 +35,8 @@ LAYERS = (
     "ctpipe.io", "ctpipe.recon", "ctpipe.features", "ctpipe.sim", "ctpipe.solve", "ctpipe.builtin",
     # assembly: running a pipeline
     "ctpipe.execution", "ctpipe.pipeline",
+    # the device choice's public face, and the check of the GPU kernels against the CPU's
+    "ctpipe.gpu",
     # what uses a whole pipeline: evaluation, helpers for tests and benchmarks, entry points
     "ctpipe.evaluate", "ctpipe.testing", "ctpipe.cli", "ctpipe",
 )

@@ -15,7 +15,7 @@ import os
 
 import numba
 
-__all__ = ["FASTMATH", "NOGIL", "njit"]
+__all__ = ["FASTMATH", "NOGIL", "cache_outside_the_package", "njit"]
 
 #: LLVM's ``fast`` without ``nsz``: fused multiply-add, reassociation, reciprocals, approximate
 #: functions, no NaN or infinity operands. A set, as numba requires (a frozenset is refused).
@@ -81,7 +81,17 @@ def _cache_outside_the_package() -> None:
         from numba.core import caching
     except ImportError:   # pragma: no cover - numba moved its caching module
         return
-    user_wide = getattr(caching, "UserWideCacheLocator", None)
+    cache_outside_the_package(caching)
+
+
+def cache_outside_the_package(caching) -> None:
+    """Put ctpipe's kernels cached through the caching module ``caching`` in its user-wide folder.
+
+    ``numba.core.caching`` for the CPU kernels (at import); numba-cuda keeps its own copy of
+    the machinery (``numba.cuda.core.caching``, with ``_UserWideCacheLocator``), which the GPU
+    kernels' modules pass here when they are imported.
+    """
+    user_wide = getattr(caching, "UserWideCacheLocator", None) or getattr(caching, "_UserWideCacheLocator", None)
     classes = getattr(getattr(caching, "CacheImpl", None), "_locator_classes", None)
     if user_wide is None or not isinstance(classes, list):   # pragma: no cover - numba's internals changed
         return
@@ -99,7 +109,8 @@ def _cache_outside_the_package() -> None:
     if any(getattr(c, "__name__", "") == CtpipeCacheLocator.__name__ for c in classes):
         return
     # After a cache folder the user named (UserProvidedCacheLocator), before numba's in-tree one.
-    named = [k for k, c in enumerate(classes) if getattr(c, "__name__", "") == "UserProvidedCacheLocator"]
+    named = [k for k, c in enumerate(classes)
+             if getattr(c, "__name__", "") in ("UserProvidedCacheLocator", "_UserProvidedCacheLocator")]
     classes.insert(named[0] + 1 if named else 0, CtpipeCacheLocator)
 
 

@@ -37,6 +37,7 @@ import numpy as np
 from numba import prange
 from scipy import fft as sp_fft
 
+from ctpipe._shared import device
 from ctpipe._shared.checks import as_angles_deg, short_repr
 from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe._shared.resources import check_fits, memory_guard
@@ -385,18 +386,24 @@ def _extended_rows(weighted: np.ndarray, n_pad: int) -> np.ndarray:
     left half wraps round, as the padding is circular) keeps the step out of the filter.
     """
     n_cols = weighted.shape[-1]
-    n_tail = n_pad - n_cols
-    right_len = n_tail // 2
-    left_len = n_tail - right_len
+    fall, rise = _roll_offs(n_cols, n_pad)
     out = np.zeros((*weighted.shape[:-1], n_pad), dtype=np.float32)
     out[..., :n_cols] = weighted
     right = weighted[..., -_EDGE_COLUMNS:].mean(axis=-1, keepdims=True)
     left = weighted[..., :_EDGE_COLUMNS].mean(axis=-1, keepdims=True)
+    out[..., n_cols:n_cols + fall.size] = right * fall
+    out[..., n_cols + fall.size:] = left * rise
+    return out
+
+
+def _roll_offs(n_cols: int, n_pad: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_extended_rows`' cos^2 fall after the right edge and rise before the left one (float32)."""
+    n_tail = n_pad - n_cols
+    right_len = n_tail // 2
+    left_len = n_tail - right_len
     fall = np.cos(0.5 * np.pi * (np.arange(right_len) + 0.5) / right_len) ** 2
     rise = np.cos(0.5 * np.pi * (np.arange(left_len)[::-1] + 0.5) / left_len) ** 2
-    out[..., n_cols:n_cols + right_len] = right * fall.astype(np.float32)
-    out[..., n_cols + right_len:] = left * rise.astype(np.float32)
-    return out
+    return fall.astype(np.float32), rise.astype(np.float32)
 
 
 def _filter_views(views: np.ndarray, pre_weight: np.ndarray, n_pad: int, response: np.ndarray,
@@ -508,18 +515,40 @@ def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_
     xs = grid.axis_mm("x")
     zs = grid.axis_mm("z")
     ys = grid.axis_mm("y")
-    acc = np.zeros((grid.n_x, grid.n_z, grid.n_y), dtype=np.float32)
-    for start in range(0, theta.size, _CHUNK_VIEWS):
-        part = slice(start, min(start + _CHUNK_VIEWS, theta.size))
-        pre = cosine[None, :, :]
-        if redundancy is not None:
-            pre = pre * redundancy[part, None, :].astype(np.float32)
-        filtered = _filter_views(proj[part], pre, n_pad, response, scale, extend)
-        _backproject(acc, filtered, np.cos(theta[part]), np.sin(theta[part]), intervals[part],
-                     xs, zs, float(ys[0]), grid.voxel_size_mm, sod, sdd / pu, sdd / pv,
-                     geometry.u0_px + 1.0, geometry.v0_px + 1.0)
-        if progress is not None:
-            progress(part.stop - part.start)
+    shape = (grid.n_x, grid.n_z, grid.n_y)
+    constants = (sod, sdd / pu, sdd / pv, geometry.u0_px + 1.0, geometry.v0_px + 1.0)
+
+    def backproject_all(add) -> None:
+        for start in range(0, theta.size, _CHUNK_VIEWS):
+            part = slice(start, min(start + _CHUNK_VIEWS, theta.size))
+            pre = cosine[None, :, :]
+            if redundancy is not None:
+                pre = pre * redundancy[part, None, :].astype(np.float32)
+            add(_filter_views(proj[part], pre, n_pad, response, scale, extend), part)
+            if progress is not None:
+                progress(part.stop - part.start)
+
+    if device.active() == "cuda":
+        from ctpipe.recon._cuda import FdkAccumulator
+
+        try:
+            # The GPU filters too: the same circular convolution as the FFT, by its spatial taps.
+            taps = sp_fft.irfft((response * scale).astype(np.float32), n=n_pad).astype(np.float32)
+            on_gpu = FdkAccumulator(shape, xs, zs, float(ys[0]), grid.voxel_size_mm, constants, taps, cosine,
+                                    _roll_offs(cols, n_pad) if extend else None, _EDGE_COLUMNS)
+            for start in range(0, theta.size, _CHUNK_VIEWS):
+                part = slice(start, min(start + _CHUNK_VIEWS, theta.size))
+                on_gpu.add(proj[part], None if redundancy is None else redundancy[part], np.cos(theta[part]),
+                           np.sin(theta[part]), intervals[part])
+                if progress is not None:
+                    progress(part.stop - part.start)
+            return _to_volume_layout(on_gpu.result())
+        except Exception as error:  # noqa: BLE001 - memory, driver, compiler: the CPU answers
+            device.fall_back("FDK", error)
+    acc = np.zeros(shape, dtype=np.float32)
+    backproject_all(lambda filtered, part: _backproject(acc, filtered, np.cos(theta[part]), np.sin(theta[part]),
+                                                        intervals[part], xs, zs, float(ys[0]), grid.voxel_size_mm,
+                                                        *constants))
     return _to_volume_layout(acc)
 
 

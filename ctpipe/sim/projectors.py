@@ -34,6 +34,7 @@ so it is the exact transpose of :meth:`VoxelProjector.forward` (up to float32 ro
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Callable, Iterator
 
@@ -41,12 +42,14 @@ import numba
 import numpy as np
 from numba import prange
 
+from ctpipe._shared import device
 from ctpipe._shared.checks import as_angles_deg
 from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe._shared.resources import check_fits
 from ctpipe.errors import InputError, ResourceError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
+from ctpipe.sim._joseph import _pixel_ray, _ray_sum, _ray_sum_pair
 from ctpipe.sim.primitives import KINDS, Primitives, local_maps, unit_interval
 
 __all__ = ["project_analytic", "analytic_work", "voxel_work", "VoxelProjector", "MAX_SUB_RAYS", "MAX_VOXEL_STEPS"]
@@ -349,10 +352,22 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     out = np.zeros((angles.size, geometry.detector_rows, geometry.detector_cols), dtype=np.float32)
     constants = (float(geometry.source_to_object_mm), float(geometry.source_to_detector_mm),
                  float(geometry.pixel_pitch_u_mm), float(geometry.pixel_pitch_v_mm))
+    kernel = _project_primitives
+    if device.active() == "cuda":
+        from ctpipe.sim import _cuda
+
+        def kernel(out, cos_t, sin_t, kind, centre, maps, corners, density, sod, sdd, pu, pv, *rest):
+            before = out.copy()
+            try:
+                _cuda.project_primitives(out, cos_t, sin_t, (kind, centre, maps, corners, density),
+                                         (sod, sdd, pu, pv), *rest)
+            except Exception as error:  # noqa: BLE001 - memory, driver, compiler: the CPU answers
+                device.fall_back("the analytic projection", error)
+                out[...] = before
+                _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density, sod, sdd, pu, pv, *rest)
     if still.any():
         image = np.zeros((1, *out.shape[1:]), np.float32)
-        _project_primitives(image, np.ones(1), np.zeros(1), *fixed, *constants, u0_v[:1], v0_v[:1], cos_tilt,
-                            sin_tilt, supersample)
+        kernel(image, np.ones(1), np.zeros(1), *fixed, *constants, u0_v[:1], v0_v[:1], cos_tilt, sin_tilt, supersample)
     args = (*moving, *constants)
     # Chunks of at most about 1e8 intersections (well under a second), so that Ctrl-C and SIGTERM,
     # which Python handles between calls, stop a large scene promptly.
@@ -363,8 +378,8 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         if still.any():
             out[start:stop] = image
         if not still.all():
-            _project_primitives(out[start:stop], np.cos(theta[start:stop]), np.sin(theta[start:stop]), *args,
-                                u0_v[start:stop], v0_v[start:stop], cos_tilt, sin_tilt, supersample)
+            kernel(out[start:stop], np.cos(theta[start:stop]), np.sin(theta[start:stop]), *args, u0_v[start:stop],
+                   v0_v[start:stop], cos_tilt, sin_tilt, supersample)
         if blur_px > 0:
             from scipy.ndimage import gaussian_filter
 
@@ -539,64 +554,6 @@ def _from_layouts(out, buf_x, buf_z, buf_y, with_y):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _range_within(k_lo, k_hi, f0, f1, upper):
-    """Narrow ``[k_lo, k_hi]`` to the ``k`` with ``0 <= f0 + k f1 <= upper``."""
-    if f1 == 0.0:
-        if f0 < 0.0 or f0 > upper:
-            return 1.0, 0.0
-        return k_lo, k_hi
-    k_a = -f0 / f1
-    k_b = (upper - f0) / f1
-    return max(k_lo, min(k_a, k_b)), min(k_hi, max(k_a, k_b))
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def _ray_setup(s_a, s_p, s_q, d_a, d_p, d_q, n_a, n_p, n_q, norm, voxel):
-    """Joseph stepping of the ray ``index(t) = s + t d`` (voxel-index units, unpadded) along axis a.
-
-    Returns the integer plane range ``[k0, k1)``, the padded positions ``p = p0 + k dp`` and
-    ``q = q0 + k dq`` on plane ``k``, and the step length in mm.
-    """
-    dp = d_p / d_a
-    dq = d_q / d_a
-    p0 = s_p - s_a * dp + 1.0
-    q0 = s_q - s_a * dq + 1.0
-    # Planes between the source (t = 0) and the detector (t = 1), inside the grid.
-    k_lo = min(s_a, s_a + d_a)
-    k_hi = max(s_a, s_a + d_a)
-    k_lo = max(k_lo, 0.0)
-    k_hi = min(k_hi, n_a - 1.0)
-    # Padded positions in [0, n + 1]: outside that both bilinear neighbours are zero.
-    k_lo, k_hi = _range_within(k_lo, k_hi, p0, dp, n_p + 1.0)
-    k_lo, k_hi = _range_within(k_lo, k_hi, q0, dq, n_q + 1.0)
-    k0 = int(math.ceil(k_lo)) if k_lo <= k_hi else 0
-    k1 = int(math.floor(k_hi)) + 1 if k_lo <= k_hi else 0
-    # d_a is in voxels, so |d| (mm) / |d_a| is the mm advanced per plane.
-    step = norm / abs(d_a)
-    return k0, k1, p0, dp, q0, dq, step
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def _ray_sum(vol, k0, k1, p0, dp, q0, dq, n_p, n_q):
-    acc = np.float32(0.0)
-    for k in range(k0, k1):
-        p = p0 + k * dp
-        q = q0 + k * dq
-        ip = min(max(int(p), 0), n_p)
-        iq = min(max(int(q), 0), n_q)
-        fp = np.float32(p - ip)
-        fq = np.float32(q - iq)
-        v00 = vol[ip, iq, k]
-        v01 = vol[ip, iq + 1, k]
-        v10 = vol[ip + 1, iq, k]
-        v11 = vol[ip + 1, iq + 1, k]
-        lo = v00 + fq * (v01 - v00)
-        hi = v10 + fq * (v11 - v10)
-        acc += lo + fp * (hi - lo)
-    return acc
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _ray_scatter(vol, value, k0, k1, p0, dp, q0, dq, n_p, n_q):
     for k in range(k0, k1):
         p = p0 + k * dp
@@ -611,41 +568,6 @@ def _ray_scatter(vol, value, k0, k1, p0, dp, q0, dq, n_p, n_q):
         vol[ip, iq + 1, k] += w_lo * fq
         vol[ip + 1, iq, k] += w_hi - w_hi * fq
         vol[ip + 1, iq + 1, k] += w_hi * fq
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel, row, col):
-    """Source and direction of a pixel's ray in voxel-index units (unpadded), and ``|d|`` in mm."""
-    dxc = (col - u0) * pu
-    dyc = (row - v0) * pv
-    d_x = c * dxc + s * sdd
-    d_y = dyc
-    d_z = -s * dxc + c * sdd
-    norm = math.sqrt(dxc * dxc + dyc * dyc + sdd * sdd)
-    inv = 1.0 / voxel
-    s_x = (-s * sod - origin[0]) * inv
-    s_y = (0.0 - origin[1]) * inv
-    s_z = (-c * sod - origin[2]) * inv
-    return s_x, s_y, s_z, d_x * inv, d_y * inv, d_z * inv, norm
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def _pixel_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y, n_z, row, col):
-    """The ray of pixel ``(row, col)`` stepped along its dominant axis.
-
-    Returns the layout it reads (0: ``vol_x``, 1: ``vol_z``, 2: ``vol_y``), :func:`_ray_setup`'s
-    plane range, positions and step, and the sizes ``(n_p, n_q)`` of the layout's other two axes.
-    """
-    s_x, s_y, s_z, d_x, d_y, d_z, norm = _view_ray(c, s, sod, sdd, pu, pv, u0, v0, origin, voxel, row, col)
-    ax, ay, az = abs(d_x), abs(d_y), abs(d_z)
-    if ax >= az and ax >= ay:
-        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_x, s_y, s_z, d_x, d_y, d_z, n_x, n_y, n_z, norm, voxel)
-        return 0, k0, k1, p0, dp, q0, dq, step, n_y, n_z
-    if az >= ay:
-        k0, k1, p0, dp, q0, dq, step = _ray_setup(s_z, s_y, s_x, d_z, d_y, d_x, n_z, n_y, n_x, norm, voxel)
-        return 1, k0, k1, p0, dp, q0, dq, step, n_y, n_x
-    k0, k1, p0, dp, q0, dq, step = _ray_setup(s_y, s_z, s_x, d_y, d_z, d_x, n_y, n_z, n_x, norm, voxel)
-    return 2, k0, k1, p0, dp, q0, dq, step, n_z, n_x
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
@@ -683,35 +605,6 @@ def _to_pair_layouts(first, second, vol_x, vol_z, vol_y, with_y):
                 for iy in range(n_y):
                     vol_y[iz + 1, ix + 1, iy, 0] = first[iy, iz, ix]
                     vol_y[iz + 1, ix + 1, iy, 1] = second[iy, iz, ix]
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def _ray_sum_pair(vol, k0, k1, p0, dp, q0, dq, n_p, n_q):
-    """:func:`_ray_sum` of both volumes of a pair layout, with the weights computed once."""
-    acc_a = np.float32(0.0)
-    acc_b = np.float32(0.0)
-    for k in range(k0, k1):
-        p = p0 + k * dp
-        q = q0 + k * dq
-        ip = min(max(int(p), 0), n_p)
-        iq = min(max(int(q), 0), n_q)
-        fp = np.float32(p - ip)
-        fq = np.float32(q - iq)
-        a00 = vol[ip, iq, k, 0]
-        b00 = vol[ip, iq, k, 1]
-        a01 = vol[ip, iq + 1, k, 0]
-        b01 = vol[ip, iq + 1, k, 1]
-        a10 = vol[ip + 1, iq, k, 0]
-        b10 = vol[ip + 1, iq, k, 1]
-        a11 = vol[ip + 1, iq + 1, k, 0]
-        b11 = vol[ip + 1, iq + 1, k, 1]
-        lo = a00 + fq * (a01 - a00)
-        hi = a10 + fq * (a11 - a10)
-        acc_a += lo + fp * (hi - lo)
-        lo = b00 + fq * (b01 - b00)
-        hi = b10 + fq * (b11 - b10)
-        acc_b += lo + fp * (hi - lo)
-    return acc_a, acc_b
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
@@ -832,6 +725,13 @@ class VoxelProjector:
         vol_z = np.zeros(shape_z[1:], dtype=np.float32)
         vol_y = np.zeros(shape_y[1:], dtype=np.float32)
         _to_layouts(volume, vol_x, vol_z, vol_y, self._with_y)
+        if device.active() == "cuda":
+            from ctpipe.sim import _cuda
+
+            try:
+                return _cuda.forward((vol_x, vol_z, vol_y), common[0], common[1], common[2:], self._geometry.shape)
+            except Exception as error:  # noqa: BLE001 - memory, driver, compiler: the CPU answers
+                device.fall_back("the forward projection", error)
         out = np.empty((common[0].size, *self._geometry.shape), dtype=np.float32)
         # A chunk of views per call, about a second of work each (views are independent: the same
         # numbers as one call), so that Ctrl-C reaches a Python caller between two of them.
@@ -881,6 +781,17 @@ class VoxelProjector:
         vol_z = np.zeros(shape_z, dtype=np.float32)
         vol_y = np.zeros(shape_y, dtype=np.float32)
         _to_pair_layouts(first, second, vol_x, vol_z, vol_y, self._with_y)
+        if device.active() == "cuda":
+            from ctpipe.sim import _cuda
+
+            try:
+                # The layouts are placed on the GPU now; each chunk is projected as it is asked for.
+                chunks = _cuda.forward_pair((vol_x, vol_z, vol_y), common[0], common[1], common[2:],
+                                             self._geometry.shape, n_chunk)
+                first_chunk = next(chunks, None)
+                return itertools.chain(() if first_chunk is None else (first_chunk,), chunks)
+            except Exception as error:  # noqa: BLE001 - memory, driver, compiler: the CPU answers
+                device.fall_back("the paired forward projection", error)
         # Checked and laid out now, projected as the chunks are asked for.
         return self._pair_chunks((vol_x, vol_z, vol_y), common, n_chunk)
 
@@ -911,6 +822,17 @@ class VoxelProjector:
         expected = (common[0].size, *self._geometry.shape)
         projections = _check_array("projections", projections, expected,
                                    "(len(angles_deg), detector_rows, detector_cols)")
+        if device.active() == "cuda":
+            from ctpipe.sim import _cuda
+
+            try:
+                buffers = _cuda.back(projections, [shape[1:] for shape in self._layout_shapes(1)], common[0],
+                                      common[1], common[2:])
+                out = np.empty(self._grid.shape, dtype=np.float32)
+                _from_layouts(out, *(buffer[None] for buffer in buffers), self._with_y)
+                return out
+            except Exception as error:  # noqa: BLE001 - memory, driver, compiler: the CPU answers
+                device.fall_back("the back projection", error)
         n_buf = max(1, min(numba.get_num_threads(), expected[0]))
         shape_x, shape_z, shape_y = self._layout_shapes(n_buf)
         check_fits(f"back-projecting onto a {self._grid.n_x} x {self._grid.n_y} x {self._grid.n_z} volume "

@@ -1,0 +1,313 @@
+"""CUDA kernels (numba-cuda) of the voxel projector, its adjoint and the analytic projector.
+
+Imported only when :func:`ctpipe.gpu.active` is ``"cuda"``; the public functions in
+:mod:`ctpipe.sim.projectors` call these and keep their own checks and layouts, so the two
+devices differ only in where the inner loops run (FDK's kernel: :mod:`ctpipe.recon._cuda`).
+
+The ray set-up and the Joseph sums are the CPU kernels' own ``@njit`` helpers, which numba
+compiles for the GPU when a CUDA kernel calls them (the simulator runs their Python). What differs:
+
+- one thread per ray (a detector pixel of a view) instead of one per view;
+- the adjoint scatters with atomic adds into one padded volume instead of one per thread;
+- the analytic projector runs a block per (primitive, view), its threads sharing the pixels
+  of the primitive's bounding rectangle and adding with atomics.
+
+Work larger than the card's free memory is split into chunks of views; a volume whose layouts
+alone do not fit raises :class:`~ctpipe._shared.device.DeviceMemoryError`, which the callers
+answer by running on the CPU.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numba
+import numpy as np
+from numba import cuda
+
+from ctpipe._shared.device import chunk_views, memory_budget
+from ctpipe._shared.jit import cache_outside_the_package
+from ctpipe.sim.primitives import unit_interval
+from ctpipe.sim._joseph import _pixel_ray, _ray_sum, _ray_sum_pair
+
+__all__ = ["back", "forward", "forward_pair", "project_primitives"]
+
+try:   # numba-cuda's own caching machinery; the simulator has none
+    from numba.cuda.core import caching as _caching
+except ImportError:   # pragma: no cover - under NUMBA_ENABLE_CUDASIM
+    _caching = None
+if _caching is not None:
+    cache_outside_the_package(_caching)
+# A launch over a few blocks (one view of a few primitives, a handful of rows) is expected here.
+warnings.filterwarnings("ignore", message="Grid size .* will likely result in GPU under-utilization")
+
+#: Under the simulator the kernels' Python runs as is, and array helpers must be Python too.
+_SIMULATED = bool(numba.config.ENABLE_CUDASIM)
+_ray_sum_d = _ray_sum.py_func if _SIMULATED else _ray_sum
+_ray_sum_pair_d = _ray_sum_pair.py_func if _SIMULATED else _ray_sum_pair
+
+_BLOCK_2D = (32, 8, 1)
+
+
+def _grid(shape: tuple[int, int, int], block=_BLOCK_2D) -> tuple[int, int, int]:
+    """Blocks covering ``shape`` given fastest axis first."""
+    return tuple((n + b - 1) // b for n, b in zip(shape, block))
+
+
+# --------------------------------------------------------------------------- voxel projector
+
+
+@cuda.jit(cache=True)
+def _forward_kernel(out, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, ox, oy, oz, voxel, n_x, n_y,
+                    n_z):
+    col, row, v = cuda.grid(3)
+    n_views, n_rows, n_cols = out.shape
+    if v >= n_views or row >= n_rows or col >= n_cols:
+        return
+    axis, k0, k1, p0, dp, q0, dq, step, n_p, n_q = _pixel_ray(cos_t[v], sin_t[v], sod, sdd, pu, pv, u0, v0,
+                                                              (ox, oy, oz), voxel, n_x, n_y, n_z, row, col)
+    if axis == 0:
+        total = _ray_sum_d(vol_x, k0, k1, p0, dp, q0, dq, n_p, n_q)
+    elif axis == 1:
+        total = _ray_sum_d(vol_z, k0, k1, p0, dp, q0, dq, n_p, n_q)
+    else:
+        total = _ray_sum_d(vol_y, k0, k1, p0, dp, q0, dq, n_p, n_q)
+    out[v, row, col] = total * np.float32(step)
+
+
+@cuda.jit(cache=True)
+def _forward_pair_kernel(out_a, out_b, vol_x, vol_z, vol_y, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, ox, oy, oz,
+                         voxel, n_x, n_y, n_z):
+    col, row, v = cuda.grid(3)
+    n_views, n_rows, n_cols = out_a.shape
+    if v >= n_views or row >= n_rows or col >= n_cols:
+        return
+    axis, k0, k1, p0, dp, q0, dq, step, n_p, n_q = _pixel_ray(cos_t[v], sin_t[v], sod, sdd, pu, pv, u0, v0,
+                                                              (ox, oy, oz), voxel, n_x, n_y, n_z, row, col)
+    if axis == 0:
+        total_a, total_b = _ray_sum_pair_d(vol_x, k0, k1, p0, dp, q0, dq, n_p, n_q)
+    elif axis == 1:
+        total_a, total_b = _ray_sum_pair_d(vol_z, k0, k1, p0, dp, q0, dq, n_p, n_q)
+    else:
+        total_a, total_b = _ray_sum_pair_d(vol_y, k0, k1, p0, dp, q0, dq, n_p, n_q)
+    out_a[v, row, col] = total_a * np.float32(step)
+    out_b[v, row, col] = total_b * np.float32(step)
+
+
+@cuda.jit(device=True, cache=True)
+def _ray_scatter_atomic(vol, value, k0, k1, p0, dp, q0, dq, n_p, n_q):
+    """:func:`ctpipe.sim.projectors._ray_scatter` with atomic adds: many rays share a voxel."""
+    for k in range(k0, k1):
+        p = p0 + k * dp
+        q = q0 + k * dq
+        ip = min(max(int(p), 0), n_p)
+        iq = min(max(int(q), 0), n_q)
+        fp = np.float32(p - ip)
+        fq = np.float32(q - iq)
+        w_hi = value * fp
+        w_lo = value - w_hi
+        cuda.atomic.add(vol, (ip, iq, k), w_lo - w_lo * fq)
+        cuda.atomic.add(vol, (ip, iq + 1, k), w_lo * fq)
+        cuda.atomic.add(vol, (ip + 1, iq, k), w_hi - w_hi * fq)
+        cuda.atomic.add(vol, (ip + 1, iq + 1, k), w_hi * fq)
+
+
+@cuda.jit(cache=True)
+def _back_kernel(buf_x, buf_z, buf_y, proj, cos_t, sin_t, sod, sdd, pu, pv, u0, v0, ox, oy, oz, voxel, n_x, n_y, n_z):
+    col, row, v = cuda.grid(3)
+    n_views, n_rows, n_cols = proj.shape
+    if v >= n_views or row >= n_rows or col >= n_cols:
+        return
+    value = proj[v, row, col]
+    if value == 0.0:
+        return
+    axis, k0, k1, p0, dp, q0, dq, step, n_p, n_q = _pixel_ray(cos_t[v], sin_t[v], sod, sdd, pu, pv, u0, v0,
+                                                              (ox, oy, oz), voxel, n_x, n_y, n_z, row, col)
+    weighted = value * np.float32(step)
+    if axis == 0:
+        _ray_scatter_atomic(buf_x, weighted, k0, k1, p0, dp, q0, dq, n_p, n_q)
+    elif axis == 1:
+        _ray_scatter_atomic(buf_z, weighted, k0, k1, p0, dp, q0, dq, n_p, n_q)
+    else:
+        _ray_scatter_atomic(buf_y, weighted, k0, k1, p0, dp, q0, dq, n_p, n_q)
+
+
+def _scalars(common) -> tuple:
+    """The projector's constants with the grid origin spread into three floats."""
+    sod, sdd, pu, pv, u0, v0, origin, voxel, n_x, n_y, n_z = common
+    return (sod, sdd, pu, pv, u0, v0, float(origin[0]), float(origin[1]), float(origin[2]), voxel, n_x, n_y, n_z)
+
+
+def _per_view_bytes(shape: tuple[int, int], n_out: int) -> float:
+    return 4.0 * n_out * shape[0] * shape[1] + 16.0
+
+
+def forward(layouts, cos_t: np.ndarray, sin_t: np.ndarray, common, detector_shape: tuple[int, int]) -> np.ndarray:
+    """Line integrals (V, rows, cols) float32 of the padded layouts ``(vol_x, vol_z, vol_y)`` (host arrays)."""
+    resident = sum(layout.nbytes for layout in layouts)
+    budget = memory_budget(resident, "projecting the volume")
+    device_layouts = [cuda.to_device(layout) for layout in layouts]
+    scalars = _scalars(common)
+    n_views = cos_t.size
+    out = np.empty((n_views, *detector_shape), dtype=np.float32)
+    chunk = chunk_views(_per_view_bytes(detector_shape, 1), budget, n_views)
+    for start in range(0, n_views, chunk):
+        part = slice(start, min(start + chunk, n_views))
+        d_out = cuda.device_array((part.stop - start, *detector_shape), dtype=np.float32)
+        grid = _grid((detector_shape[1], detector_shape[0], part.stop - start))
+        _forward_kernel[grid, _BLOCK_2D](d_out, *device_layouts, cuda.to_device(np.ascontiguousarray(cos_t[part])),
+                                         cuda.to_device(np.ascontiguousarray(sin_t[part])), *scalars)
+        d_out.copy_to_host(out[part])
+    return out
+
+
+def forward_pair(layouts, cos_t: np.ndarray, sin_t: np.ndarray, common, detector_shape: tuple[int, int],
+                 n_chunk: int):
+    """Yield ``(views, first, second)`` chunks of the pair layouts' projections (the CPU's contract)."""
+    resident = sum(layout.nbytes for layout in layouts)
+    budget = memory_budget(resident, "projecting the two volumes")
+    device_layouts = [cuda.to_device(layout) for layout in layouts]
+    scalars = _scalars(common)
+    n_views = cos_t.size
+    n_chunk = min(n_chunk, chunk_views(_per_view_bytes(detector_shape, 2), budget, n_views))
+    for start in range(0, n_views, n_chunk):
+        views = slice(start, min(start + n_chunk, n_views))
+        count = views.stop - start
+        d_a = cuda.device_array((count, *detector_shape), dtype=np.float32)
+        d_b = cuda.device_array((count, *detector_shape), dtype=np.float32)
+        grid = _grid((detector_shape[1], detector_shape[0], count))
+        _forward_pair_kernel[grid, _BLOCK_2D](d_a, d_b, *device_layouts,
+                                              cuda.to_device(np.ascontiguousarray(cos_t[views])),
+                                              cuda.to_device(np.ascontiguousarray(sin_t[views])), *scalars)
+        yield views, d_a.copy_to_host(), d_b.copy_to_host()
+
+
+def back(projections: np.ndarray, layout_shapes, cos_t: np.ndarray, sin_t: np.ndarray, common):
+    """Scatter ``projections`` (V, rows, cols) into zeroed padded layouts; returns them on the host."""
+    resident = sum(4.0 * math.prod(shape) for shape in layout_shapes)
+    budget = memory_budget(resident, "back-projecting onto the volume")
+    buffers = [cuda.to_device(np.zeros(shape, dtype=np.float32)) for shape in layout_shapes]
+    scalars = _scalars(common)
+    n_views = projections.shape[0]
+    chunk = chunk_views(_per_view_bytes(projections.shape[1:], 1), budget, n_views)
+    for start in range(0, n_views, chunk):
+        part = slice(start, min(start + chunk, n_views))
+        d_proj = cuda.to_device(np.ascontiguousarray(projections[part], dtype=np.float32))
+        grid = _grid((projections.shape[2], projections.shape[1], part.stop - start))
+        _back_kernel[grid, _BLOCK_2D](*buffers, d_proj, cuda.to_device(np.ascontiguousarray(cos_t[part])),
+                                      cuda.to_device(np.ascontiguousarray(sin_t[part])), *scalars)
+    return [buffer.copy_to_host() for buffer in buffers]
+
+
+# --------------------------------------------------------------------------- analytic projector
+
+
+@cuda.jit(cache=True)
+def _primitives_kernel(out, cos_t, sin_t, kind, centre, maps, corners, density, sod, sdd, pu, pv, u0_v, v0_v,
+                       cos_tilt, sin_tilt, ss):
+    """:func:`ctpipe.sim.projectors._project_primitives` with a block per (primitive, view).
+
+    Every thread works out the primitive's pixel rectangle (the perspective image of its box's
+    corners) and the ray in its unit frame, then takes every ``blockDim``-th pixel of the rectangle.
+    """
+    n = cuda.blockIdx.x
+    v = cuda.blockIdx.y
+    n_views, n_rows, n_cols = out.shape
+    c = cos_t[v]
+    s = sin_t[v]
+    u0 = u0_v[v]
+    v0 = v0_v[v]
+    src0 = -s * sod
+    src2 = -c * sod
+    col_lo = math.inf
+    col_hi = -math.inf
+    row_lo = math.inf
+    row_hi = -math.inf
+    n_behind = 0
+    for k in range(8):
+        x = corners[n, k, 0]
+        y = corners[n, k, 1]
+        z = corners[n, k, 2]
+        depth = s * x + c * z + sod
+        if depth <= 1e-9 * sod:
+            n_behind += 1
+            continue
+        xd = (c * x - s * z) / depth * sdd
+        yd = y / depth * sdd
+        uu = u0 + (cos_tilt * xd + sin_tilt * yd) / pu
+        vv = v0 + (cos_tilt * yd - sin_tilt * xd) / pv
+        col_lo = min(col_lo, uu)
+        col_hi = max(col_hi, uu)
+        row_lo = min(row_lo, vv)
+        row_hi = max(row_hi, vv)
+    if n_behind == 8:
+        return
+    if n_behind:
+        c0, c1, r0, r1 = 0, n_cols - 1, 0, n_rows - 1
+    else:
+        c0 = max(int(math.floor(max(col_lo - 0.5, -1.0))), 0)
+        c1 = min(int(math.ceil(min(col_hi + 0.5, float(n_cols)))), n_cols - 1)
+        r0 = max(int(math.floor(max(row_lo - 0.5, -1.0))), 0)
+        r1 = min(int(math.ceil(min(row_hi + 0.5, float(n_rows)))), n_rows - 1)
+    if c0 > c1 or r0 > r1:
+        return
+    e0 = src0 - centre[n, 0]
+    e1 = -centre[n, 1]
+    e2 = src2 - centre[n, 2]
+    a0 = maps[n, 0, 0] * e0 + maps[n, 0, 1] * e1 + maps[n, 0, 2] * e2
+    a1 = maps[n, 1, 0] * e0 + maps[n, 1, 1] * e1 + maps[n, 1, 2] * e2
+    a2 = maps[n, 2, 0] * e0 + maps[n, 2, 1] * e1 + maps[n, 2, 2] * e2
+    ax0 = maps[n, 0, 0] * c - maps[n, 0, 2] * s
+    ax1 = maps[n, 1, 0] * c - maps[n, 1, 2] * s
+    ax2 = maps[n, 2, 0] * c - maps[n, 2, 2] * s
+    ay0 = maps[n, 0, 1]
+    ay1 = maps[n, 1, 1]
+    ay2 = maps[n, 2, 1]
+    az0 = (maps[n, 0, 0] * s + maps[n, 0, 2] * c) * sdd
+    az1 = (maps[n, 1, 0] * s + maps[n, 1, 2] * c) * sdd
+    az2 = (maps[n, 2, 0] * s + maps[n, 2, 2] * c) * sdd
+    k_n = kind[n]
+    rho = density[n] / (ss * ss)
+    width = c1 - c0 + 1
+    n_pixels = width * (r1 - r0 + 1)
+    for index in range(cuda.threadIdx.x, n_pixels, cuda.blockDim.x):
+        r = r0 + index // width
+        col = c0 + index % width
+        total = 0.0
+        for jv in range(ss):
+            bv = (r + (jv + 0.5) / ss - 0.5 - v0) * pv
+            for ju in range(ss):
+                au = (col + (ju + 0.5) / ss - 0.5 - u0) * pu
+                dx = cos_tilt * au - sin_tilt * bv
+                dy = sin_tilt * au + cos_tilt * bv
+                b0 = ax0 * dx + ay0 * dy + az0
+                b1 = ax1 * dx + ay1 * dy + az1
+                b2 = ax2 * dx + ay2 * dy + az2
+                t_in, t_out = unit_interval(k_n, a0, a1, a2, b0, b1, b2)
+                t_in = max(t_in, 0.0)
+                t_out = min(t_out, 1.0)
+                if t_out > t_in:
+                    total += (t_out - t_in) * math.sqrt(dx * dx + dy * dy + sdd * sdd)
+        if total != 0.0:
+            cuda.atomic.add(out, (v, r, col), np.float32(rho * total))
+
+
+def project_primitives(out: np.ndarray, cos_t: np.ndarray, sin_t: np.ndarray, shapes: tuple, constants: tuple,
+                       u0_v: np.ndarray, v0_v: np.ndarray, cos_tilt: float, sin_tilt: float, ss: int) -> None:
+    """Add the primitives' line integrals to ``out`` (V, rows, cols), as the CPU kernel does."""
+    kind, centre, maps, corners, density = shapes
+    if len(kind) == 0 or out.shape[0] == 0:
+        return
+    shape_arrays = [cuda.to_device(np.ascontiguousarray(a)) for a in (kind, centre, maps, corners, density)]
+    budget = memory_budget(sum(np.asarray(a).nbytes for a in shapes), "projecting the primitives")
+    n_views = out.shape[0]
+    chunk = chunk_views(_per_view_bytes(out.shape[1:], 1), budget, n_views, most=65535)
+    for start in range(0, n_views, chunk):
+        part = slice(start, min(start + chunk, n_views))
+        d_out = cuda.to_device(np.ascontiguousarray(out[part]))
+        views = [cuda.to_device(np.ascontiguousarray(a[part], dtype=np.float64)) for a in (cos_t, sin_t, u0_v, v0_v)]
+        _primitives_kernel[(len(kind), part.stop - start), 128](d_out, views[0], views[1], *shape_arrays,
+                                                                *(float(value) for value in constants), views[2],
+                                                                views[3], float(cos_tilt), float(sin_tilt), int(ss))
+        d_out.copy_to_host(out[part])
