@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# The GPU checks in one prepared run, on a machine with an NVIDIA GPU and ctpipe's dependencies:
+#   1. every GPU kernel against its CPU twin (python -m ctpipe.gpu.check, two sizes);
+#   2. benchmarks/bench_gpu.py: forward projection and FDK against diffct on the same card, the
+#      analytic projector, all against ctpipe's CPU kernels;
+#   3. the default `ctpipe validate` on the GPU twice (cold: kernels compiled; warm), then on the
+#      CPU: the timings, and whether the two devices give the same angles.
+# Results go to $OUT (default /tmp/ctpipe-gpu). Wheels in .whl/ (numpy < 2.5 for numba-cuda,
+# olefile, diffct) are installed first when present, for a machine with no network.
+#
+#     bash benchmarks/gpu_machine.sh
+set -u
+now() { date +%s%N; }
+seconds() { echo $(( ($(now) - $1) / 1000000 ))e-3; }
+OUT=${OUT:-/tmp/ctpipe-gpu}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+if [ -d .whl ]; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+        || exit 1
+    export PYTHONPATH=/tmp/site:$PWD
+else
+    export PYTHONPATH=$PWD
+fi
+{
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+    python3 -c "import numpy, numba, numba_cuda; from numba import cuda; print('numpy', numpy.__version__, 'numba', numba.__version__, 'numba-cuda', getattr(numba_cuda, '__version__', '?'), 'cuda', cuda.is_available())"
+    nproc
+} 2>&1 | tee "$OUT/machine.txt"
+
+echo "== kernels against the CPU"
+for size in 8 40; do
+    start=$(now)
+    python3 -m ctpipe.gpu.check $size
+    echo "check $size: exit $?, $(seconds $start) s"
+done
+
+echo "== benchmark"
+python3 benchmarks/bench_gpu.py --sizes 256 512 1024 --repeats 3 --cpu-up-to 512 2>&1 | tee "$OUT/bench_gpu.txt"
+
+echo "== default validate"
+for run in cuda-cold cuda-warm cpu; do
+    device=${run%%-*}
+    start=$(now)
+    python3 -m ctpipe.cli --device "$device" validate --out "/tmp/validate-$run" --json > "/tmp/validate-$run.json"
+    status=$?
+    wall=$(seconds $start)
+    echo "validate $run: exit $status, wall $wall s"
+    python3 - "$run" "$wall" <<'EOF'
+import json, sys
+run, wall = sys.argv[1], sys.argv[2]
+report = json.load(open(f"/tmp/validate-{run}.json"))
+keep = {key: report.get(key) for key in ("timings_s", "angle_errors", "verdict")}
+print(run, wall, json.dumps(keep, default=str)[:1500])
+EOF
+    cp "/tmp/validate-$run.json" "$OUT/validate-$run.json"
+done
+cp /tmp/validate-cuda-warm/angles.csv "$OUT/angles-cuda.csv"
+cp /tmp/validate-cpu/angles.csv "$OUT/angles-cpu.csv"
+python3 - <<'EOF'
+import numpy as np
+gpu = np.genfromtxt("/tmp/validate-cuda-warm/angles.csv", delimiter=",", names=True)
+cpu = np.genfromtxt("/tmp/validate-cpu/angles.csv", delimiter=",", names=True)
+diff = gpu["estimated_relative_deg"] - cpu["estimated_relative_deg"]
+print(f"GPU - CPU estimated angles: max |diff| {np.max(np.abs(diff)):.6f} deg, RMS {np.sqrt(np.mean(diff**2)):.6f} deg")
+for name, table in (("gpu", gpu), ("cpu", cpu)):
+    print(name, "RMS error", float(np.sqrt(np.mean(table["estimated_error_deg"] ** 2))))
+EOF
