@@ -17,8 +17,11 @@ The result is float32; the arithmetic is float64, one view at a time.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
+from ctpipe._shared.resources import available_cores
 from ctpipe.errors import InputError
 
 __all__ = ["log_transform", "mean_frame", "MAX_DEAD_FRACTION"]
@@ -87,7 +90,13 @@ def log_transform(intensities, flats=None, darks=None, *, photons_per_pixel: flo
                          "impossible; are the flats and darks swapped?")
     beam = np.where(alive, beam, 1.0)
     out = np.empty(counts.shape, np.float32)
-    for v in range(len(counts)):
+
+    def view(v: int) -> None:
         transmission = np.maximum((counts[v].astype(np.float64) - dark) / beam, min_transmission)
         out[v] = np.where(alive, -np.log(transmission), 0.0)
+
+    # One view at a time in float64 (no float64 copy of the stack), the views in threads: numpy
+    # lets go of the GIL in these element-wise loops.
+    with ThreadPoolExecutor(max_workers=available_cores()) as pool:
+        list(pool.map(view, range(len(counts))))
     return out

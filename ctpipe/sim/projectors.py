@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterator
 
 import numba
@@ -45,7 +46,7 @@ from numba import prange
 from ctpipe._shared import device
 from ctpipe._shared.checks import as_angles_deg
 from ctpipe._shared.jit import FASTMATH, njit
-from ctpipe._shared.resources import check_fits
+from ctpipe._shared.resources import available_cores, check_fits
 from ctpipe.errors import InputError, ResourceError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
@@ -383,8 +384,12 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         if blur_px > 0:
             from scipy.ndimage import gaussian_filter
 
-            for k in range(start, stop):
+            def blur(k: int) -> None:
                 out[k] = gaussian_filter(out[k], sigma=float(blur_px))
+
+            # SciPy's filters let go of the GIL: the chunk's views in threads.
+            with ThreadPoolExecutor(max_workers=available_cores()) as pool:
+                list(pool.map(blur, range(start, stop)))
         if progress is not None:
             progress(stop)
     return out
