@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 import yaml
 
+from ctpipe import Pipeline
 from ctpipe.cli import main
 from ctpipe.io import open_scan
 from ctpipe.io.scans import find_bad_views
 from ctpipe.testing import write_nikon
 
-from scan_helpers import FAST_PIPELINE, estimate_angles
+from scan_helpers import FAST_PIPELINE
 
 BAD = 37
 
@@ -69,18 +70,14 @@ def test_skip_bad_views_estimates_the_others_and_reports_the_skipped_one(damaged
         rows = list(csv.DictReader(handle))
     assert [int(r["view"]) for r in rows] == keep
     estimated = np.array([float(r["angle_deg"]) for r in rows])
-    # The other views are estimated about as well as when every view could be read (errors
-    # against the true angles up to a common offset; this fast pipeline on 120 small views
-    # is not accurate either way: 1.5 deg with every view, 1.8 deg with one left out).
-    whole = write_nikon(tmp_path / "whole", geometry=raw_scan.geometry, nominal_angles_deg=raw_scan.nominal_deg,
-                        recorded_angles_deg=raw_scan.true_deg, intensities=raw_scan.intensities,
-                        flats=raw_scan.flats, darks=raw_scan.darks, name="part")
-    every = estimate_angles(whole, tmp_path, capsys)
-
-    def spread(error):
-        return np.sqrt(np.mean((error - np.median(error)) ** 2))
-
-    assert spread(estimated - raw_scan.true_deg[keep]) < 1.5 * spread(every - raw_scan.true_deg)
+    # The other views are estimated exactly as from a scan that never had the bad one. (Against
+    # the true angles the two are no better compared: this fast pipeline on 120 small views
+    # drifts 1-3.5 deg either way, and which run drifts more is the noise's draw.)
+    scan = open_scan(folder)
+    good = np.stack([scan.projections[k] for k in keep])
+    alone = Pipeline.from_config(FAST_PIPELINE).run(good, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg[keep])
+    # angles.csv holds them in the scanner's frame; the library's are relative to the first view.
+    np.testing.assert_allclose(estimated - estimated[0], alone.angles_deg, atol=1e-6)
     assert len(np.loadtxt(out / "geometry_vectors.csv", delimiter=",", skiprows=1)) == 119
 
     # The corrected angle log has a line for every view the scanner took: the skipped one is
