@@ -42,8 +42,8 @@ from typing import Iterator
 
 from ctpipe.errors import InputError
 
-__all__ = ["DEVICES", "FALLBACKS", "DeviceMemoryError", "Selection", "active", "chunk_views", "fall_back", "memory_budget", "select",
-           "set_default", "use"]
+__all__ = ["DEVICES", "FALLBACKS", "DeviceMemoryError", "Selection", "active", "chunk_views", "fall_back",
+           "memory_budget", "prepare_cuda", "select", "set_default", "use"]
 
 #: What a user may ask for: ``--device``, a pipeline's ``device:`` key, ``CTPIPE_DEVICE``.
 DEVICES = ("auto", "cpu", "cuda")
@@ -164,6 +164,27 @@ _MEMORY_SHARE = 0.6
 
 class DeviceMemoryError(MemoryError):
     """The data a kernel needs resident at once does not fit in the GPU's free memory."""
+
+
+@functools.lru_cache(maxsize=None)
+def prepare_cuda() -> None:
+    """What the GPU kernels' modules do once, on import: their disk cache out of the package, quiet small grids.
+
+    numba-cuda keeps its own copy of numba's caching machinery (none under the simulator); a
+    launch over a few blocks (one view of a few primitives, a handful of rows) is expected here,
+    and numba-cuda's warning about it would only be noise.
+    """
+    import warnings
+
+    from ctpipe._shared.jit import cache_outside_the_package
+
+    try:
+        from numba.cuda.core import caching
+    except ImportError:   # pragma: no cover - under NUMBA_ENABLE_CUDASIM
+        caching = None
+    if caching is not None:
+        cache_outside_the_package(caching)
+    warnings.filterwarnings("ignore", message="Grid size .* will likely result in GPU under-utilization")
 
 
 def memory_budget(resident_bytes: float, what: str) -> float:

@@ -92,7 +92,8 @@ def compare(size: int = 8, n_views: int = 3, seed: int = 0) -> dict[str, dict[st
             raise RuntimeError(f"{name}: {what} did not run on the GPU: {why}")
         scale = float(np.max(np.abs(cpu)))
         diff = float(np.max(np.abs(cpu.astype(np.float64) - on_gpu)))
-        report[name] = {"max_abs_diff": diff, "max_abs": scale, "ok": bool(diff <= RELATIVE_TOLERANCE * max(scale, 1e-30))}
+        ok = bool(diff <= RELATIVE_TOLERANCE * max(scale, 1e-30))
+        report[name] = {"max_abs_diff": diff, "max_abs": scale, "ok": ok}
     return report
 
 

@@ -20,24 +20,15 @@ Imported only when :func:`ctpipe.gpu.active` is ``"cuda"``.
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 from numba import cuda
 
-from ctpipe._shared.device import memory_budget
-from ctpipe._shared.jit import cache_outside_the_package
+from ctpipe._shared.device import memory_budget, prepare_cuda
 
 __all__ = ["FdkAccumulator"]
 
-try:   # numba-cuda's own caching machinery; the simulator has none
-    from numba.cuda.core import caching as _caching
-except ImportError:   # pragma: no cover - under NUMBA_ENABLE_CUDASIM
-    _caching = None
-if _caching is not None:
-    cache_outside_the_package(_caching)
-# A launch over a few blocks (one view of a few primitives, a handful of rows) is expected here.
-warnings.filterwarnings("ignore", message="Grid size .* will likely result in GPU under-utilization")
+prepare_cuda()
 
 #: Threads of a filter block: the output columns it computes and the row samples it stages at a time.
 _FILTER_THREADS = 128

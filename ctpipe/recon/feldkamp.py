@@ -476,6 +476,12 @@ def fdk(
         finite; an unknown filter; a short scan shorter than 180 deg plus the fan angle.
     ctpipe._shared.resources.ResourceError
         The volume cannot fit in the memory available (checked before it is allocated).
+
+    Notes
+    -----
+    Where :func:`ctpipe.gpu.active` is ``"cuda"`` the weighting, filtering and backprojection
+    run on the GPU (:mod:`ctpipe.recon._cuda`), the same to float32 rounding, with the CPU as
+    the fall-back.
     """
     proj, angles = _validate(projections, geometry, angles_deg, grid, filter, short_scan, progress)
     if truncation not in TRUNCATION:

@@ -20,32 +20,25 @@ answer by running on the CPU.
 from __future__ import annotations
 
 import math
-import warnings
 
 import numba
 import numpy as np
 from numba import cuda
 
-from ctpipe._shared.device import chunk_views, memory_budget
-from ctpipe._shared.jit import cache_outside_the_package
-from ctpipe.sim.primitives import unit_interval
+from ctpipe._shared.device import chunk_views, memory_budget, prepare_cuda
 from ctpipe.sim._joseph import _pixel_ray, _ray_sum, _ray_sum_pair
+from ctpipe.sim._chords import pixel_chords, primitive_pixels, unit_frame_ray
 
 __all__ = ["back", "forward", "forward_pair", "project_primitives"]
 
-try:   # numba-cuda's own caching machinery; the simulator has none
-    from numba.cuda.core import caching as _caching
-except ImportError:   # pragma: no cover - under NUMBA_ENABLE_CUDASIM
-    _caching = None
-if _caching is not None:
-    cache_outside_the_package(_caching)
-# A launch over a few blocks (one view of a few primitives, a handful of rows) is expected here.
-warnings.filterwarnings("ignore", message="Grid size .* will likely result in GPU under-utilization")
+prepare_cuda()
 
 #: Under the simulator the kernels' Python runs as is, and array helpers must be Python too.
 _SIMULATED = bool(numba.config.ENABLE_CUDASIM)
 _ray_sum_d = _ray_sum.py_func if _SIMULATED else _ray_sum
 _ray_sum_pair_d = _ray_sum_pair.py_func if _SIMULATED else _ray_sum_pair
+_primitive_pixels_d = primitive_pixels.py_func if _SIMULATED else primitive_pixels
+_unit_frame_ray_d = unit_frame_ray.py_func if _SIMULATED else unit_frame_ray
 
 _BLOCK_2D = (32, 8, 1)
 
@@ -208,8 +201,9 @@ def _primitives_kernel(out, cos_t, sin_t, kind, centre, maps, corners, density, 
                        cos_tilt, sin_tilt, ss):
     """:func:`ctpipe.sim.projectors._project_primitives` with a block per (primitive, view).
 
-    Every thread works out the primitive's pixel rectangle (the perspective image of its box's
-    corners) and the ray in its unit frame, then takes every ``blockDim``-th pixel of the rectangle.
+    Every thread works out the primitive's pixel rectangle and the ray in its unit frame (the
+    CPU kernel's helpers), then takes every ``blockDim``-th pixel of the rectangle. The CPU
+    kernel's tighter column span of an ellipsoid's rows is left out: pixels outside it add 0.
     """
     n = cuda.blockIdx.x
     v = cuda.blockIdx.y
@@ -218,77 +212,18 @@ def _primitives_kernel(out, cos_t, sin_t, kind, centre, maps, corners, density, 
     s = sin_t[v]
     u0 = u0_v[v]
     v0 = v0_v[v]
-    src0 = -s * sod
-    src2 = -c * sod
-    col_lo = math.inf
-    col_hi = -math.inf
-    row_lo = math.inf
-    row_hi = -math.inf
-    n_behind = 0
-    for k in range(8):
-        x = corners[n, k, 0]
-        y = corners[n, k, 1]
-        z = corners[n, k, 2]
-        depth = s * x + c * z + sod
-        if depth <= 1e-9 * sod:
-            n_behind += 1
-            continue
-        xd = (c * x - s * z) / depth * sdd
-        yd = y / depth * sdd
-        uu = u0 + (cos_tilt * xd + sin_tilt * yd) / pu
-        vv = v0 + (cos_tilt * yd - sin_tilt * xd) / pv
-        col_lo = min(col_lo, uu)
-        col_hi = max(col_hi, uu)
-        row_lo = min(row_lo, vv)
-        row_hi = max(row_hi, vv)
-    if n_behind == 8:
-        return
-    if n_behind:
-        c0, c1, r0, r1 = 0, n_cols - 1, 0, n_rows - 1
-    else:
-        c0 = max(int(math.floor(max(col_lo - 0.5, -1.0))), 0)
-        c1 = min(int(math.ceil(min(col_hi + 0.5, float(n_cols)))), n_cols - 1)
-        r0 = max(int(math.floor(max(row_lo - 0.5, -1.0))), 0)
-        r1 = min(int(math.ceil(min(row_hi + 0.5, float(n_rows)))), n_rows - 1)
+    c0, c1, r0, r1, _ = _primitive_pixels_d(corners, n, c, s, sod, sdd, pu, pv, u0, v0, cos_tilt, sin_tilt, n_rows,
+                                            n_cols)
     if c0 > c1 or r0 > r1:
         return
-    e0 = src0 - centre[n, 0]
-    e1 = -centre[n, 1]
-    e2 = src2 - centre[n, 2]
-    a0 = maps[n, 0, 0] * e0 + maps[n, 0, 1] * e1 + maps[n, 0, 2] * e2
-    a1 = maps[n, 1, 0] * e0 + maps[n, 1, 1] * e1 + maps[n, 1, 2] * e2
-    a2 = maps[n, 2, 0] * e0 + maps[n, 2, 1] * e1 + maps[n, 2, 2] * e2
-    ax0 = maps[n, 0, 0] * c - maps[n, 0, 2] * s
-    ax1 = maps[n, 1, 0] * c - maps[n, 1, 2] * s
-    ax2 = maps[n, 2, 0] * c - maps[n, 2, 2] * s
-    ay0 = maps[n, 0, 1]
-    ay1 = maps[n, 1, 1]
-    ay2 = maps[n, 2, 1]
-    az0 = (maps[n, 0, 0] * s + maps[n, 0, 2] * c) * sdd
-    az1 = (maps[n, 1, 0] * s + maps[n, 1, 2] * c) * sdd
-    az2 = (maps[n, 2, 0] * s + maps[n, 2, 2] * c) * sdd
+    ray = _unit_frame_ray_d(centre, maps, n, c, s, sod, sdd)
     k_n = kind[n]
     rho = density[n] / (ss * ss)
     width = c1 - c0 + 1
-    n_pixels = width * (r1 - r0 + 1)
-    for index in range(cuda.threadIdx.x, n_pixels, cuda.blockDim.x):
+    for index in range(cuda.threadIdx.x, width * (r1 - r0 + 1), cuda.blockDim.x):
         r = r0 + index // width
         col = c0 + index % width
-        total = 0.0
-        for jv in range(ss):
-            bv = (r + (jv + 0.5) / ss - 0.5 - v0) * pv
-            for ju in range(ss):
-                au = (col + (ju + 0.5) / ss - 0.5 - u0) * pu
-                dx = cos_tilt * au - sin_tilt * bv
-                dy = sin_tilt * au + cos_tilt * bv
-                b0 = ax0 * dx + ay0 * dy + az0
-                b1 = ax1 * dx + ay1 * dy + az1
-                b2 = ax2 * dx + ay2 * dy + az2
-                t_in, t_out = unit_interval(k_n, a0, a1, a2, b0, b1, b2)
-                t_in = max(t_in, 0.0)
-                t_out = min(t_out, 1.0)
-                if t_out > t_in:
-                    total += (t_out - t_in) * math.sqrt(dx * dx + dy * dy + sdd * sdd)
+        total = pixel_chords(k_n, ray, r, col, u0, v0, pu, pv, cos_tilt, sin_tilt, sdd, ss)
         if total != 0.0:
             cuda.atomic.add(out, (v, r, col), np.float32(rho * total))
 

@@ -50,8 +50,9 @@ from ctpipe._shared.resources import available_cores, check_fits
 from ctpipe.errors import InputError, ResourceError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.volume import VolumeGrid
+from ctpipe.sim._chords import pixel_chords, primitive_pixels, unit_frame_ray
 from ctpipe.sim._joseph import _pixel_ray, _ray_sum, _ray_sum_pair
-from ctpipe.sim.primitives import KINDS, Primitives, local_maps, unit_interval
+from ctpipe.sim.primitives import KINDS, Primitives, local_maps
 
 __all__ = ["project_analytic", "analytic_work", "voxel_work", "VoxelProjector", "MAX_SUB_RAYS", "MAX_VOXEL_STEPS"]
 
@@ -153,9 +154,8 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
                         cos_tilt, sin_tilt, ss):
     """Add the line integrals of every primitive to ``out`` (V, rows, cols), one view per thread.
 
-    corners : (N, 8, 3) object-frame corners of each primitive's oriented box; their perspective
-    images bound the pixels the primitive can cover (a convex set in front of the source maps
-    into the convex hull of its corners' images).
+    corners : (N, 8, 3) object-frame corners of each primitive's oriented box
+    (:func:`ctpipe.sim._chords.primitive_pixels`).
     u0_v, v0_v : (V,) principal point of every view (pixels).
     cos_tilt, sin_tilt : the detector's in-plane rotation; pixel offsets ``(a pu, b pv)`` from the
     principal point sit at camera ``(ct a pu - st b pv, st a pu + ct b pv)``. With ``(1, 0)`` every
@@ -169,66 +169,13 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
         s = sin_t[v]
         u0 = u0_v[v]
         v0 = v0_v[v]
-        # Source S = -R^T (0, 0, SOD) in the object frame.
-        src0 = -s * sod
-        src2 = -c * sod
         for n in range(n_prim):
-            col_lo = np.inf
-            col_hi = -np.inf
-            row_lo = np.inf
-            row_hi = -np.inf
-            n_behind = 0
-            for k in range(8):
-                x = corners[n, k, 0]
-                y = corners[n, k, 1]
-                z = corners[n, k, 2]
-                depth = s * x + c * z + sod
-                if depth <= 1e-9 * sod:
-                    n_behind += 1
-                    continue
-                xd = (c * x - s * z) / depth * sdd
-                yd = y / depth * sdd
-                uu = u0 + (cos_tilt * xd + sin_tilt * yd) / pu
-                vv = v0 + (cos_tilt * yd - sin_tilt * xd) / pv
-                col_lo = min(col_lo, uu)
-                col_hi = max(col_hi, uu)
-                row_lo = min(row_lo, vv)
-                row_hi = max(row_hi, vv)
-            if n_behind == 8:
-                # Wholly behind the source: no ray from the source to the detector reaches it.
-                continue
-            if n_behind:  # across the source plane: its image is unbounded
-                c0, c1, r0, r1 = 0, n_cols - 1, 0, n_rows - 1
-            else:
-                # Sub-rays sit within half a pixel of the pixel centre.
-                c0 = int(math.floor(max(col_lo - 0.5, -1.0)))
-                c1 = int(math.ceil(min(col_hi + 0.5, float(n_cols))))
-                r0 = int(math.floor(max(row_lo - 0.5, -1.0)))
-                r1 = int(math.ceil(min(row_hi + 0.5, float(n_rows))))
-                c0 = max(c0, 0)
-                r0 = max(r0, 0)
-                c1 = min(c1, n_cols - 1)
-                r1 = min(r1, n_rows - 1)
+            c0, c1, r0, r1, n_behind = primitive_pixels(corners, n, c, s, sod, sdd, pu, pv, u0, v0, cos_tilt,
+                                                         sin_tilt, n_rows, n_cols)
             if c0 > c1 or r0 > r1:
                 continue
-            m = maps[n]
-            # Unit-frame ray: a = M (S - centre), b = M R^T d_cam = A d_cam.
-            e0 = src0 - centre[n, 0]
-            e1 = -centre[n, 1]
-            e2 = src2 - centre[n, 2]
-            a0 = m[0, 0] * e0 + m[0, 1] * e1 + m[0, 2] * e2
-            a1 = m[1, 0] * e0 + m[1, 1] * e1 + m[1, 2] * e2
-            a2 = m[2, 0] * e0 + m[2, 1] * e1 + m[2, 2] * e2
-            # A = M R^T with R^T = [[c, 0, s], [0, 1, 0], [-s, 0, c]].
-            ax0 = m[0, 0] * c - m[0, 2] * s
-            ax1 = m[1, 0] * c - m[1, 2] * s
-            ax2 = m[2, 0] * c - m[2, 2] * s
-            ay0 = m[0, 1]
-            ay1 = m[1, 1]
-            ay2 = m[2, 1]
-            az0 = (m[0, 0] * s + m[0, 2] * c) * sdd
-            az1 = (m[1, 0] * s + m[1, 2] * c) * sdd
-            az2 = (m[2, 0] * s + m[2, 2] * c) * sdd
+            ray = unit_frame_ray(centre, maps, n, c, s, sod, sdd)
+            a0, a1, a2, ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = ray
             k_n = kind[n]
             rho = density[n] * inv_ss2
             # An ellipsoid in front of the source images to an ellipse: its rows give tighter
@@ -253,22 +200,7 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
                     cr0 = max(cr0, c0)
                     cr1 = min(cr1, c1)
                 for col in range(cr0, cr1 + 1):
-                    total = 0.0
-                    for jv in range(ss):
-                        bv = (r + (jv + 0.5) / ss - 0.5 - v0) * pv
-                        for ju in range(ss):
-                            au = (col + (ju + 0.5) / ss - 0.5 - u0) * pu
-                            dx = cos_tilt * au - sin_tilt * bv
-                            dy = sin_tilt * au + cos_tilt * bv
-                            b0 = ax0 * dx + ay0 * dy + az0
-                            b1 = ax1 * dx + ay1 * dy + az1
-                            b2 = ax2 * dx + ay2 * dy + az2
-                            t_in, t_out = unit_interval(k_n, a0, a1, a2, b0, b1, b2)
-                            # Only the segment from the source (t = 0) to the detector (t = 1).
-                            t_in = max(t_in, 0.0)
-                            t_out = min(t_out, 1.0)
-                            if t_out > t_in:
-                                total += (t_out - t_in) * math.sqrt(dx * dx + dy * dy + sdd * sdd)
+                    total = pixel_chords(k_n, ray, r, col, u0, v0, pu, pv, cos_tilt, sin_tilt, sdd, ss)
                     if total != 0.0:
                         out[v, r, col] += np.float32(rho * total)
 
@@ -669,7 +601,9 @@ class VoxelProjector:
     (``<A x, y> = <x, A^T y>`` up to float32 rounding), which is what iterative reconstruction
     needs; ``back`` is not a filtered backprojection (see :func:`ctpipe.recon.feldkamp.fdk`). The forward
     projection runs a view per thread; the back projection scatters into one volume buffer per
-    thread (memory: threads x 2 padded volumes).
+    thread (memory: threads x 2 padded volumes). Where :func:`ctpipe.gpu.active` is ``"cuda"``
+    both run on the GPU (:mod:`ctpipe.sim._cuda`: a ray per thread, the same ray stepping), with
+    the CPU as the fall-back.
     """
 
     def __init__(self, geometry: Geometry, grid: VolumeGrid) -> None:
@@ -790,7 +724,8 @@ class VoxelProjector:
             from ctpipe.sim import _cuda
 
             try:
-                # The layouts are placed on the GPU now; each chunk is projected as it is asked for.
+                # The layouts go to the GPU and the first chunk is projected here, so that a GPU that
+                # refuses the work hands it to the CPU now; the other chunks as they are asked for.
                 chunks = _cuda.forward_pair((vol_x, vol_z, vol_y), common[0], common[1], common[2:],
                                              self._geometry.shape, n_chunk)
                 first_chunk = next(chunks, None)
