@@ -6,7 +6,12 @@
 #   3. the default `ctpipe validate` on the GPU twice (cold: kernels compiled; warm), then on the
 #      CPU: the timings, and whether the two devices give the same angles.
 # Results go to $OUT (default /tmp/ctpipe-gpu). Wheels in .whl/ (numpy < 2.5 for numba-cuda,
-# olefile, diffct) are installed first when present, for a machine with no network.
+# olefile, diffct) are installed first when present, for a machine with no network; on the
+# device tool's image (Python 3.12, numba-cuda 0.30.4, numpy 2.5, torch) they were fetched with
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#       --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 -d .whl \
+#       numpy==2.4.6 olefile diffct==2.5.0
+# (17 MB; .whl/ ignored by git, carried with the run). The whole script took 589 s on an H100.
 #
 #     bash benchmarks/gpu_machine.sh
 set -u

@@ -850,6 +850,8 @@ def _run(args) -> int:
     try:
         _name_leftovers(args)
         device = getattr(args, "device", None)
+        if device is None:
+            gpu.requested()   # a bad CTPIPE_DEVICE is bad input: said now, before any work
         with gpu.use(device) if device is not None else contextlib.nullcontext():
             return args.run(args)
     except CtpipeError as exc:

@@ -104,3 +104,12 @@ def gpu_check_tolerance() -> float:
     from ctpipe.gpu.check import RELATIVE_TOLERANCE
 
     return RELATIVE_TOLERANCE
+
+
+def test_a_bad_device_in_the_environment_is_one_line_before_any_work(monkeypatch, capsys, tmp_path):
+    monkeypatch.setenv("CTPIPE_DEVICE", "gpu")
+    out = tmp_path / "out"
+    assert main(["validate", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == "ctpipe: error: CTPIPE_DEVICE: must be one of auto, cpu, cuda, got 'gpu'\n"
+    assert not out.exists()
