@@ -334,6 +334,30 @@ def _difference_of_gaussians(images, fine_taps, coarse_taps, out):
             _add_blurred_across(coarse[i], coarse_taps, -1.0, padded_coarse, row)
 
 
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
+def _normal_equations(columns, residual, gram, rhs):
+    """Per view, ``gram[v, a, b] = <columns[v, a], columns[v, b]>`` and ``rhs[v, a] = <columns[v, a], residual[v]>``.
+
+    columns (V, K, rows, cols) and residual (V, rows, cols) float32; the sums in float64, the
+    views in parallel (NumPy's ``einsum`` of the same runs on one thread).
+    """
+    n_views, size, rows, cols = columns.shape
+    for v in prange(n_views):
+        for a in range(size):
+            for b in range(a, size):
+                total = 0.0
+                for i in range(rows):
+                    for j in range(cols):
+                        total += np.float64(columns[v, a, i, j]) * np.float64(columns[v, b, i, j])
+                gram[v, a, b] = total
+                gram[v, b, a] = total
+            total = 0.0
+            for i in range(rows):
+                for j in range(cols):
+                    total += np.float64(columns[v, a, i, j]) * np.float64(residual[v, i, j])
+            rhs[v, a] = total
+
+
 def as_line_integrals(projections: np.ndarray) -> tuple[np.ndarray, bool]:
     """Projections as line integrals (dark object on a bright field is taken as intensities).
 
@@ -552,8 +576,7 @@ class _Level:
                 if not shifts:
                     columns.append(-grad_u)
             stack = np.stack(columns, axis=1)
-            gram[part] = np.einsum("vaij,vbij->vab", stack, stack, dtype=np.float64)
-            rhs[part] = np.einsum("vaij,vij->va", stack, residual, dtype=np.float64)
+            _normal_equations(stack, np.ascontiguousarray(residual), gram[part], rhs[part])
             lone = slope if not shifts else _project_out(slope, stack[:, 1:3])
             lone_energy = np.einsum("vij,vij->v", lone, lone, dtype=np.float64)
             lone_num = np.einsum("vij,vij->v", lone, residual, dtype=np.float64)
