@@ -249,8 +249,8 @@ def tangential_derivative(volume: np.ndarray, grid: VolumeGrid) -> np.ndarray:
     ``V(R(delta)^-1 X)``, whose derivative at 0 is ``z dV/dx - x dV/dz`` (per radian). Its
     projection at ``theta`` is the derivative of the projection with respect to ``theta``.
     """
-    dv_dz = np.gradient(volume, grid.voxel_size_mm, axis=1)
-    dv_dx = np.gradient(volume, grid.voxel_size_mm, axis=2)
+    # (n_y, n_z, n_x): x along the last axis, z along the middle one; np.gradient's numbers, in parallel.
+    dv_dx, dv_dz = _image_gradients(np.ascontiguousarray(volume, dtype=np.float32), grid.voxel_size_mm)
     x = grid.axis_mm("x").astype(np.float32)[None, None, :]
     z = grid.axis_mm("z").astype(np.float32)[None, :, None]
     return (np.float32(math.pi / 180.0) * (z * dv_dx - x * dv_dz)).astype(np.float32)
@@ -356,6 +356,31 @@ def _normal_equations(columns, residual, gram, rhs):
                 for j in range(cols):
                     total += np.float64(columns[v, a, i, j]) * np.float64(residual[v, i, j])
             rhs[v, a] = total
+
+
+@njit(parallel=True, cache=True)
+def _image_gradients(images, spacing):
+    """``(np.gradient(images, spacing, axis=2), np.gradient(images, spacing, axis=1))`` of a (V, rows,
+    cols) float32 stack, the images in parallel: central differences inside, one-sided at the
+    edges, in float32 as NumPy computes them (the same numbers)."""
+    n_images, rows, cols = images.shape
+    along_u = np.empty_like(images)
+    along_v = np.empty_like(images)
+    inner = np.float32(2.0 * spacing)
+    edge = np.float32(spacing)
+    for k in prange(n_images):
+        for i in range(rows):
+            for j in range(1, cols - 1):
+                along_u[k, i, j] = (images[k, i, j + 1] - images[k, i, j - 1]) / inner
+            along_u[k, i, 0] = (images[k, i, 1] - images[k, i, 0]) / edge
+            along_u[k, i, cols - 1] = (images[k, i, cols - 1] - images[k, i, cols - 2]) / edge
+        for i in range(1, rows - 1):
+            for j in range(cols):
+                along_v[k, i, j] = (images[k, i + 1, j] - images[k, i - 1, j]) / inner
+        for j in range(cols):
+            along_v[k, 0, j] = (images[k, 1, j] - images[k, 0, j]) / edge
+            along_v[k, rows - 1, j] = (images[k, rows - 1, j] - images[k, rows - 2, j]) / edge
+    return along_u, along_v
 
 
 def as_line_integrals(projections: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -566,7 +591,7 @@ class _Level:
             slope = band_pass(projected_slope, *self.band_px)
             columns = [slope]
             if shifts or detector:
-                grad_u, grad_v = np.gradient(model, axis=2), np.gradient(model, axis=1)
+                grad_u, grad_v = _image_gradients(np.ascontiguousarray(model, dtype=np.float32), 1.0)
             if shifts:
                 # A view shifted by +d shows model(u - d) = model - d * d(model)/du.
                 columns += [-grad_u, -grad_v]

@@ -338,3 +338,19 @@ def test_band_pass_is_scipys_difference_of_gaussians(shape, band):
     expected = fine - gaussian_filter(images, (0, high, high))
     np.testing.assert_allclose(band_pass(images, low, high), expected, atol=2e-6)
     np.testing.assert_allclose(band_pass(images[0], low, high), expected[0], atol=2e-6)
+
+
+def test_the_parallel_gradients_and_normal_equations_are_numpys():
+    from ctpipe.solve.reprojection import _image_gradients, _normal_equations
+
+    rng = np.random.default_rng(4)
+    images = rng.normal(size=(3, 17, 23)).astype(np.float32)
+    for spacing in (1.0, 0.37):
+        along_u, along_v = _image_gradients(images, spacing)
+        np.testing.assert_array_equal(along_u, np.gradient(images, spacing, axis=2))
+        np.testing.assert_array_equal(along_v, np.gradient(images, spacing, axis=1))
+    columns = rng.normal(size=(3, 4, 17, 23)).astype(np.float32)
+    gram, rhs = np.zeros((3, 4, 4)), np.zeros((3, 4))
+    _normal_equations(columns, images, gram, rhs)
+    np.testing.assert_allclose(gram, np.einsum("vaij,vbij->vab", columns, columns, dtype=np.float64), rtol=1e-12)
+    np.testing.assert_allclose(rhs, np.einsum("vaij,vij->va", columns, images, dtype=np.float64), rtol=1e-12)
