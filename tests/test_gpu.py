@@ -19,6 +19,7 @@ from ctpipe import Pipeline, gpu
 from ctpipe._shared import device
 from ctpipe.cli import main
 from ctpipe.errors import ConfigError, InputError
+from ctpipe.gpu.check import RELATIVE_TOLERANCE
 
 HAS_NUMBA_CUDA = importlib.util.find_spec("numba_cuda") is not None
 
@@ -96,14 +97,8 @@ def test_every_kernel_gives_the_cpu_answer_in_the_simulator():
     assert set(report) == {"forward", "forward_pair", "back", "fdk", "fdk_wide_extended", "fdk_short_scan", "analytic"}
     for name, entry in report.items():
         assert entry["max_abs"] > 0.1, name   # the scene reaches every kernel
-        assert entry["max_abs_diff"] <= gpu_check_tolerance() * entry["max_abs"], (name, entry)
+        assert entry["max_abs_diff"] <= RELATIVE_TOLERANCE * entry["max_abs"], (name, entry)
     assert done.returncode == 0
-
-
-def gpu_check_tolerance() -> float:
-    from ctpipe.gpu.check import RELATIVE_TOLERANCE
-
-    return RELATIVE_TOLERANCE
 
 
 def test_a_bad_device_in_the_environment_is_one_line_before_any_work(monkeypatch, capsys, tmp_path):

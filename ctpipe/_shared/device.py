@@ -42,7 +42,7 @@ from typing import Iterator
 
 from ctpipe.errors import InputError
 
-__all__ = ["DEVICES", "FALLBACKS", "DeviceMemoryError", "Selection", "active", "chunk_views", "fall_back",
+__all__ = ["DEVICES", "FALLBACKS", "DeviceMemoryError", "Selection", "active", "blocks_for", "chunk_views", "fall_back",
            "memory_budget", "prepare_cuda", "select", "set_default", "use"]
 
 #: What a user may ask for: ``--device``, a pipeline's ``device:`` key, ``CTPIPE_DEVICE``.
@@ -72,10 +72,11 @@ def check_device(value, path: str = "device") -> str:
 def _cuda_status() -> tuple[bool, bool, str]:
     """(usable, simulated, reason it is not usable): numba-cuda importable and a device seen."""
     try:
+        import numba
         from numba import cuda
     except Exception as exc:  # noqa: BLE001 - any import failure means: no GPU route here
         return False, False, f"numba-cuda cannot be imported ({type(exc).__name__}: {exc}); pip install 'ctpipe[gpu]'"
-    simulated = bool(getattr(cuda, "simulator_enabled", False)) or os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+    simulated = bool(numba.config.ENABLE_CUDASIM)
     try:
         available = bool(cuda.is_available())
     except Exception as exc:  # noqa: BLE001 - a broken driver reads as no device
@@ -199,6 +200,11 @@ def memory_budget(resident_bytes: float, what: str) -> float:
     if left <= 0:
         raise DeviceMemoryError(f"{what} needs {resident_bytes / 2**30:.1f} GiB on the GPU, more than its free memory")
     return left
+
+
+def blocks_for(shape: tuple[int, ...], block: tuple[int, ...]) -> tuple[int, ...]:
+    """CUDA blocks of ``block`` threads covering ``shape`` (both fastest axis first)."""
+    return tuple((n + b - 1) // b for n, b in zip(shape, block))
 
 
 def chunk_views(per_view_bytes: float, budget_bytes: float, n_views: int, most: int | None = None) -> int:

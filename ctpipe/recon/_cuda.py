@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import cuda
 
-from ctpipe._shared.device import memory_budget, prepare_cuda
+from ctpipe._shared.device import blocks_for, memory_budget, prepare_cuda
 
 __all__ = ["FdkAccumulator"]
 
@@ -138,14 +138,20 @@ class FdkAccumulator:
         The ramp filter's spatial taps, scale included.
     cosine : ndarray of shape (rows, cols)
         Feldkamp's cosine pre-weight.
+    chunk_views : int
+        The most views one :meth:`add` takes (room is planned for a chunk of views, filtered
+        views and weights).
+    roll_offs, n_edge
+        :func:`ctpipe.recon.feldkamp._roll_offs`' fall and rise and the edge samples averaged,
+        to extend truncated rows; None: rows not extended.
     """
 
     def __init__(self, shape: tuple[int, int, int], xs: np.ndarray, zs: np.ndarray, y0: float, dy: float,
-                 constants: tuple, taps: np.ndarray, cosine: np.ndarray,
+                 constants: tuple, taps: np.ndarray, cosine: np.ndarray, chunk_views: int,
                  roll_offs: tuple[np.ndarray, np.ndarray] | None = None, n_edge: int = 3) -> None:
         rows, cols = cosine.shape
-        memory_budget(4.0 * (math.prod(shape) + 3 * 32 * (rows + 2) * (cols + 2) + taps.size + cosine.size),
-                      "reconstructing the volume")
+        filtered = 3 * chunk_views * (rows + 2) * (cols + 2)
+        memory_budget(4.0 * (math.prod(shape) + filtered + taps.size + cosine.size), "reconstructing the volume")
         self._acc = cuda.to_device(np.zeros(shape, dtype=np.float32))
         self._xs = cuda.to_device(np.ascontiguousarray(xs, dtype=np.float64))
         self._zs = cuda.to_device(np.ascontiguousarray(zs, dtype=np.float64))
@@ -175,14 +181,12 @@ class FdkAccumulator:
             share = self._ones
         else:
             share = cuda.to_device(np.ascontiguousarray(redundancy, dtype=np.float32))
-        grid = ((cols + _FILTER_THREADS - 1) // _FILTER_THREADS, rows, n_views)
-        _ramp_kernel[grid, _FILTER_THREADS](self._filtered, cuda.to_device(np.ascontiguousarray(views,
+        _ramp_kernel[blocks_for((cols, rows, n_views), (_FILTER_THREADS, 1, 1)), _FILTER_THREADS](self._filtered, cuda.to_device(np.ascontiguousarray(views,
                                                                                                 dtype=np.float32)),
                                             self._cosine, share, self._taps, *self._roll, self._n_edge)
         n_x, n_z, n_y = self._acc.shape
         block = (64, 4, 1)
-        grid = tuple((n + b - 1) // b for n, b in zip((n_y, n_z, n_x), block))
-        _fdk_kernel[grid, block](self._acc, self._filtered,
+        _fdk_kernel[blocks_for((n_y, n_z, n_x), block), block](self._acc, self._filtered,
                                  cuda.to_device(np.ascontiguousarray(cos_t, dtype=np.float64)),
                                  cuda.to_device(np.ascontiguousarray(sin_t, dtype=np.float64)),
                                  cuda.to_device(np.ascontiguousarray(weight, dtype=np.float64)),

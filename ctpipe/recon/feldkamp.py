@@ -525,12 +525,10 @@ def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_
     constants = (sod, sdd / pu, sdd / pv, geometry.u0_px + 1.0, geometry.v0_px + 1.0)
 
     def backproject_all(add) -> None:
+        """``add(part)`` for every chunk of views, in order, saying how far it got."""
         for start in range(0, theta.size, _CHUNK_VIEWS):
             part = slice(start, min(start + _CHUNK_VIEWS, theta.size))
-            pre = cosine[None, :, :]
-            if redundancy is not None:
-                pre = pre * redundancy[part, None, :].astype(np.float32)
-            add(_filter_views(proj[part], pre, n_pad, response, scale, extend), part)
+            add(part)
             if progress is not None:
                 progress(part.stop - part.start)
 
@@ -541,20 +539,22 @@ def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_
             # The GPU filters too: the same circular convolution as the FFT, by its spatial taps.
             taps = sp_fft.irfft((response * scale).astype(np.float32), n=n_pad).astype(np.float32)
             on_gpu = FdkAccumulator(shape, xs, zs, float(ys[0]), grid.voxel_size_mm, constants, taps, cosine,
-                                    _roll_offs(cols, n_pad) if extend else None, _EDGE_COLUMNS)
-            for start in range(0, theta.size, _CHUNK_VIEWS):
-                part = slice(start, min(start + _CHUNK_VIEWS, theta.size))
-                on_gpu.add(proj[part], None if redundancy is None else redundancy[part], np.cos(theta[part]),
-                           np.sin(theta[part]), intervals[part])
-                if progress is not None:
-                    progress(part.stop - part.start)
+                                    _CHUNK_VIEWS, _roll_offs(cols, n_pad) if extend else None, _EDGE_COLUMNS)
+            backproject_all(lambda part: on_gpu.add(proj[part], None if redundancy is None else redundancy[part],
+                                                    np.cos(theta[part]), np.sin(theta[part]), intervals[part]))
             return _to_volume_layout(on_gpu.result())
         except Exception as error:  # noqa: BLE001 - memory, driver, compiler: the CPU answers
             device.fall_back("FDK", error)
     acc = np.zeros(shape, dtype=np.float32)
-    backproject_all(lambda filtered, part: _backproject(acc, filtered, np.cos(theta[part]), np.sin(theta[part]),
-                                                        intervals[part], xs, zs, float(ys[0]), grid.voxel_size_mm,
-                                                        *constants))
+
+    def add(part: slice) -> None:
+        pre = cosine[None, :, :]
+        if redundancy is not None:
+            pre = pre * redundancy[part, None, :].astype(np.float32)
+        _backproject(acc, _filter_views(proj[part], pre, n_pad, response, scale, extend), np.cos(theta[part]),
+                     np.sin(theta[part]), intervals[part], xs, zs, float(ys[0]), grid.voxel_size_mm, *constants)
+
+    backproject_all(add)
     return _to_volume_layout(acc)
 
 

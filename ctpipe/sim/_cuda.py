@@ -25,7 +25,7 @@ import numba
 import numpy as np
 from numba import cuda
 
-from ctpipe._shared.device import chunk_views, memory_budget, prepare_cuda
+from ctpipe._shared.device import blocks_for, chunk_views, memory_budget, prepare_cuda
 from ctpipe.sim._joseph import _pixel_ray, _ray_sum, _ray_sum_pair
 from ctpipe.sim._chords import pixel_chords, primitive_pixels, unit_frame_ray
 
@@ -40,12 +40,13 @@ _ray_sum_pair_d = _ray_sum_pair.py_func if _SIMULATED else _ray_sum_pair
 _primitive_pixels_d = primitive_pixels.py_func if _SIMULATED else primitive_pixels
 _unit_frame_ray_d = unit_frame_ray.py_func if _SIMULATED else unit_frame_ray
 
+#: Threads of a ray block: columns, rows and views of the detector.
 _BLOCK_2D = (32, 8, 1)
 
 
-def _grid(shape: tuple[int, int, int], block=_BLOCK_2D) -> tuple[int, int, int]:
-    """Blocks covering ``shape`` given fastest axis first."""
-    return tuple((n + b - 1) // b for n, b in zip(shape, block))
+def _grid(shape: tuple[int, int, int]) -> tuple[int, ...]:
+    """Ray blocks covering ``(cols, rows, views)``."""
+    return blocks_for(shape, _BLOCK_2D)
 
 
 # --------------------------------------------------------------------------- voxel projector
