@@ -204,6 +204,7 @@ class ProjectionMatchingRefiner(Refiner):
             chosen = best if best == reference or scores[best].z < -HELD_OUT_Z else reference
             angles = candidates[chosen]
             info["held_out"] = {name: score.to_dict() for name, score in scores.items()}
+            info["matching"]["held_out_binning"] = result.held_out_binning * prebin
             info["consistency_cost"] = {name: score.cost for name, score in scores.items()}
         info["matching"]["seconds"] = time.perf_counter() - begin
         info["chosen"] = chosen

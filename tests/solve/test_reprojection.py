@@ -13,7 +13,8 @@ from ctpipe.sim.phantoms import load_phantom
 from ctpipe.sim.projectors import VoxelProjector
 from ctpipe.sim.scan_spec import parse_scan_spec
 from ctpipe.sim.simulator import simulate
-from ctpipe.solve.reprojection import (as_line_integrals, band_pass, consistency_costs, projection_matching,
+from ctpipe.solve.reprojection import (HELD_OUT_DECISIVE_Z, HeldOutScore, as_line_integrals, band_pass,
+                                       consistency_costs, held_out_decisive, projection_matching,
                                        reconstruction_grid, tangential_derivative)
 from ctpipe.testing import check_refiner
 
@@ -105,6 +106,28 @@ def test_projection_matching_recovers_the_jitter_from_the_nominal_angles(scan):
                                                                 "nan": np.full_like(nominal, np.nan)}, binning=2,
                               max_voxels=96)
     assert costs["matched"] < costs["nominal"] and costs["nan"] == np.inf
+
+
+def test_the_held_out_test_decides_at_the_coarse_level_only_when_that_is_decisive(scan):
+    nominal = scan.nominal_angles_deg
+    args = dict(binning=(2, 1), iterations=(1, 1), max_voxels=96)
+    clear = projection_matching(scan.projections, scan.geometry, nominal, compare={"nominal": nominal}, **args)
+    assert clear.held_out_binning == 2 and clear.held_out["matched"].z < -HELD_OUT_DECISIVE_Z
+    # A second angle set no different from the reference (z 0) leaves the coarse level in doubt:
+    # the finest level scores them all, and agrees on the matched angles.
+    doubt = projection_matching(scan.projections, scan.geometry, nominal,
+                                compare={"nominal": nominal, "copy": nominal.copy()}, **args)
+    assert doubt.held_out_binning == 1 and doubt.held_out["copy"].z == 0.0
+    assert doubt.held_out["matched"].z < -2.0
+    np.testing.assert_array_equal(doubt.angles_deg, clear.angles_deg)
+
+
+def test_held_out_decisive_asks_every_angle_set_to_be_past_the_margin_either_way():
+    def scores(*zs):
+        return {"nominal": HeldOutScore(1.0), **{f"s{k}": HeldOutScore(1.0, z, 1.0) for k, z in enumerate(zs)}}
+
+    assert held_out_decisive(scores(-6.0), "nominal") and held_out_decisive(scores(7.5, -30.0), "nominal")
+    assert not held_out_decisive(scores(-5.9), "nominal") and not held_out_decisive(scores(-20.0, 1.0), "nominal")
 
 
 def test_the_standard_errors_cover_the_errors_and_grow_with_the_noise(scan):
