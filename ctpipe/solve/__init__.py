@@ -27,9 +27,9 @@ from ctpipe.solve.graph import (PairGraphSolution, chain_pair_angles, covers_ful
                                 solve_view_graph, turn_pairs, unwrap_pair_angles_deg, view_pairs)
 from ctpipe.solve.losses import LOSSES, check_loss, robust_loss, robust_weight
 from ctpipe.solve.pairs import one_to_one, pair_estimate
-from ctpipe.solve.reprojection import (HELD_OUT_Z, HeldOutScore, ProjectionMatchingResult, consistency_costs, held_out_scores,
-                                       matching_levels, projection_matching, static_part, static_part_applies,
-                                       step_cap_deg)
+from ctpipe.solve.reprojection import (HELD_OUT_DECISIVE_Z, HELD_OUT_Z, HeldOutScore, ProjectionMatchingResult,
+                                       consistency_costs, held_out_decisive, held_out_scores, matching_levels,
+                                       projection_matching, static_part, static_part_applies, step_cap_deg)
 from ctpipe.solve.simulated import SyntheticScan, synthetic_scan
 from ctpipe.solve.tracks import Tracks, build_tracks, extend_tracks, static_tracks, triangulate_tracks
 
@@ -38,7 +38,7 @@ __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pai
            "one_to_one", "Tracks", "build_tracks", "extend_tracks", "static_tracks",
            "triangulate_tracks", "bundle_adjust", "solve_bundle", "BundleResult", "BundleSettings", "BundleSolution",
            "projection_matching", "consistency_costs", "matching_levels", "ProjectionMatchingResult",
-           "HELD_OUT_Z", "HeldOutScore", "held_out_scores", "static_part", "static_part_applies", "step_cap_deg",
+           "HELD_OUT_Z", "HELD_OUT_DECISIVE_Z", "HeldOutScore", "held_out_scores", "held_out_decisive", "static_part", "static_part_applies", "step_cap_deg",
            "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "midplane_row", "conjugate_pairs",
            "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "gate_angles", "GateDecision",
            "split_bands", "needed_z", "cannot_tell", "BANDS", "calibrate_balls", "BallCalibration", "ellipse_centres"]
