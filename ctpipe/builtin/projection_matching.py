@@ -175,7 +175,7 @@ class ProjectionMatchingRefiner(Refiner):
         # The matched angles are judged against the others on views left out of the reference
         # they are compared with (a reference bends towards the angles it is built from).
         # (The nominal angles only, or the start without them: a start the matching began from
-        # and improved on is not worth another pair of reconstructions at the finest level.)
+        # and improved on is not worth another pair of reconstructions in the held-out test.)
         compare = ({"nominal": candidates["nominal"]} if "nominal" in candidates else
                    {"start": candidates["start"]}) if self.select else None
         result = projection_matching(projections, geometry, candidates[origin],
