@@ -38,7 +38,8 @@ __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pai
            "one_to_one", "Tracks", "build_tracks", "extend_tracks", "static_tracks",
            "triangulate_tracks", "bundle_adjust", "solve_bundle", "BundleResult", "BundleSettings", "BundleSolution",
            "projection_matching", "consistency_costs", "matching_levels", "ProjectionMatchingResult",
-           "HELD_OUT_Z", "HELD_OUT_DECISIVE_Z", "HeldOutScore", "held_out_scores", "held_out_decisive", "static_part", "static_part_applies", "step_cap_deg",
+           "HELD_OUT_Z", "HELD_OUT_DECISIVE_Z", "HeldOutScore", "held_out_scores", "held_out_decisive",
+           "static_part", "static_part_applies", "step_cap_deg",
            "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "midplane_row", "conjugate_pairs",
            "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "gate_angles", "GateDecision",
            "split_bands", "needed_z", "cannot_tell", "BANDS", "calibrate_balls", "BallCalibration", "ellipse_centres"]

@@ -127,8 +127,8 @@ class ProjectionMatchingResult:
     held_out : dict of str to HeldOutScore or None
         With ``compare``: the matched angles (``matched``) and every angle set compared, scored
         on held-out views with the detector found (:meth:`_Level.held_out`), each against the
-        first set compared: at the coarsest level where that is decisive (:func:`held_out_decisive`), else
-        at the finest; else None.
+        first set compared: at the coarsest level where that is decisive
+        (:func:`held_out_decisive`), else at the finest; else None.
     held_out_binning : int or None
         The binning (of the projections given) the held-out scores were made at; None without
         ``compare``.
