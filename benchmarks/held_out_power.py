@@ -36,13 +36,8 @@ from ctpipe.sim.simulator import simulate
 
 def held_out_z(level, nominal, truth, folds: int) -> tuple[float, float]:
     """z of the true and of the half-way angles against the nominal ones, with ``folds`` folds."""
-    plain = reprojection._Level.held_out
-    reprojection._Level.held_out = lambda self, angles, folds_=2: plain(self, angles, folds=folds)
-    try:
-        scores = reprojection.held_out_scores(level, {"nominal": nominal, "truth": truth,
-                                                      "half": nominal + 0.5 * (truth - nominal)}, "nominal")
-    finally:
-        reprojection._Level.held_out = plain
+    scores = reprojection.held_out_scores(level, {"nominal": nominal, "truth": truth,
+                                                  "half": nominal + 0.5 * (truth - nominal)}, "nominal", folds)
     return scores["truth"].z, scores["half"].z
 
 

@@ -181,12 +181,14 @@ class FdkAccumulator:
             share = self._ones
         else:
             share = cuda.to_device(np.ascontiguousarray(redundancy, dtype=np.float32))
-        _ramp_kernel[blocks_for((cols, rows, n_views), (_FILTER_THREADS, 1, 1)), _FILTER_THREADS](self._filtered, cuda.to_device(np.ascontiguousarray(views,
+        grid = blocks_for((cols, rows, n_views), (_FILTER_THREADS, 1, 1))
+        _ramp_kernel[grid, _FILTER_THREADS](self._filtered, cuda.to_device(np.ascontiguousarray(views,
                                                                                                 dtype=np.float32)),
                                             self._cosine, share, self._taps, *self._roll, self._n_edge)
         n_x, n_z, n_y = self._acc.shape
         block = (64, 4, 1)
-        _fdk_kernel[blocks_for((n_y, n_z, n_x), block), block](self._acc, self._filtered,
+        grid = blocks_for((n_y, n_z, n_x), block)
+        _fdk_kernel[grid, block](self._acc, self._filtered,
                                  cuda.to_device(np.ascontiguousarray(cos_t, dtype=np.float64)),
                                  cuda.to_device(np.ascontiguousarray(sin_t, dtype=np.float64)),
                                  cuda.to_device(np.ascontiguousarray(weight, dtype=np.float64)),

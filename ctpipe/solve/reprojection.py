@@ -182,11 +182,13 @@ class HeldOutScore:
         return {"cost": self.cost, "delta": self.delta, "delta_se": self.delta_se, "dof": self.dof, "z": self.z}
 
 
-def held_out_scores(level: "_Level", candidates: dict[str, np.ndarray], reference: str) -> dict[str, HeldOutScore]:
-    """:class:`HeldOutScore` of every candidate angle set (degrees) at one level, against ``reference``."""
+def held_out_scores(level: "_Level", candidates: dict[str, np.ndarray], reference: str,
+                    folds: int = 2) -> dict[str, HeldOutScore]:
+    """:class:`HeldOutScore` of every candidate angle set (degrees) at one level, against ``reference``,
+    each view predicted from the views of the other ``folds - 1`` folds (:meth:`_Level.held_out`)."""
     from ctpipe.solve.conjugate import _blocked_se
 
-    energies = {name: level.held_out(angles) for name, angles in candidates.items()}
+    energies = {name: level.held_out(angles, folds) for name, angles in candidates.items()}
     base, data = energies[reference]
     total = max(float(data.sum()), 1e-300)
     scores = {}
@@ -947,19 +949,20 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
         # per-view shifts: those were fitted with the matched angles, and would favour them.
         common = np.zeros_like(shifts_px)
         common[:, 0] = _axis_part(shifts_px[:, 0], theta) if shifts or detector else 0.0
-        scores, scored_at = None, level.binning
+
+        def scored(at: _Level) -> tuple[dict[str, HeldOutScore], int]:
+            at.align(common / at.binning, tilt)
+            return held_out_scores(at, candidates, reference), at.binning
+
+        scores = None
         if len(binning) > 1 and int(binning[0]) != level.binning:
             # Two stages: the coarsest level first (a sixth of the cost or less), the finest only
             # where the coarse one leaves the answer in doubt (`HELD_OUT_DECISIVE_Z`).
-            coarse = _Level(data, geometry, int(binning[0]), int(max_voxels), band_px, filter)
-            coarse.align(common / coarse.binning, tilt)
-            scores, scored_at = held_out_scores(coarse, candidates, reference), coarse.binning
-            del coarse
+            scores, scored_at = scored(_Level(data, geometry, int(binning[0]), int(max_voxels), band_px, filter))
             if not held_out_decisive(scores, reference):
-                scores, scored_at = None, level.binning
+                scores = None
         if scores is None:
-            level.align(common / level.binning, tilt)
-            scores = held_out_scores(level, candidates, reference)
+            scores, scored_at = scored(level)
         result = dataclasses.replace(result, held_out=scores, held_out_binning=scored_at)
     return result
 
