@@ -30,7 +30,7 @@ from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.model import wrap_deg
 from ctpipe.recon.feldkamp import bin_detector, binned_geometry, fdk
 from ctpipe.recon.volume import VolumeGrid
-from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_ray_costs, midplane_row
+from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_ray_costs, midplane_row, turning_part
 from ctpipe.solve.reprojection import as_line_integrals
 
 __all__ = ["BeforeAfter", "before_after", "before_after_png"]
@@ -159,8 +159,9 @@ def before_after(projections, geometry: Geometry, nominal_deg, corrected_deg, *,
     search = max(3.0, 0.02 * g.detector_cols) if fit_u0_px is None else float(fit_u0_px)
     scores, note = {}, ""
     try:
-        scored = conjugate_ray_costs(None, g, sets, reference="nominal", fit_u0_px=search,
-                                     rows=midplane.astype(np.float64))
+        # What does not turn out, as the gate takes it (:func:`~ctpipe.solve.conjugate.turning_part`).
+        turning, _ = turning_part(midplane, sets["nominal"])
+        scored = conjugate_ray_costs(None, g, sets, reference="nominal", fit_u0_px=search, rows=turning)
         scores = dict(scored)
         u0 = {label: score.u0_px for label, score in scored.items()}
     except InputError as error:

@@ -188,25 +188,65 @@ def test_held_out_evidence_short_of_the_threshold_changes_nothing(scan):
     assert weak.chosen == plain.chosen == "nominal" and weak.reason == plain.reason
 
 
-@pytest.mark.parametrize("conjugate_z, returned", [(-1.7, False), (-2.5, True)])
-def test_strong_held_out_evidence_does_not_carry_conjugate_rays_that_see_too_little(conjugate_z, returned):
+@pytest.mark.parametrize("conjugate_z, seen_z, returned", [(-1.7, -1.7, False), (-2.5, -2.5, True),
+                                                         (-2.5, -0.1, False)])
+def test_strong_held_out_evidence_does_not_carry_conjugate_rays_that_see_too_little(conjugate_z, seen_z, returned):
     """Each line of evidence must show the estimate better on its own: a held-out z of -2.9 with a
     conjugate z of -1.7 sums to -3.3, past one band's threshold, and is not enough (a sweep scan
-    whose matched angles had walked, a few views 2 deg off, came out 2 dB worse that way)."""
+    whose matched angles had walked, a few views 2 deg off, came out 2 dB worse that way). The
+    conjugate rays' z is that of the estimate less its slow-even band: a whole at -2.5 whose other
+    bands score -0.1 is not enough either (a sweep scan 2.8 deg off, nearly all slow-even)."""
     from ctpipe.solve.conjugate import ConjugateRayScore
     from ctpipe.solve.gate import _backward
 
+    def delta(name, reference):
+        if reference != "nominal":   # removing a band makes things worse (z > 0 against the estimate)
+            return 0.0 if name == reference else 1.0
+        return {"returned": conjugate_z, "estimate": conjugate_z, "seen": seen_z}.get(name, 0.0)
+
     def scored(candidates, reference):
-        # Removing a band makes things worse (z > 0 against the estimate); the estimate against the
-        # nominal angles has the conjugate z asked for.
         return {name: ConjugateRayScore(cost=1.0, u0_px=0.0, n_pairs=100, versus=reference,
-                                        delta=conjugate_z if name in ("returned", "estimate") and reference == "nominal"
-                                        else (0.0 if name == reference else 1.0), delta_se=1.0, dof=30)
-                for name in candidates}
+                                        delta=delta(name, reference), delta_se=1.0, dof=30) for name in candidates}
 
     theta = np.linspace(0.0, 360.0, 90, endpoint=False)
     correction = np.random.default_rng(0).normal(0.0, 0.1, 90)
     parts = split_bands(correction, theta, harmonics=3)
-    stands = _backward(scored, theta, correction, theta + correction, list(parts), parts, np.ones(90, bool), 2.0,
-                       -2.9)
+    stands = _backward(scored, theta, correction, list(parts), parts, 2.0, -2.9)
     assert (stands is not None) == returned
+
+
+def test_on_a_full_turn_what_does_not_turn_is_taken_out_before_the_conjugate_rays_judge():
+    """A static edge over a third of the detector makes the true angles' conjugate rays disagree
+    more than the nominal ones' (z about +4.7 on this scan); without the views' mean they score
+    as on the clean scan (:func:`~ctpipe.solve.conjugate.turning_part`)."""
+    from ctpipe.solve.conjugate import conjugate_ray_costs, turning_part
+
+    s = simulate_scan()
+    rows = midplane_rows(s.projections, s.geometry)
+    cols = rows.shape[1]
+    static = np.where(np.arange(cols) > 0.7 * cols, 0.5 * rows.max(), 0.0)
+    sets = {"nominal": s.nominal_angles_deg, "truth": s.true_angles_deg}
+
+    def truth_z(r):
+        return conjugate_ray_costs(None, s.geometry, sets, reference="nominal", fit_u0_px=3.0, rows=r)["truth"].z
+
+    assert truth_z(rows) < -3.0 < 3.0 < truth_z(rows + static)
+    assert truth_z(turning_part(rows + static, s.nominal_angles_deg)[0]) == pytest.approx(
+        truth_z(turning_part(rows, s.nominal_angles_deg)[0]), abs=1e-9)
+    decision = gate_angles(rows + static, s.geometry, s.nominal_angles_deg,
+                           s.true_angles_deg + np.random.default_rng(3).normal(0.0, 0.03, len(rows)))
+    assert decision.chosen != "nominal"
+
+
+def test_the_turning_part_of_a_short_scan_is_its_rows_as_they_are():
+    from ctpipe.solve.conjugate import turning_part
+
+    rows = np.random.default_rng(0).normal(size=(40, 16))
+    slopes = np.random.default_rng(1).normal(size=(40, 16))
+    short = np.linspace(0.0, 250.0, 40)
+    same, same_slopes = turning_part(rows, short, slopes)
+    assert np.array_equal(same, rows) and np.array_equal(same_slopes, slopes) and same is not rows
+    full, full_slopes = turning_part(rows, np.linspace(0.0, 360.0, 40, endpoint=False), slopes)
+    assert np.allclose(full.mean(axis=0), 0.0) and np.allclose(full_slopes.mean(axis=0), 0.0)
+    assert np.allclose(full - rows, full[0] - rows[0])
+
