@@ -21,7 +21,7 @@ from ctpipe.solve.balls import BallCalibration, calibrate_balls, ellipse_centres
 from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bundle_adjust, solve_bundle
 from ctpipe.solve.camera import pixels_to_rays, project_points
 from ctpipe.solve.conjugate import (ConjugateRayScore, conjugate_pairs, conjugate_ray_costs, conjugate_ray_mismatch,
-                                     midplane_row, midplane_rows)
+                                     midplane_row, midplane_rows, turning_part)
 from ctpipe.solve.gate import BANDS, GateDecision, cannot_tell, gate_angles, needed_z, split_bands
 from ctpipe.solve.graph import (PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
                                 solve_view_graph, turn_pairs, unwrap_pair_angles_deg, view_pairs)
@@ -41,5 +41,6 @@ __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pai
            "HELD_OUT_Z", "HELD_OUT_DECISIVE_Z", "HeldOutScore", "held_out_scores", "held_out_decisive",
            "static_part", "static_part_applies", "step_cap_deg",
            "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "midplane_row", "conjugate_pairs",
-           "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "gate_angles", "GateDecision",
+           "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "turning_part",
+           "gate_angles", "GateDecision",
            "split_bands", "needed_z", "cannot_tell", "BANDS", "calibrate_balls", "BallCalibration", "ellipse_centres"]

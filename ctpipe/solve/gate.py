@@ -43,10 +43,10 @@ rays' z is below ``-z`` too, the two are combined (Stouffer's sum: two
 independent lines of evidence), and where together they show the estimate better than the
 nominal angles beyond one band's threshold and the conjugate rays show no band of it worse, the
 whole estimate is returned, slow-even band included: the band conjugate rays hardly see is then
-decided by the evidence that sees it. Otherwise the bands are selected as above. The conjugate rays' z in this is that of the estimate less its
-slow-even band: they see that band only through the spread of the fan, and with it an estimate
-2.8 deg off, nearly all of it slow-even, scored -2.3 on a sweep scan (the band alone +2.0, the
-rest -0.1).
+decided by the evidence that sees it. Otherwise the bands are selected as above. The conjugate
+rays' z in this is that of the estimate less its slow-even band: they see that band only through
+the spread of the fan, and with it an estimate 2.8 deg off, nearly all of it slow-even, scored
+-2.3 on a sweep scan (the band alone +2.0, the rest -0.1).
 
 **What does not turn.** On a full turn the midplane rows are taken less their mean over the views
 (:func:`~ctpipe.solve.conjugate.turning_part`) before anything is scored: a table edge or clamp
