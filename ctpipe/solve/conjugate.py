@@ -71,6 +71,7 @@ from scipy.ndimage import map_coordinates, spline_filter
 
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
+from ctpipe.recon.feldkamp import covers_full_circle
 
 __all__ = ["midplane_rows", "midplane_row", "conjugate_pairs", "conjugate_ray_mismatch", "ConjugateRayScore",
            "conjugate_ray_costs", "turning_part"]
@@ -105,8 +106,6 @@ def turning_part(rows: np.ndarray, angles_deg, slopes: np.ndarray | None = None)
     rows, slopes : ndarray of shape (V, cols)
         New arrays (``slopes`` None when not given).
     """
-    from ctpipe.recon.feldkamp import covers_full_circle
-
     rows = np.asarray(rows, dtype=np.float64)
     if slopes is not None:
         slopes = np.asarray(slopes, dtype=np.float64)

@@ -254,10 +254,10 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
     held_out_z : float, optional
         The refiner's evidence for its angles against the nominal ones, in standard errors
         (projection matching's held-out views, :class:`~ctpipe.solve.reprojection.HeldOutScore`).
-        Below ``-z``, it is combined with the conjugate rays' z of the whole estimate against
-        the nominal angles (Stouffer: their sum over the square root of two; two independent
-        lines of evidence, the one from whole views held out of a reference, the other from the
-        midplane's common rays): where the two together pass, and the conjugate rays show no band
+        Below ``-z``, it is combined with the conjugate rays' z of the estimate less its
+        slow-even band against the nominal angles (Stouffer: their sum over the square root of
+        two; two independent lines of evidence, the one from whole views held out of a
+        reference, the other from the midplane's common rays): where the two together pass, and the conjugate rays show no band
         worse than the estimate without it, the whole estimate is returned; otherwise the bands
         are selected as without the evidence. Conjugate rays see little on a
         small or sparse scan (on the built-in sweep the whole estimate's z against the nominal
