@@ -257,10 +257,10 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         Below ``-z``, it is combined with the conjugate rays' z of the estimate less its
         slow-even band against the nominal angles (Stouffer: their sum over the square root of
         two; two independent lines of evidence, the one from whole views held out of a
-        reference, the other from the midplane's common rays): where the two together pass, and the conjugate rays show no band
-        worse than the estimate without it, the whole estimate is returned; otherwise the bands
-        are selected as without the evidence. Conjugate rays see little on a
-        small or sparse scan (on the built-in sweep the whole estimate's z against the nominal
+        reference, the other from the midplane's common rays): where the two together pass, and
+        the conjugate rays show no band worse than the estimate without it, the whole estimate is
+        returned; otherwise the bands are selected as without the evidence. Conjugate rays see
+        little on a small or sparse scan (on the built-in sweep the whole estimate's z against the nominal
         angles lay between -3.1 and +1.7, and estimates tens of degrees off scored +1.0 and
         -1.0), so without other evidence nothing passes; views held out of the reference they
         are matched against are that evidence, and they rank the estimate the right way on
@@ -364,9 +364,9 @@ def _backward(scored, nominal, correction, present, parts, z, held_out_z):
     # The conjugate rays' own evidence is taken on what they see: the estimate less its slow-even
     # band, which they see only through the spread of the fan. With it, an estimate 2.8 deg off
     # (nearly all slow-even) scored -2.3 on a sweep scan, its slow-even band alone +2.0, the rest -0.1.
-    record = scored({"nominal": nominal, "returned": whole, "estimate": whole, "seen": whole - parts["slow-even"]},
-                    "nominal")
-    conjugate = record.pop("seen")
+    record = scored({"nominal": nominal, "returned": whole, "visible": whole - parts["slow-even"]}, "nominal")
+    conjugate = record.pop("visible")
+    record["estimate"] = record["returned"]   # the same angles: scored once
     # Two independent lines of evidence, each a z against the nominal angles: each must show the
     # estimate better on its own (an intersection-union test), and their Stouffer sum beyond the
     # threshold of one band. Their sum alone let a held-out z of -2.9 carry a conjugate z of -1.7 on

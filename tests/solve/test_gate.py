@@ -202,7 +202,7 @@ def test_strong_held_out_evidence_does_not_carry_conjugate_rays_that_see_too_lit
     def delta(name, reference):
         if reference != "nominal":   # removing a band makes things worse (z > 0 against the estimate)
             return 0.0 if name == reference else 1.0
-        return {"returned": conjugate_z, "estimate": conjugate_z, "seen": seen_z}.get(name, 0.0)
+        return {"returned": conjugate_z, "visible": seen_z}.get(name, 0.0)
 
     def scored(candidates, reference):
         return {name: ConjugateRayScore(cost=1.0, u0_px=0.0, n_pairs=100, versus=reference,
