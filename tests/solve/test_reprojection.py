@@ -226,7 +226,9 @@ def test_the_pipeline_with_projection_matching_beats_the_nominal_angles_by_far(s
     }
     result = Pipeline.from_config(config).run(scan.projections, scan.geometry, nominal_angles_deg=scan.nominal_angles_deg)
     truth = scan.true_angles_deg
-    assert rms(result.angles_deg, truth) < 0.1 * rms(scan.nominal_angles_deg, truth)
+    # Over 24 noise draws of this scan the matched angles' RMS was 0.06-0.21 of the nominal's
+    # (median 0.09): a tenth is typical, a quarter is what every draw kept.
+    assert rms(result.angles_deg, truth) < 0.25 * rms(scan.nominal_angles_deg, truth)
     assert result.refiner_info["chosen"] == "matched"
     # Judged on views held out of the reference, against the nominal angles.
     held_out = result.refiner_info["held_out"]
@@ -237,7 +239,7 @@ def test_the_pipeline_with_projection_matching_beats_the_nominal_angles_by_far(s
     gated = Pipeline.from_config({**config, "gate": "auto"}).run(scan.projections, scan.geometry,
                                                                  nominal_angles_deg=scan.nominal_angles_deg)
     assert gated.gate.chosen == "estimate" and gated.gate.held_out_z == held_out["matched"]["z"]
-    assert rms(gated.angles_deg, truth) < 0.1 * rms(scan.nominal_angles_deg, truth)
+    assert rms(gated.angles_deg, truth) < 0.25 * rms(scan.nominal_angles_deg, truth)
 
 
 def test_removing_the_static_background_takes_the_container_out_of_the_pair_angles(scan):
