@@ -26,9 +26,9 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
-import numba
 import numpy as np
 
+from ctpipe._shared.resources import available_cores
 from ctpipe.config import check_keys
 from ctpipe.errors import InputError
 from ctpipe.stages import ParamSpec, check_value
@@ -138,7 +138,7 @@ def acquire(line_integrals, noise: NoiseModel, rng: np.random.Generator
         intensities[v] = frame(streams[v], i0 * np.exp(-p[v].astype(np.float64)))
 
     # 360 views of 512^2: 5.0 s drawn one after the other, 1.8 s on two threads.
-    with ThreadPoolExecutor(max_workers=numba.get_num_threads()) as pool:
+    with ThreadPoolExecutor(max_workers=available_cores()) as pool:
         list(pool.map(view, range(len(p))))
     flats = np.stack([frame(calibration, i0) for _ in range(noise.flat_frames)])
     darks = None
