@@ -593,9 +593,13 @@ def bin_detector(projections: np.ndarray, geometry: Geometry, factor: int) -> tu
         part = slice(start, start + _CHUNK_VIEWS)
         binned[part] = blocks[part].mean(axis=(2, 4), dtype=np.float32)
 
-    # Chunks of views in threads (NumPy's reductions let go of the GIL): the same numbers.
-    with ThreadPoolExecutor(max_workers=available_cores()) as pool:
-        list(pool.map(chunk, range(0, v, _CHUNK_VIEWS)))
+    starts = range(0, v, _CHUNK_VIEWS)
+    if len(starts) == 1:
+        chunk(0)   # one view at a time (the refiner's and the preview's streaming reads): no pool to start
+    else:
+        # Chunks of views in threads (NumPy's reductions let go of the GIL): the same numbers.
+        with ThreadPoolExecutor(max_workers=available_cores()) as pool:
+            list(pool.map(chunk, starts))
     return binned, binned_geometry(geometry, factor)
 
 
