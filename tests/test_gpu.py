@@ -94,7 +94,8 @@ def test_every_kernel_gives_the_cpu_answer_in_the_simulator():
                           timeout=600)
     assert done.stdout.strip(), done.stderr[-2000:]
     report = json.loads(done.stdout.strip().splitlines()[-1])
-    assert set(report) == {"forward", "forward_pair", "back", "fdk", "fdk_wide_extended", "fdk_short_scan", "analytic"}
+    assert set(report) == {"forward", "forward_pair", "back", "fdk", "fdk_wide_extended", "fdk_wide_extended_direct_filter",
+                           "fdk_short_scan", "analytic"}
     for name, entry in report.items():
         assert entry["max_abs"] > 0.1, name   # the scene reaches every kernel
         assert entry["max_abs_diff"] <= RELATIVE_TOLERANCE * entry["max_abs"], (name, entry)

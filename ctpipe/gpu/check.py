@@ -66,7 +66,7 @@ def compare(size: int = 8, n_views: int = 3, seed: int = 0) -> dict[str, dict[st
         return np.concatenate([np.stack([a, b]) for _, a, b in projector.forward_pair(volume, second, angles,
                                                                                       chunk_views=2)], axis=1)
 
-    # FDK's filter stages a row 128 samples at a time: a wide, short detector crosses tiles.
+    # A wide, short detector: the FFT's rows of 512 samples, the direct filter's 128-sample tiles crossed.
     wide = Geometry(source_to_object_mm=60.0, source_to_detector_mm=120.0, detector_cols=150, detector_rows=3,
                     pixel_pitch_u_mm=0.05, pixel_pitch_v_mm=0.5, u0_px=74.2, v0_px=1.1)
     wide_views = rng.random((n_views, 3, 150), dtype=np.float32)
@@ -74,12 +74,25 @@ def compare(size: int = 8, n_views: int = 3, seed: int = 0) -> dict[str, dict[st
     short = np.linspace(0.0, 250.0, max(n_views, 24))
     short_views = rng.random((short.size, *geometry.shape), dtype=np.float32)
 
+    def direct_filter():
+        """The wide extended scan through the GPU's direct convolution, the filter of rows too long for its FFT."""
+        if device.active() != "cuda":
+            return fdk(wide_views, wide, angles, wide_grid, truncation="extend")
+        from ctpipe.recon import _cuda
+
+        saved, _cuda.fft_longest = _cuda.fft_longest, 0
+        try:
+            return fdk(wide_views, wide, angles, wide_grid, truncation="extend")
+        finally:
+            _cuda.fft_longest = saved
+
     runs = {
         "forward": lambda: projector.forward(volume, angles),
         "forward_pair": pair,
         "back": lambda: projector.back(views, angles),
         "fdk": lambda: fdk(views, geometry, angles, grid),
         "fdk_wide_extended": lambda: fdk(wide_views, wide, angles, wide_grid, truncation="extend"),
+        "fdk_wide_extended_direct_filter": direct_filter,
         "fdk_short_scan": lambda: fdk(short_views, geometry, short, grid, short_scan=True),
         "analytic": lambda: project_analytic(primitives, geometry, angles, supersample=2, detector_tilt_deg=0.7),
     }

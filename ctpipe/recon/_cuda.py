@@ -5,11 +5,14 @@ only the volume comes back. The first try filtered on the CPU (FFTs over all cor
 filtered views over: on an H100 that made FDK of 512 views of 512^2 take 2.6 s against the GPU
 peer's 0.30 s, nearly all of it the host's filtering and transposing.
 
-- The ramp filter is the convolution of each row with the filter's spatial taps,
-  ``irfft(response, n_pad)``: exactly what the CPU's FFT computes (a circular convolution over
-  ``n_pad >= 2 cols`` samples), as a direct sum of ``cols`` products per pixel, with the row in
-  shared memory a tile at a time. numba-cuda has no FFT; the direct sum costs ``cols`` multiply-
-  adds a pixel, a few milliseconds a view at 2048 columns.
+- The ramp filter is what the CPU computes: each weighted (and, for truncated scans, extended)
+  row zero-padded to ``n_pad`` samples, Fourier transformed, multiplied by the filter's response
+  and transformed back. numba-cuda has no FFT, so :func:`_ramp_fft_kernel` is one: a radix-2
+  FFT of ``n_pad`` samples in shared memory, one block per pair of rows (two real rows as the
+  real and imaginary parts of one complex row: the response is real and even, so the two never
+  mix), ``n_pad log2 n_pad`` operations a row. Rows too long for shared memory
+  (``n_pad > 4096``, detectors over 2048 columns) take :func:`_ramp_kernel`, the same circular
+  convolution as a direct sum of ``n_pad`` products a pixel by the filter's spatial taps.
 - The backprojection is voxel-driven, one thread per voxel: each sums a chunk of filtered views
   in a register and adds the sum to the accumulator, where the CPU kernel adds view by view into
   memory; the two agree to float32 rounding.
@@ -32,6 +35,134 @@ prepare_cuda()
 
 #: Threads of a filter block: the output columns it computes and the row samples it stages at a time.
 _FILTER_THREADS = 128
+
+#: The longest padded row the FFT filter holds in shared memory (two float32 arrays: 32 KiB).
+FFT_SAMPLES = 4096
+
+#: Rows padded to more samples than this take the direct convolution (a variable: the check runs both).
+fft_longest = FFT_SAMPLES
+
+#: Threads of an FFT block: each does ``n_pad / 2 / threads`` butterflies a stage.
+_FFT_THREADS = 256
+
+
+@cuda.jit(device=True, inline=True)
+def _weighted_sample(views, cosine, redundancy, fall, rise, v, row, j, n_cols, left, right):
+    """Sample ``j`` of the weighted row ``row`` of view ``v``, extended past its ends by the roll-offs."""
+    n_fall = fall.shape[0]
+    if j < n_cols:
+        return views[v, row, j] * cosine[row, j] * redundancy[v, j]
+    if j < n_cols + n_fall:
+        return right * fall[j - n_cols]
+    if j < n_cols + n_fall + rise.shape[0]:
+        return left * rise[j - n_cols - n_fall]
+    return np.float32(0.0)
+
+
+@cuda.jit(device=True, inline=True)
+def _edge_means(views, cosine, redundancy, v, row, n_cols, n_edge):
+    """The mean of the ``n_edge`` outermost weighted samples at the left and at the right end of a row."""
+    left = np.float32(0.0)
+    right = np.float32(0.0)
+    for k in range(n_edge):
+        right += views[v, row, n_cols - 1 - k] * cosine[row, n_cols - 1 - k] * redundancy[v, n_cols - 1 - k]
+        left += views[v, row, k] * cosine[row, k] * redundancy[v, k]
+    return left / n_edge, right / n_edge
+
+
+@cuda.jit(cache=True)
+def _ramp_fft_kernel(out_t, views, cosine, redundancy, gain, twiddle_re, twiddle_im, fall, rise, n_edge):
+    """:func:`_ramp_kernel`'s output through the FFT: block ``(p, v)`` filters rows ``2p`` and ``2p + 1`` of view ``v``.
+
+    The two rows are the real and imaginary parts of one complex row of ``n = gain.shape[0]``
+    samples. A decimation-in-frequency pass (natural order in, bit-reversed out) transforms it;
+    ``gain`` holds the response over ``n`` (the inverse's scale) in that bit-reversed order; a
+    decimation-in-time pass with the conjugate twiddles (bit-reversed in, natural out) brings it
+    back. ``twiddle_re + 1j twiddle_im`` = ``exp(-2 pi i m / n)``, ``m < n / 2``. No bit
+    reversal is ever done.
+    """
+    re = cuda.shared.array(FFT_SAMPLES, np.float32)
+    im = cuda.shared.array(FFT_SAMPLES, np.float32)
+    t = cuda.threadIdx.x
+    n_threads = cuda.blockDim.x
+    v = cuda.blockIdx.y
+    row0 = 2 * cuda.blockIdx.x
+    n_rows = views.shape[1]
+    n_cols = views.shape[2]
+    has_second = row0 + 1 < n_rows
+    row1 = row0 + 1 if has_second else row0
+    n = gain.shape[0]
+    half_n = n // 2
+    extended = fall.shape[0] + rise.shape[0] > 0
+    left0 = right0 = left1 = right1 = np.float32(0.0)
+    if extended:
+        left0, right0 = _edge_means(views, cosine, redundancy, v, row0, n_cols, n_edge)
+        left1, right1 = _edge_means(views, cosine, redundancy, v, row1, n_cols, n_edge)
+    for j in range(t, n, n_threads):
+        re[j] = _weighted_sample(views, cosine, redundancy, fall, rise, v, row0, j, n_cols, left0, right0)
+        im[j] = (_weighted_sample(views, cosine, redundancy, fall, rise, v, row1, j, n_cols, left1, right1)
+                 if has_second else np.float32(0.0))
+    cuda.syncthreads()
+    half = half_n
+    while half >= 1:  # forward, decimation in frequency
+        stride = half_n // half
+        for p in range(t, half_n, n_threads):
+            k = p % half
+            i = (p - k) * 2 + k
+            j = i + half
+            wr = twiddle_re[k * stride]
+            wi = twiddle_im[k * stride]
+            ar = re[i]
+            ai = im[i]
+            dr = ar - re[j]
+            di = ai - im[j]
+            re[i] = ar + re[j]
+            im[i] = ai + im[j]
+            re[j] = dr * wr - di * wi
+            im[j] = dr * wi + di * wr
+        cuda.syncthreads()
+        half //= 2
+    for j in range(t, n, n_threads):
+        re[j] *= gain[j]
+        im[j] *= gain[j]
+    cuda.syncthreads()
+    half = 1
+    while half < n:  # inverse, decimation in time, conjugate twiddles
+        stride = half_n // half
+        for p in range(t, half_n, n_threads):
+            k = p % half
+            i = (p - k) * 2 + k
+            j = i + half
+            wr = twiddle_re[k * stride]
+            wi = -twiddle_im[k * stride]
+            tr = re[j] * wr - im[j] * wi
+            ti = re[j] * wi + im[j] * wr
+            re[j] = re[i] - tr
+            im[j] = im[i] - ti
+            re[i] += tr
+            im[i] += ti
+        cuda.syncthreads()
+        half *= 2
+    for col in range(t, n_cols, n_threads):
+        out_t[v, 1 + col, 1 + row0] = re[col]
+        if has_second:
+            out_t[v, 1 + col, 1 + row1] = im[col]
+
+
+def fft_tables(response: np.ndarray, n_pad: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_ramp_fft_kernel`'s ``gain`` (bit-reversed, over ``n_pad``) and twiddles, float32.
+
+    ``response`` is the real response of :func:`scipy.fft.rfft`'s ``n_pad // 2 + 1`` frequencies
+    (scale included); the full length's is even: ``G[k] = response[min(k, n_pad - k)]``.
+    """
+    k = np.arange(n_pad)
+    full = np.asarray(response, dtype=np.float64)[np.minimum(k, n_pad - k)] / n_pad
+    bits = n_pad.bit_length() - 1
+    reversed_k = np.zeros(n_pad, dtype=np.int64)
+    for bit in range(bits):
+        reversed_k |= ((k >> bit) & 1) << (bits - 1 - bit)
+    angle = -2.0 * np.pi * np.arange(n_pad // 2) / n_pad
+    return full[reversed_k].astype(np.float32), np.cos(angle).astype(np.float32), np.sin(angle).astype(np.float32)
 
 
 @cuda.jit(cache=True)
@@ -123,6 +254,15 @@ def _fdk_kernel(acc, proj_t, cos_t, sin_t, weight, xs, zs, y0, dy, sod, su, sv, 
     acc[ix, iz, iy] += total
 
 
+@cuda.jit(cache=True)
+def _volume_layout_kernel(out, acc):
+    """``out[iy, iz, ix] = acc[ix, iz, iy]``: :func:`ctpipe.recon.feldkamp._to_volume_layout` on the GPU."""
+    ix, iz, iy = cuda.grid(3)
+    n_x, n_z, n_y = acc.shape
+    if ix < n_x and iz < n_z and iy < n_y:
+        out[iy, iz, ix] = acc[ix, iz, iy]
+
+
 class FdkAccumulator:
     """FDK on the GPU: :meth:`add` chunks of views (weighted, filtered and backprojected there), :meth:`result`.
 
@@ -134,8 +274,10 @@ class FdkAccumulator:
         Voxel centres along x and z, the first along y and the step, mm.
     constants : (sod, su, sv, u0, v0)
         As :func:`ctpipe.recon.feldkamp._backproject` takes them (principal point padded).
-    taps : ndarray of shape (n_pad,)
-        The ramp filter's spatial taps, scale included.
+    response : ndarray of shape (n_pad // 2 + 1,)
+        The ramp filter's real response (:func:`ctpipe.recon.feldkamp.ramp_filter`), scale included.
+    n_pad : int
+        The padded row length, a power of two.
     cosine : ndarray of shape (rows, cols)
         Feldkamp's cosine pre-weight.
     chunk_views : int
@@ -147,16 +289,21 @@ class FdkAccumulator:
     """
 
     def __init__(self, shape: tuple[int, int, int], xs: np.ndarray, zs: np.ndarray, y0: float, dy: float,
-                 constants: tuple, taps: np.ndarray, cosine: np.ndarray, chunk_views: int,
+                 constants: tuple, response: np.ndarray, n_pad: int, cosine: np.ndarray, chunk_views: int,
                  roll_offs: tuple[np.ndarray, np.ndarray] | None = None, n_edge: int = 3) -> None:
         rows, cols = cosine.shape
         filtered = 3 * chunk_views * (rows + 2) * (cols + 2)
-        memory_budget(4.0 * (math.prod(shape) + filtered + taps.size + cosine.size), "reconstructing the volume")
+        memory_budget(4.0 * (2 * math.prod(shape) + filtered + 3 * n_pad + cosine.size), "reconstructing the volume")
         self._acc = cuda.to_device(np.zeros(shape, dtype=np.float32))
         self._xs = cuda.to_device(np.ascontiguousarray(xs, dtype=np.float64))
         self._zs = cuda.to_device(np.ascontiguousarray(zs, dtype=np.float64))
         self._rest = (float(y0), float(dy), *(float(value) for value in constants))
-        self._taps = cuda.to_device(np.ascontiguousarray(taps, dtype=np.float32))
+        self._fft = n_pad <= min(fft_longest, FFT_SAMPLES)
+        if self._fft:
+            self._tables = [cuda.to_device(table) for table in fft_tables(response, n_pad)]
+        else:
+            taps = np.fft.irfft(np.asarray(response, dtype=np.float64), n=n_pad)
+            self._tables = [cuda.to_device(taps.astype(np.float32))]
         self._cosine = cuda.to_device(np.ascontiguousarray(cosine, dtype=np.float32))
         empty = np.zeros(0, dtype=np.float32)
         self._roll = [cuda.to_device(np.ascontiguousarray(a, dtype=np.float32))
@@ -181,10 +328,15 @@ class FdkAccumulator:
             share = self._ones
         else:
             share = cuda.to_device(np.ascontiguousarray(redundancy, dtype=np.float32))
-        grid = blocks_for((cols, rows, n_views), (_FILTER_THREADS, 1, 1))
-        _ramp_kernel[grid, _FILTER_THREADS](self._filtered, cuda.to_device(np.ascontiguousarray(views,
-                                                                                                dtype=np.float32)),
-                                            self._cosine, share, self._taps, *self._roll, self._n_edge)
+        on_device = cuda.to_device(np.ascontiguousarray(views, dtype=np.float32))
+        if self._fft:
+            threads = min(_FFT_THREADS, self._tables[0].shape[0] // 2)
+            _ramp_fft_kernel[((rows + 1) // 2, n_views), threads](self._filtered, on_device, self._cosine, share,
+                                                                   *self._tables, *self._roll, self._n_edge)
+        else:
+            grid = blocks_for((cols, rows, n_views), (_FILTER_THREADS, 1, 1))
+            _ramp_kernel[grid, _FILTER_THREADS](self._filtered, on_device, self._cosine, share, *self._tables,
+                                                *self._roll, self._n_edge)
         n_x, n_z, n_y = self._acc.shape
         block = (64, 4, 1)
         grid = blocks_for((n_y, n_z, n_x), block)
@@ -195,4 +347,9 @@ class FdkAccumulator:
                                  self._xs, self._zs, *self._rest)
 
     def result(self) -> np.ndarray:
-        return self._acc.copy_to_host()
+        """The volume in :class:`ctpipe.recon.volume.VolumeGrid`'s layout ``(n_y, n_z, n_x)``, reordered on the GPU."""
+        n_x, n_z, n_y = self._acc.shape
+        out = cuda.device_array((n_y, n_z, n_x), dtype=np.float32)
+        block = (32, 4, 2)
+        _volume_layout_kernel[blocks_for((n_x, n_z, n_y), block), block](out, self._acc)
+        return out.copy_to_host()

@@ -39,6 +39,7 @@ from numba import prange
 from scipy import fft as sp_fft
 
 from ctpipe._shared import device
+from ctpipe._shared.arrays import all_finite, percentile_in_place
 from ctpipe._shared.checks import as_angles_deg, short_repr
 from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe._shared.resources import available_cores, check_fits, memory_guard
@@ -237,7 +238,7 @@ def _validate(projections, geometry, angles_deg, grid, filter, short_scan, progr
     if proj.shape != expected:
         raise InputError(f"projections: must have shape (len(angles_deg), detector_rows, detector_cols) = {expected}, "
                          f"got {proj.shape}")
-    if not np.all(np.isfinite(proj)):
+    if not all_finite(proj):
         raise InputError("projections: contain NaN or infinite values")
     return proj, angles
 
@@ -366,15 +367,19 @@ def is_truncated(projections: np.ndarray) -> bool:
     """Whether the object reaches past the detector's left or right edge (a region-of-interest scan).
 
     Compares, view by view, the mean line integral of the outermost columns with the scan's
-    99th percentile; the median view decides, so a few views that graze an edge do not.
+    99th percentile; the median view decides, so a few views that graze an edge do not. Both
+    are taken on at most 64 views; the percentile on at most 128 of their rows (a 1024-view
+    1024^2 scan's whole 64 views took 1.2 s, a quarter of its FDK on a GPU).
     """
     proj = np.asarray(projections)
     step = max(1, len(proj) // 64)
-    sample = np.abs(proj[::step].astype(np.float32))
-    peak = float(np.percentile(sample, 99))
+    views = proj[::step]
+    left = np.abs(views[:, :, :_EDGE_COLUMNS], dtype=np.float32).mean(axis=(1, 2))
+    right = np.abs(views[:, :, -_EDGE_COLUMNS:], dtype=np.float32).mean(axis=(1, 2))
+    edges = np.maximum(left, right)
+    peak = percentile_in_place(np.abs(views[:, :: max(1, proj.shape[1] // 128)], dtype=np.float32), 99)
     if not np.isfinite(peak) or peak <= 0:
         return False
-    edges = np.maximum(sample[:, :, :_EDGE_COLUMNS].mean(axis=(1, 2)), sample[:, :, -_EDGE_COLUMNS:].mean(axis=(1, 2)))
     return bool(np.median(edges) > TRUNCATED_EDGE_FRACTION * peak)
 
 
@@ -537,13 +542,13 @@ def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_
         from ctpipe.recon._cuda import FdkAccumulator
 
         try:
-            # The GPU filters too: the same circular convolution as the FFT, by its spatial taps.
-            taps = sp_fft.irfft((response * scale).astype(np.float32), n=n_pad).astype(np.float32)
-            on_gpu = FdkAccumulator(shape, xs, zs, float(ys[0]), grid.voxel_size_mm, constants, taps, cosine,
+            # The GPU filters too: the same FFT, or for very long rows the same circular convolution.
+            on_gpu = FdkAccumulator(shape, xs, zs, float(ys[0]), grid.voxel_size_mm, constants,
+                                    (response * scale).astype(np.float32), n_pad, cosine,
                                     _CHUNK_VIEWS, _roll_offs(cols, n_pad) if extend else None, _EDGE_COLUMNS)
             backproject_all(lambda part: on_gpu.add(proj[part], None if redundancy is None else redundancy[part],
                                                     np.cos(theta[part]), np.sin(theta[part]), intervals[part]))
-            return _to_volume_layout(on_gpu.result())
+            return on_gpu.result()
         except Exception as error:  # noqa: BLE001 - memory, driver, compiler: the CPU answers
             device.fall_back("FDK", error)
     acc = np.zeros(shape, dtype=np.float32)
