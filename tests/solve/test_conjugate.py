@@ -175,3 +175,21 @@ def test_blocking_sees_the_correlation_of_neighbouring_views():
     # ...taken over blocks longer than the correlation (about 10 views): fewer of them, fewer
     # degrees of freedom for a test on it.
     assert 16 <= blocks <= 64
+
+
+def test_the_row_sampler_is_the_2d_spline_at_whole_views():
+    """The 1-D sampler equals ``map_coordinates`` on 2-D coefficients at integer views, edges included."""
+    from scipy.ndimage import map_coordinates, spline_filter
+
+    from ctpipe.solve.conjugate import _sample_rows, _spline
+
+    rng = np.random.default_rng(3)
+    rows = rng.random((40, 64))
+    views = rng.integers(0, 40, 500)
+    cols = np.concatenate([rng.uniform(-2.0, 65.0, 495), [0.0, 63.0, 0.4, 62.6, np.nan]])
+    expected = map_coordinates(spline_filter(rows, order=3, mode="nearest"), [views.astype(float),
+                                                                              np.clip(cols, 0.0, 63.0)],
+                               order=3, mode="nearest", prefilter=False)
+    got = _sample_rows(_spline(rows), views, cols, 63.0)
+    assert np.isnan(got[-1])
+    np.testing.assert_allclose(got[:-1], expected[:-1], rtol=0, atol=1e-12)
