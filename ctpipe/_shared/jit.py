@@ -51,15 +51,17 @@ NOGIL = _threadsafe_layer()
 
 
 def njit(*args, **options):
-    """``numba.njit`` whose kernels release the GIL (``nogil``) where the threading layer allows it.
+    """``numba.njit`` whose kernels release the GIL (``nogil``): serial ones always, parallel ones where the layer allows it.
 
     A kernel that holds the GIL holds up every other thread for as long as it runs: detection in
     the other worker threads, and the main thread that handles Ctrl-C and SIGTERM while the
-    ``ctpipe`` command runs in a thread of its own (:func:`ctpipe.cli.entry`). Without a
-    thread-safe layer (workqueue only) the GIL keeps parallel kernels from being launched from
-    two threads at once, as before.
+    ``ctpipe`` command runs in a thread of its own (:func:`ctpipe.cli.entry`). Only a parallel
+    kernel needs the threading layer: without a thread-safe one (workqueue only) the GIL keeps
+    parallel kernels from being launched from two threads at once. A serial kernel releases it
+    everywhere: on a 16-core machine without TBB or OpenMP, holding it made 160 descriptor
+    matchings take 1.1 s on 16 threads against 0.9 s on one.
     """
-    options.setdefault("nogil", NOGIL)
+    options.setdefault("nogil", NOGIL or not options.get("parallel", False))
     return numba.njit(*args, **options)
 
 
