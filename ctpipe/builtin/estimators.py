@@ -97,9 +97,8 @@ class Ransac1ptEstimator(Estimator):
         # Many hypotheses share one consensus set: rank the distinct sets by their score at the
         # hypothesis angle and locally optimise (refit, re-select) only the most promising.
         candidates = np.flatnonzero(valid)
-        _, first = np.unique(np.packbits(inliers[candidates], axis=1), axis=0, return_index=True)
-        candidates = candidates[first]
-        pre_scores = [self._score(alphas[h], inliers[h], distances[h]) for h in candidates]
+        candidates = candidates[_first_of_each_set(np.packbits(inliers[candidates], axis=1))]
+        pre_scores = self._scores(inliers[candidates], distances[candidates])
         best = None
         for k in np.argsort([score[0] for score in pre_scores], kind="stable")[: self.local_optimisations]:
             h = candidates[k]
@@ -156,11 +155,29 @@ class Ransac1ptEstimator(Estimator):
             mask = tight
         return float(alpha), mask
 
+    def _scores(self, masks: np.ndarray, d: np.ndarray) -> list[tuple]:
+        """:meth:`_score` of each row of ``masks`` and ``d`` (H, N), in one pass over the array."""
+        if self.scoring == "msac":
+            return [(float(cost),) for cost in np.minimum(d * d, self.sampson_threshold ** 2).sum(axis=1)]
+        return [(-int(count), float(cost)) for count, cost in zip(masks.sum(axis=1), np.where(masks, d ** 2, 0.0).sum(axis=1))]
+
     def _score(self, alpha: float, mask: np.ndarray, d: np.ndarray) -> tuple:
         """Smaller is better: MSAC cost, or (-inlier count, squared distances of the inliers)."""
         if self.scoring == "msac":
             return (float(np.minimum(d * d, self.sampson_threshold ** 2).sum()),)
         return (-int(mask.sum()), float((d[mask] ** 2).sum()))
+
+
+def _first_of_each_set(packed: np.ndarray) -> np.ndarray:
+    """Index of the first row of each distinct row of ``packed`` (uint8), the rows in byte order.
+
+    What ``np.unique(packed, axis=0, return_index=True)[1]`` gives, by a dictionary of the rows'
+    bytes instead of a sort of the rows as records (a third of the estimator's time).
+    """
+    first: dict[bytes, int] = {}
+    for index, row in enumerate(packed):
+        first.setdefault(row.tobytes(), index)
+    return np.array([first[key] for key in sorted(first)], dtype=np.intp)
 
 
 @dataclass(frozen=True)
