@@ -18,7 +18,7 @@ from ctpipe._shared.checks import short_repr
 from ctpipe.config import PipelineConfig, StageSpec, build_stage, load_yaml, parse_geometry, parse_pipeline
 from ctpipe.data import Features, ScanObservations, ScanSolution
 from ctpipe.errors import EstimationError, InputError
-from ctpipe.execution import Executor, ThreadExecutor
+from ctpipe.execution import Executor, ThreadExecutor, one_blas_thread_per_task
 from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
 from ctpipe.io.corrected import cone_vectors, scanner_frame_deg
@@ -708,11 +708,12 @@ class Pipeline:
             chunks = np.array_split(np.arange(len(pairs)), min(len(pairs), 4 * run_on.workers))
             start = time.perf_counter()
             tasks = []
-            for chunk in chunks:
-                used, local = np.unique(pairs[chunk], return_inverse=True)
-                tasks.append(run_on.submit(_match_pairs, self.matcher, geometry, [detected[v] for v in used],
-                                           local.reshape(-1, 2), name="match"))
-            matched = [m for chunk in run_on.gather(tasks) for m in chunk]
+            with one_blas_thread_per_task(run_on):
+                for chunk in chunks:
+                    used, local = np.unique(pairs[chunk], return_inverse=True)
+                    tasks.append(run_on.submit(_match_pairs, self.matcher, geometry, [detected[v] for v in used],
+                                               local.reshape(-1, 2), name="match"))
+                matched = [m for chunk in run_on.gather(tasks) for m in chunk]
             matches = tuple(m for m, _, _ in matched)
             points_a = tuple(q_a for _, q_a, _ in matched)
             points_b = tuple(q_b for _, _, q_b in matched)

@@ -212,3 +212,20 @@ def test_a_stage_module_missing_on_the_workers_is_named(dask_client, tmp_path, m
     with pytest.raises(InputError, match="the Dask worker at .* cannot import client_only_stage: every worker needs"):
         executor.gather([executor.submit(client_only_stage.detect)])
     sys.modules.pop("client_only_stage")
+
+
+def test_many_thread_tasks_get_one_blas_thread_each_and_one_task_keeps_them_all():
+    from threadpoolctl import threadpool_info
+
+    from ctpipe.execution import one_blas_thread_per_task
+
+    def blas_threads():
+        return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert before   # numpy's own BLAS
+    with ThreadExecutor(max_workers=2) as run_on, one_blas_thread_per_task(run_on):
+        assert all(n == 1 for n in blas_threads())
+    assert blas_threads() == before
+    with ThreadExecutor(max_workers=1) as run_on, one_blas_thread_per_task(run_on):
+        assert blas_threads() == before
