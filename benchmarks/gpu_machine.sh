@@ -12,8 +12,12 @@
 #       --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 -d .whl \
 #       numpy==2.4.6 olefile diffct==2.5.0
 # (17 MB; .whl/ ignored by git, carried with the run). The whole script took 589 s on an H100.
+# STAGES picks what runs (default all): check, bench, validate, profile (a warm validate on the
+# GPU under cProfile, its 40 costliest functions printed); SIZES and KERNELS the bench's sizes
+# and kernels, CHECK_SIZES the check's.
 #
 #     bash benchmarks/gpu_machine.sh
+#     STAGES="check bench profile" SIZES="512 1024" bash benchmarks/gpu_machine.sh
 set -u
 now() { date +%s%N; }
 seconds() { echo $(( ($(now) - $1) / 1000000 ))e-3; }
@@ -33,16 +37,47 @@ fi
     nproc
 } 2>&1 | tee "$OUT/machine.txt"
 
+STAGES=${STAGES:-check bench validate}
+SIZES=${SIZES:-256 512 1024}
+has() { case " $STAGES " in *" $1 "*) return 0;; esac; return 1; }
+
+if has check; then
 echo "== kernels against the CPU"
-for size in 8 40; do
+for size in ${CHECK_SIZES:-8 40}; do
     start=$(now)
     python3 -m ctpipe.gpu.check $size
     echo "check $size: exit $?, $(seconds $start) s"
 done
 
-echo "== benchmark"
-python3 benchmarks/bench_gpu.py --sizes 256 512 1024 --repeats 3 --cpu-up-to 512 2>&1 | tee "$OUT/bench_gpu.txt"
+fi
 
+if has bench; then
+echo "== benchmark"
+# shellcheck disable=SC2086
+python3 benchmarks/bench_gpu.py --sizes $SIZES --repeats 3 --cpu-up-to "${CPU_UP_TO:-512}" --phases \
+    --kernels ${KERNELS:-forward fdk analytic} 2>&1 \
+    | tee "$OUT/bench_gpu.txt"
+fi
+
+if has profile; then
+echo "== default validate on the GPU, cold, then warm under cProfile"
+for run in cold warm; do
+    start=$(now)
+    if [ $run = cold ]; then
+        python3 -m ctpipe.cli --device cuda validate --out /tmp/validate-profile --json > "$OUT/validate-cold.json"
+    else
+        python3 -m cProfile -o "$OUT/validate.prof" -m ctpipe.cli --device cuda validate --out /tmp/validate-profile \
+            --json > "$OUT/validate-warm.json"
+    fi
+    echo "validate cuda $run: exit $?, wall $(seconds $start) s"
+    python3 -c "import json, sys; r = json.load(open(sys.argv[1])); print(json.dumps({k: r.get(k) for k in ('timings_s', 'angle_errors')}, default=str)[:800])" "$OUT/validate-$run.json"
+done
+python3 -c "import pstats; s = pstats.Stats('$OUT/validate.prof'); s.sort_stats('cumulative').print_stats(40); s.sort_stats('tottime').print_stats(30)" \
+    2>&1 | cut -c1-160 > "$OUT/validate-profile.txt"
+head -c 6000 "$OUT/validate-profile.txt"
+fi
+
+if has validate; then
 echo "== default validate"
 for run in cuda-cold cuda-warm cpu; do
     device=${run%%-*}
@@ -71,3 +106,4 @@ print(f"GPU - CPU estimated angles: max |diff| {np.max(np.abs(diff)):.6f} deg, R
 for name, table in (("gpu", gpu), ("cpu", cpu)):
     print(name, "RMS error", float(np.sqrt(np.mean(table["estimated_error_deg"] ** 2))))
 EOF
+fi
