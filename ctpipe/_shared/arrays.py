@@ -44,9 +44,13 @@ def _count_not_finite(flat):
 def all_finite(array) -> bool:
     """Whether every element of ``array`` is finite (no NaN, no infinity), as ``np.all(np.isfinite(array))``."""
     a = np.asarray(array)
-    if a.size < _SMALL or a.dtype not in (np.float32, np.float64) or not a.flags.c_contiguous:
+    if a.size < _SMALL or a.dtype not in (np.float32, np.float64):
         return bool(np.all(np.isfinite(a)))
-    return _count_not_finite(a.reshape(-1)) == 0
+    if a.flags.c_contiguous:
+        return _count_not_finite(a.reshape(-1)) == 0
+    if a.ndim > 1 and a[0].flags.c_contiguous:   # every second view of a stack, say: view by view, no copy
+        return all(_count_not_finite(part.reshape(-1)) == 0 for part in a)
+    return bool(np.all(np.isfinite(a)))
 
 
 def percentile_in_place(values: np.ndarray, q: float) -> float:

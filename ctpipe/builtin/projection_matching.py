@@ -38,19 +38,21 @@ def _fill(angles_deg: np.ndarray, nominal_deg: np.ndarray | None) -> tuple[np.nd
     return np.interp(views, views[~missing], angles_deg[~missing]), int(missing.sum())
 
 
-def _binned_views(projections, geometry: Geometry, factor: int) -> tuple[np.ndarray, Geometry]:
-    """The projections binned by ``factor``, read and binned one view at a time.
+def _binned_views(projections, geometry: Geometry, factor: int) -> tuple[np.ndarray, Geometry, bool]:
+    """The projections binned by ``factor``, read and binned one view at a time, and whether that is a copy.
 
     A :class:`~ctpipe.io.scans.ViewStack` is never held whole: only the binned copy is, which at
-    the default levels is at most 256^2 pixels a view whatever the detector size.
+    the default levels is at most 256^2 pixels a view whatever the detector size. A copy is
+    ours to spend (:func:`projection_matching`'s ``overwrite``); the caller's array is not.
     """
     if factor == 1 and isinstance(projections, np.ndarray):
-        return projections.astype(np.float32, copy=False), geometry   # nothing to bin, nothing to stream
+        views = projections.astype(np.float32, copy=False)   # nothing to bin, nothing to stream
+        return views, geometry, views is not projections
     coarse = binned_geometry(geometry, factor)
     out = np.empty((len(projections), coarse.detector_rows, coarse.detector_cols), np.float32)
     for index in range(len(projections)):
         out[index] = bin_detector(np.asarray(projections[index], dtype=np.float32)[None], geometry, factor)[0][0]
-    return out, coarse
+    return out, coarse, True
 
 
 @dataclass(frozen=True)
@@ -151,7 +153,7 @@ class ProjectionMatchingRefiner(Refiner):
         begin = time.perf_counter()
         # Bin once by what every level shares, view by view: the levels then bin that copy further.
         prebin = math.gcd(*(b for b, _ in levels))
-        projections, geometry = _binned_views(projections, observations.geometry, prebin)
+        projections, geometry, owned = _binned_views(projections, observations.geometry, prebin)
         levels = [(b // prebin, n) for b, n in levels]
         band = (self.band_low_px, self.band_high_px)
         static = self.static and static_part_applies(start_deg if nominal is None else nominal)
@@ -181,7 +183,8 @@ class ProjectionMatchingRefiner(Refiner):
         result = projection_matching(projections, geometry, candidates[origin],
                                      binning=[b for b, _ in levels], iterations=[n for _, n in levels], band_px=band,
                                      max_voxels=self.max_voxels, filter=self.filter, max_step_deg=self.max_step_deg,
-                                     shifts=self.shifts, detector=self.detector, static=static, compare=compare)
+                                     shifts=self.shifts, detector=self.detector, static=static, compare=compare,
+                                     overwrite=owned)   # the binned copy is not read again here
         info["matching"] = {"from": origin, "levels": [{"binning": b * prebin, "iterations": n} for b, n in levels],
                             "history": [{**h, "binning": h["binning"] * prebin,
                                          **({"shift_rms_px": h["shift_rms_px"] * prebin} if "shift_rms_px" in h else {})}

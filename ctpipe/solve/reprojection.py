@@ -391,12 +391,14 @@ def _image_gradients(images, spacing):
     return along_u, along_v
 
 
-def as_line_integrals(projections: np.ndarray) -> tuple[np.ndarray, bool]:
+def as_line_integrals(projections: np.ndarray, *, overwrite: bool = False) -> tuple[np.ndarray, bool]:
     """Projections as line integrals (dark object on a bright field is taken as intensities).
 
     Returns the array (float32) and whether it was converted. Intensities are recognised by a
     border brighter than the centre and turned into ``-log(I / I_flat)`` with ``I_flat`` the
-    99.5th percentile of each view.
+    99.5th percentile of each view. The conversion goes a chunk of views at a time, into a new
+    array, or with ``overwrite`` into ``projections`` itself where it is a float32 array (the
+    caller's copy: 2,000 binned views are half a gigabyte each time).
     """
     p = np.asarray(projections, dtype=np.float32)
     _, rows, cols = p.shape
@@ -404,10 +406,14 @@ def as_line_integrals(projections: np.ndarray) -> tuple[np.ndarray, bool]:
     centre = p[:, rows // 4: rows - rows // 4, cols // 4: cols - cols // 4]
     if not float(np.median(border)) > float(np.median(centre)):
         return p, False
-    flat = np.percentile(p.reshape(len(p), -1), 99.5, axis=1).astype(np.float32)
-    floor = np.float32(1e-6) * np.maximum(flat, np.float32(1e-30))
-    ratio = np.maximum(p, floor[:, None, None]) / np.maximum(flat, np.float32(1e-30))[:, None, None]
-    return np.maximum(-np.log(ratio), 0.0).astype(np.float32), True
+    out = p if overwrite and p is projections and p.flags.writeable else np.empty_like(p)
+    for start in range(0, len(p), _CHUNK_VIEWS):
+        views = p[start:start + _CHUNK_VIEWS]
+        flat = np.percentile(views.reshape(len(views), -1), 99.5, axis=1).astype(np.float32)
+        floor = np.float32(1e-6) * np.maximum(flat, np.float32(1e-30))
+        ratio = np.maximum(views, floor[:, None, None]) / np.maximum(flat, np.float32(1e-30))[:, None, None]
+        out[start:start + _CHUNK_VIEWS] = np.maximum(-np.log(ratio), 0.0)
+    return out, True
 
 
 
@@ -552,7 +558,9 @@ class _Level:
         energy = np.zeros(len(angles))
         fold = np.arange(len(angles)) % folds
         for k in range(folds):
-            volume = fdk(self.data[fold != k], self.geometry, angles[fold != k], self.grid, filter=self.filter)
+            # Two folds: the other fold is every second view, a view of the data and not a copy.
+            others = self.data[1 - k::2] if folds == 2 else self.data[fold != k]
+            volume = fdk(others, self.geometry, angles[fold != k], self.grid, filter=self.filter)
             views = np.flatnonzero(fold == k)
             for start in range(0, len(views), _CHUNK_VIEWS):
                 part = views[start:start + _CHUNK_VIEWS]
@@ -797,7 +805,8 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
                         iterations=(3, 2), band_px: tuple[float, float] = (0.7, 4.0), max_voxels: int = 192,
                         filter: str = "ram-lak", max_step_deg: float | None = None, shifts: bool = False,
                         detector: bool = False, static: bool = False, compare: dict[str, np.ndarray] | None = None,
-                        progress: Callable[[int], object] | None = None) -> ProjectionMatchingResult:
+                        progress: Callable[[int], object] | None = None,
+                        overwrite: bool = False) -> ProjectionMatchingResult:
     """Refine every view's angle against the scan's own reconstruction (see the module docstring).
 
     Parameters
@@ -841,6 +850,10 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
     progress : callable, optional
         Called with 1 after every step tried.
 
+    overwrite : bool
+        ``projections`` (a float32 array) may be spent: converted to line integrals and less
+        their static part in place, not copied (each copy of 2,000 binned views is half a
+        gigabyte).
     Returns
     -------
     ProjectionMatchingResult
@@ -852,9 +865,12 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
     """
     binning, iterations = tuple(binning), tuple(iterations)
     angles = _check(projections, geometry, angles_deg, binning, iterations, band_px, max_voxels, filter, max_step_deg)
-    data, _ = as_line_integrals(projections)
+    data, converted = as_line_integrals(projections, overwrite=overwrite)
     if static:
-        data = data - static_part(data, angles)
+        if converted or (overwrite and data is projections and data.flags.writeable):
+            data -= static_part(data, angles)   # an array of our own or the caller's to spend: no copy
+        else:
+            data = data - static_part(data, angles)
     theta = np.deg2rad(angles)
     full_turn = covers_full_circle(angles)
     history: list[dict] = []
