@@ -33,8 +33,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ctpipe._shared.jit import njit
-
 __all__ = [
     "CircularMotion",
     "FailedEstimation",
@@ -115,26 +113,14 @@ def sampson_distance(alpha_rad, q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
     half_c, half_s = _half_angle(alpha_rad)
     if half_c.ndim == 2 and half_c.shape[1] == 1 and x.ndim == 1:
         # Every hypothesis of a RANSAC round at once: one pass, no (H, N) temporaries, GIL released.
-        return _hypotheses_sampson(half_c[:, 0], half_s[:, 0], np.ascontiguousarray(x), np.ascontiguousarray(y),
+        from ctpipe._shared.sampson import hypotheses_sampson   # numba: not imported with the model
+
+        return hypotheses_sampson(half_c[:, 0], half_s[:, 0], np.ascontiguousarray(x), np.ascontiguousarray(y),
                                    np.ascontiguousarray(xp), np.ascontiguousarray(yp))
     numerator = half_c * (y - yp) - half_s * (xp * y + x * yp)
     # Eq = (-S y, -S x - C, C y), E^T q' = (-S y', C - S x', -C y').
     denominator = (half_s * y) ** 2 + (half_s * x + half_c) ** 2 + (half_s * yp) ** 2 + (half_c - half_s * xp) ** 2
     return np.abs(numerator) / np.sqrt(denominator)
-
-
-@njit(cache=True)
-def _hypotheses_sampson(half_c, half_s, x, y, xp, yp):
-    """:func:`sampson_distance` of every correspondence under each of H angles, (H, N): the same operations in the same order."""
-    out = np.empty((half_c.size, x.size))
-    for h in range(half_c.size):
-        c = half_c[h]
-        s = half_s[h]
-        for k in range(x.size):
-            numerator = c * (y[k] - yp[k]) - s * (xp[k] * y[k] + x[k] * yp[k])
-            denominator = (s * y[k]) ** 2 + (s * x[k] + c) ** 2 + (s * yp[k]) ** 2 + (c - s * xp[k]) ** 2
-            out[h, k] = abs(numerator) / np.sqrt(denominator)
-    return out
 
 
 def _sampson_weights(alpha_rad: float, x, y, xp, yp) -> np.ndarray:
