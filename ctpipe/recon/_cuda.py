@@ -255,6 +255,14 @@ def _fdk_kernel(acc, proj_t, cos_t, sin_t, weight, xs, zs, y0, dy, sod, su, sv, 
 
 
 @cuda.jit(cache=True)
+def _zero_kernel(flat):
+    """``flat[:] = 0``."""
+    i = cuda.grid(1)
+    if i < flat.size:
+        flat[i] = np.float32(0.0)
+
+
+@cuda.jit(cache=True)
 def _volume_layout_kernel(out, acc):
     """``out[iy, iz, ix] = acc[ix, iz, iy]``: :func:`ctpipe.recon.feldkamp._to_volume_layout` on the GPU."""
     ix, iz, iy = cuda.grid(3)
@@ -294,7 +302,10 @@ class FdkAccumulator:
         rows, cols = cosine.shape
         filtered = 3 * chunk_views * (rows + 2) * (cols + 2)
         memory_budget(4.0 * (2 * math.prod(shape) + filtered + 3 * n_pad + cosine.size), "reconstructing the volume")
-        self._acc = cuda.to_device(np.zeros(shape, dtype=np.float32))
+        # Zeroed where it lives: a 256^3 accumulator made on the host and sent was some 30 ms of a 0.27 s FDK.
+        self._acc = cuda.device_array(shape, dtype=np.float32)
+        flat = self._acc.reshape(math.prod(shape))
+        _zero_kernel[blocks_for((flat.size,), (256,)), 256](flat)
         self._xs = cuda.to_device(np.ascontiguousarray(xs, dtype=np.float64))
         self._zs = cuda.to_device(np.ascontiguousarray(zs, dtype=np.float64))
         self._rest = (float(y0), float(dy), *(float(value) for value in constants))
