@@ -57,9 +57,8 @@ def njit(*args, **options):
     the other worker threads, and the main thread that handles Ctrl-C and SIGTERM while the
     ``ctpipe`` command runs in a thread of its own (:func:`ctpipe.cli.entry`). Only a parallel
     kernel needs the threading layer: without a thread-safe one (workqueue only) the GIL keeps
-    parallel kernels from being launched from two threads at once. A serial kernel releases it
-    everywhere: on a 16-core machine without TBB or OpenMP, holding it made 160 descriptor
-    matchings take 1.1 s on 16 threads against 0.9 s on one.
+    parallel kernels from being launched from two threads at once. A serial kernel needs no
+    layer, so it releases the GIL everywhere.
     """
     options.setdefault("nogil", NOGIL or not options.get("parallel", False))
     return numba.njit(*args, **options)
