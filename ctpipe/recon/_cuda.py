@@ -72,6 +72,14 @@ def _edge_means(views, cosine, redundancy, v, row, n_cols, n_edge):
     return left / n_edge, right / n_edge
 
 
+@cuda.jit(device=True, inline=True)
+def _butterfly(p, half, half_n):
+    """Butterfly ``p`` of a radix-2 stage whose pairs are ``half`` apart: its two indices and its twiddle's index."""
+    k = p % half
+    i = (p - k) * 2 + k
+    return i, i + half, k * (half_n // half)
+
+
 @cuda.jit(cache=True)
 def _ramp_fft_kernel(out_t, views, cosine, redundancy, gain, twiddle_re, twiddle_im, fall, rise, n_edge):
     """:func:`_ramp_kernel`'s output through the FFT: block ``(p, v)`` filters rows ``2p`` and ``2p + 1`` of view ``v``.
@@ -107,13 +115,10 @@ def _ramp_fft_kernel(out_t, views, cosine, redundancy, gain, twiddle_re, twiddle
     cuda.syncthreads()
     half = half_n
     while half >= 1:  # forward, decimation in frequency
-        stride = half_n // half
         for p in range(t, half_n, n_threads):
-            k = p % half
-            i = (p - k) * 2 + k
-            j = i + half
-            wr = twiddle_re[k * stride]
-            wi = twiddle_im[k * stride]
+            i, j, w = _butterfly(p, half, half_n)
+            wr = twiddle_re[w]
+            wi = twiddle_im[w]
             ar = re[i]
             ai = im[i]
             dr = ar - re[j]
@@ -130,13 +135,10 @@ def _ramp_fft_kernel(out_t, views, cosine, redundancy, gain, twiddle_re, twiddle
     cuda.syncthreads()
     half = 1
     while half < n:  # inverse, decimation in time, conjugate twiddles
-        stride = half_n // half
         for p in range(t, half_n, n_threads):
-            k = p % half
-            i = (p - k) * 2 + k
-            j = i + half
-            wr = twiddle_re[k * stride]
-            wi = -twiddle_im[k * stride]
+            i, j, w = _butterfly(p, half, half_n)
+            wr = twiddle_re[w]
+            wi = -twiddle_im[w]
             tr = re[j] * wr - im[j] * wi
             ti = re[j] * wi + im[j] * wr
             re[j] = re[i] - tr
@@ -183,29 +185,15 @@ def _ramp_kernel(out_t, views, cosine, redundancy, taps, fall, rise, n_edge):
     row = cuda.blockIdx.y
     v = cuda.blockIdx.z
     n_cols = views.shape[2]
-    n_fall = fall.shape[0]
-    extended = n_fall + rise.shape[0] > 0
+    extended = fall.shape[0] + rise.shape[0] > 0
     n_in = taps.shape[0] if extended else n_cols
-    right = np.float32(0.0)
-    left = np.float32(0.0)
+    left = right = np.float32(0.0)
     if extended:
-        for k in range(n_edge):
-            right += views[v, row, n_cols - 1 - k] * cosine[row, n_cols - 1 - k] * redundancy[v, n_cols - 1 - k]
-            left += views[v, row, k] * cosine[row, k] * redundancy[v, k]
-        right /= n_edge
-        left /= n_edge
+        left, right = _edge_means(views, cosine, redundancy, v, row, n_cols, n_edge)
     mask = taps.shape[0] - 1
     acc = np.float32(0.0)
     for start in range(0, n_in, _FILTER_THREADS):
-        j = start + t
-        if j < n_cols:
-            tile[t] = views[v, row, j] * cosine[row, j] * redundancy[v, j]
-        elif j < n_cols + n_fall and j < n_in:
-            tile[t] = right * fall[j - n_cols]
-        elif j < n_in:
-            tile[t] = left * rise[j - n_cols - n_fall]
-        else:
-            tile[t] = np.float32(0.0)
+        tile[t] = _weighted_sample(views, cosine, redundancy, fall, rise, v, row, start + t, n_cols, left, right)
         cuda.syncthreads()
         for k in range(min(_FILTER_THREADS, n_in - start)):
             acc += tile[k] * taps[(col - start - k) & mask]
@@ -332,32 +320,35 @@ class FdkAccumulator:
         ``redundancy`` (V, cols) Parker's weights of a short scan, or None; ``weight`` (V,) each
         view's angular interval.
         """
-        n_views, rows, cols = views.shape
-        if self._filtered is None or self._filtered.shape[0] != n_views:
-            self._filtered = cuda.to_device(np.zeros((n_views, cols + 2, rows + 2), dtype=np.float32))
         if redundancy is None:
-            if self._ones is None or self._ones.shape[0] != n_views:
-                self._ones = cuda.to_device(np.ones((n_views, cols), dtype=np.float32))
+            if self._ones is None or self._ones.shape[0] != len(views):
+                self._ones = cuda.to_device(np.ones((len(views), views.shape[2]), dtype=np.float32))
             share = self._ones
         else:
             share = cuda.to_device(np.ascontiguousarray(redundancy, dtype=np.float32))
-        on_device = cuda.to_device(np.ascontiguousarray(views, dtype=np.float32))
+        self.filter(cuda.to_device(np.ascontiguousarray(views, dtype=np.float32)), share)
+        self.backproject(*(cuda.to_device(np.ascontiguousarray(a, dtype=np.float64)) for a in (cos_t, sin_t, weight)))
+
+    def filter(self, views, share) -> None:
+        """Weight and ramp-filter a chunk of views already on the GPU (``share``: their redundancy weights) into the buffer."""
+        n_views, rows, cols = views.shape
+        if self._filtered is None or self._filtered.shape[0] != n_views:
+            self._filtered = cuda.to_device(np.zeros((n_views, cols + 2, rows + 2), dtype=np.float32))
         if self._fft:
             threads = min(_FFT_THREADS, self._tables[0].shape[0] // 2)
-            _ramp_fft_kernel[((rows + 1) // 2, n_views), threads](self._filtered, on_device, self._cosine, share,
+            _ramp_fft_kernel[((rows + 1) // 2, n_views), threads](self._filtered, views, self._cosine, share,
                                                                    *self._tables, *self._roll, self._n_edge)
         else:
             grid = blocks_for((cols, rows, n_views), (_FILTER_THREADS, 1, 1))
-            _ramp_kernel[grid, _FILTER_THREADS](self._filtered, on_device, self._cosine, share, *self._tables,
+            _ramp_kernel[grid, _FILTER_THREADS](self._filtered, views, self._cosine, share, *self._tables,
                                                 *self._roll, self._n_edge)
+
+    def backproject(self, cos_t, sin_t, weight) -> None:
+        """Backproject the first ``len(cos_t)`` filtered views of the buffer (device arrays of their angles' cos, sin, weight)."""
         n_x, n_z, n_y = self._acc.shape
         block = (64, 4, 1)
-        grid = blocks_for((n_y, n_z, n_x), block)
-        _fdk_kernel[grid, block](self._acc, self._filtered,
-                                 cuda.to_device(np.ascontiguousarray(cos_t, dtype=np.float64)),
-                                 cuda.to_device(np.ascontiguousarray(sin_t, dtype=np.float64)),
-                                 cuda.to_device(np.ascontiguousarray(weight, dtype=np.float64)),
-                                 self._xs, self._zs, *self._rest)
+        _fdk_kernel[blocks_for((n_y, n_z, n_x), block), block](self._acc, self._filtered[: cos_t.shape[0]], cos_t,
+                                                               sin_t, weight, self._xs, self._zs, *self._rest)
 
     def result(self) -> np.ndarray:
         """The volume in :class:`ctpipe.recon.volume.VolumeGrid`'s layout ``(n_y, n_z, n_x)``, reordered on the GPU."""
