@@ -148,40 +148,31 @@ def main() -> None:
 
 
 def fdk_phases(geometry: Geometry, grid: VolumeGrid, sino: np.ndarray, angles: np.ndarray, repeats: int) -> None:
-    """FDK on the GPU phase by phase, as :func:`ctpipe.recon.feldkamp._fdk` runs them, each synchronised."""
+    """FDK on the GPU phase by phase, through the accumulator :func:`ctpipe.recon.feldkamp.fdk` uses, each synchronised."""
     from numba import cuda
 
     from ctpipe.recon import _cuda, feldkamp
 
-    n_views, rows, cols = sino.shape
+    n_views, _, cols = sino.shape
     theta = np.deg2rad(angles)
-    intervals, redundancy = feldkamp._scan_weights(theta, geometry, None)
-    n_pad, response = feldkamp.ramp_filter(cols, "hann")
-    scale = 1.0 / (geometry.pixel_pitch_u_mm * geometry.source_to_object_mm / geometry.source_to_detector_mm)
-    sdd = geometry.source_to_detector_mm
-    u_mm = (np.arange(cols) - geometry.u0_px) * geometry.pixel_pitch_u_mm
-    v_mm = (np.arange(rows) - geometry.v0_px) * geometry.pixel_pitch_v_mm
-    cosine = (sdd / np.sqrt(sdd**2 + u_mm[None, :] ** 2 + v_mm[:, None] ** 2)).astype(np.float32)
+    intervals, _ = feldkamp._scan_weights(theta, geometry, None)
+    n_pad, _ = feldkamp.ramp_filter(cols, "hann")
     extend = feldkamp.is_truncated(sino)
-    roll = feldkamp._roll_offs(cols, n_pad) if extend else None
-    shape = (grid.n_x, grid.n_z, grid.n_y)
-    constants = (geometry.source_to_object_mm, sdd / geometry.pixel_pitch_u_mm, sdd / geometry.pixel_pitch_v_mm,
-                 geometry.u0_px + 1.0, geometry.v0_px + 1.0)
     chunk = feldkamp._CHUNK_VIEWS
     parts = [slice(start, min(start + chunk, n_views)) for start in range(0, n_views, chunk)]
 
     def accumulator(direct: bool):
-        saved, _cuda.fft_longest = _cuda.fft_longest, (0 if direct else saved_longest)
+        saved = _cuda.fft_longest
+        _cuda.fft_longest = 0 if direct else saved
         try:
-            return _cuda.FdkAccumulator(shape, grid.axis_mm("x"), grid.axis_mm("z"), float(grid.axis_mm("y")[0]),
-                                        grid.voxel_size_mm, constants, (response * scale).astype(np.float32), n_pad,
-                                        cosine, chunk, roll, feldkamp._EDGE_COLUMNS)
+            return feldkamp._gpu_accumulator(geometry, grid, "hann", extend)
         finally:
             _cuda.fft_longest = saved
 
-    saved_longest = _cuda.fft_longest
     on_device = [cuda.to_device(np.ascontiguousarray(sino[part])) for part in parts]
-    ones = cuda.to_device(np.ones((chunk, cols), dtype=np.float32))
+    ones = {len(views): cuda.to_device(np.ones((len(views), cols), dtype=np.float32)) for views in on_device}
+    trig = [[cuda.to_device(np.ascontiguousarray(a[part], dtype=np.float64))
+             for a in (np.cos(theta), np.sin(theta), intervals)] for part in parts]
 
     def synced(run):
         def go():
@@ -196,32 +187,15 @@ def fdk_phases(geometry: Geometry, grid: VolumeGrid, sino: np.ndarray, angles: n
     def filter_with(acc):
         def go():
             for views in on_device:
-                if acc._filtered is None or acc._filtered.shape[0] != views.shape[0]:
-                    acc._filtered = cuda.device_array((views.shape[0], cols + 2, rows + 2), dtype=np.float32)
-                share = ones if views.shape[0] == chunk else cuda.to_device(np.ones((views.shape[0], cols),
-                                                                                     np.float32))
-                if acc._fft:
-                    threads = min(_cuda._FFT_THREADS, n_pad // 2)
-                    _cuda._ramp_fft_kernel[((rows + 1) // 2, views.shape[0]), threads](
-                        acc._filtered, views, acc._cosine, share, *acc._tables, *acc._roll, acc._n_edge)
-                else:
-                    grid_ = _cuda.blocks_for((cols, rows, views.shape[0]), (_cuda._FILTER_THREADS, 1, 1))
-                    _cuda._ramp_kernel[grid_, _cuda._FILTER_THREADS](acc._filtered, views, acc._cosine, share,
-                                                                    *acc._tables, *acc._roll, acc._n_edge)
+                acc.filter(views, ones[len(views)])
         return go
 
-    fft_acc, direct_acc = accumulator(False), accumulator(True)
-    filtered = cuda.device_array((chunk, cols + 2, rows + 2), dtype=np.float32)
-    trig = [[cuda.to_device(np.ascontiguousarray(a[part], dtype=np.float64))
-             for a in (np.cos(theta), np.sin(theta), intervals)] for part in parts]
+    fft_acc, direct_acc, back_acc = accumulator(False), accumulator(True), accumulator(False)
+    back_acc.filter(on_device[0], ones[len(on_device[0])])   # a whole chunk in its buffer, filtered once
 
     def backproject():
-        n_x, n_z, n_y = shape
-        block = (64, 4, 1)
-        for (cos_t, sin_t, weight), part in zip(trig, parts):
-            _cuda._fdk_kernel[_cuda.blocks_for((n_y, n_z, n_x), block), block](
-                fft_acc._acc, filtered[: part.stop - part.start], cos_t, sin_t, weight, fft_acc._xs, fft_acc._zs,
-                *fft_acc._rest)
+        for angles_on_device in trig:
+            back_acc.backproject(*angles_on_device)
 
     phases = {
         "host checks (finite, truncated)": lambda: (feldkamp._validate(sino, geometry, angles, grid, "hann", None,
@@ -230,7 +204,7 @@ def fdk_phases(geometry: Geometry, grid: VolumeGrid, sino: np.ndarray, angles: n
         f"ramp filter, FFT ({n_pad} samples)": filter_with(fft_acc),
         f"ramp filter, direct ({n_pad} taps)": filter_with(direct_acc),
         "backprojection": backproject,
-        "volume reordered and back": fft_acc.result,
+        "volume reordered and back": back_acc.result,
     }
     for name, run in phases.items():
         print(f"{n_views:>6} fdk phase  {name:<34} {synced(run):9.3f} s (extended rows: {extend})")

@@ -507,11 +507,10 @@ def _fdk_size(grid: VolumeGrid, geometry: Geometry, n_views: int) -> tuple[str, 
     return f"reconstructing a {grid.n_x} x {grid.n_y} x {grid.n_z} volume with FDK", n_bytes
 
 
-def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_scan, progress,
-         extend: bool = False) -> np.ndarray:
-    theta = np.deg2rad(angles)
-    intervals, redundancy = _scan_weights(theta, geometry, short_scan)
-
+def _weights_and_filter(geometry: Geometry, filter: str):
+    """What both devices' FDK precompute: Feldkamp's cosine weight (rows, cols, float32), the padded
+    row length, the ramp filter's response and its scale to 1/mm, and the backprojection's
+    constants ``(sod, su, sv, u0, v0)`` (principal point padded)."""
     sod = geometry.source_to_object_mm
     sdd = geometry.source_to_detector_mm
     pu, pv = geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm
@@ -523,12 +522,26 @@ def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_
     n_pad, response = ramp_filter(cols, filter)
     # The kernel is for unit spacing; the samples are pu * SOD / SDD apart on the virtual detector.
     scale = 1.0 / (pu * sod / sdd)
-
-    xs = grid.axis_mm("x")
-    zs = grid.axis_mm("z")
-    ys = grid.axis_mm("y")
-    shape = (grid.n_x, grid.n_z, grid.n_y)
     constants = (sod, sdd / pu, sdd / pv, geometry.u0_px + 1.0, geometry.v0_px + 1.0)
+    return cosine, n_pad, response, scale, constants
+
+
+def _gpu_accumulator(geometry: Geometry, grid: VolumeGrid, filter: str, extend: bool):
+    """:class:`ctpipe.recon._cuda.FdkAccumulator` for this geometry and grid, chunks of :data:`_CHUNK_VIEWS` views."""
+    from ctpipe.recon._cuda import FdkAccumulator
+
+    cosine, n_pad, response, scale, constants = _weights_and_filter(geometry, filter)
+    # The GPU filters too: the same FFT, or for very long rows the same circular convolution.
+    return FdkAccumulator((grid.n_x, grid.n_z, grid.n_y), grid.axis_mm("x"), grid.axis_mm("z"),
+                          float(grid.axis_mm("y")[0]), grid.voxel_size_mm, constants,
+                          (response * scale).astype(np.float32), n_pad, cosine, _CHUNK_VIEWS,
+                          _roll_offs(geometry.detector_cols, n_pad) if extend else None, _EDGE_COLUMNS)
+
+
+def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_scan, progress,
+         extend: bool = False) -> np.ndarray:
+    theta = np.deg2rad(angles)
+    intervals, redundancy = _scan_weights(theta, geometry, short_scan)
 
     def backproject_all(add) -> None:
         """``add(part)`` for every chunk of views, in order, saying how far it got."""
@@ -539,26 +552,25 @@ def _fdk(proj, angles, geometry: Geometry, grid: VolumeGrid, filter: str, short_
                 progress(part.stop - part.start)
 
     if device.active() == "cuda":
-        from ctpipe.recon._cuda import FdkAccumulator
-
         try:
-            # The GPU filters too: the same FFT, or for very long rows the same circular convolution.
-            on_gpu = FdkAccumulator(shape, xs, zs, float(ys[0]), grid.voxel_size_mm, constants,
-                                    (response * scale).astype(np.float32), n_pad, cosine,
-                                    _CHUNK_VIEWS, _roll_offs(cols, n_pad) if extend else None, _EDGE_COLUMNS)
+            on_gpu = _gpu_accumulator(geometry, grid, filter, extend)
             backproject_all(lambda part: on_gpu.add(proj[part], None if redundancy is None else redundancy[part],
                                                     np.cos(theta[part]), np.sin(theta[part]), intervals[part]))
             return on_gpu.result()
         except Exception as error:  # noqa: BLE001 - memory, driver, compiler: the CPU answers
             device.fall_back("FDK", error)
-    acc = np.zeros(shape, dtype=np.float32)
+    cosine, n_pad, response, scale, constants = _weights_and_filter(geometry, filter)
+    xs = grid.axis_mm("x")
+    zs = grid.axis_mm("z")
+    y0 = float(grid.axis_mm("y")[0])
+    acc = np.zeros((grid.n_x, grid.n_z, grid.n_y), dtype=np.float32)
 
     def add(part: slice) -> None:
         pre = cosine[None, :, :]
         if redundancy is not None:
             pre = pre * redundancy[part, None, :].astype(np.float32)
         _backproject(acc, _filter_views(proj[part], pre, n_pad, response, scale, extend), np.cos(theta[part]),
-                     np.sin(theta[part]), intervals[part], xs, zs, float(ys[0]), grid.voxel_size_mm, *constants)
+                     np.sin(theta[part]), intervals[part], xs, zs, y0, grid.voxel_size_mm, *constants)
 
     backproject_all(add)
     return _to_volume_layout(acc)
