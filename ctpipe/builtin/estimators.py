@@ -98,9 +98,9 @@ class Ransac1ptEstimator(Estimator):
         # hypothesis angle and locally optimise (refit, re-select) only the most promising.
         candidates = np.flatnonzero(valid)
         candidates = candidates[_first_of_each_set(np.packbits(inliers[candidates], axis=1))]
-        pre_scores = self._scores(inliers[candidates], distances[candidates])
+        ranking = self._ranking(inliers[candidates], distances[candidates])
         best = None
-        for k in np.argsort([score[0] for score in pre_scores], kind="stable")[: self.local_optimisations]:
+        for k in np.argsort(ranking, kind="stable")[: self.local_optimisations]:
             h = candidates[k]
             alpha, mask = self._refit_consensus(alphas[h], inliers[h], q_a, q_b)
             if mask.sum() <= self.min_consensus * m or mask.sum() < self.min_inliers:
@@ -155,11 +155,11 @@ class Ransac1ptEstimator(Estimator):
             mask = tight
         return float(alpha), mask
 
-    def _scores(self, masks: np.ndarray, d: np.ndarray) -> list[tuple]:
-        """:meth:`_score` of each row of ``masks`` and ``d`` (H, N), in one pass over the array."""
+    def _ranking(self, masks: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """The first term of :meth:`_score` for each row of ``masks`` and ``d`` (H, N), in one pass: what the candidates are ranked by."""
         if self.scoring == "msac":
-            return [(float(cost),) for cost in np.minimum(d * d, self.sampson_threshold ** 2).sum(axis=1)]
-        return [(-int(count), float(cost)) for count, cost in zip(masks.sum(axis=1), np.where(masks, d ** 2, 0.0).sum(axis=1))]
+            return np.minimum(d * d, self.sampson_threshold ** 2).sum(axis=1)
+        return -masks.sum(axis=1)
 
     def _score(self, alpha: float, mask: np.ndarray, d: np.ndarray) -> tuple:
         """Smaller is better: MSAC cost, or (-inlier count, squared distances of the inliers)."""

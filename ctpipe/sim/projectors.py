@@ -44,6 +44,7 @@ import numpy as np
 from numba import prange
 
 from ctpipe._shared import device
+from ctpipe._shared.arrays import all_finite
 from ctpipe._shared.checks import as_angles_deg
 from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe._shared.resources import available_cores, check_fits
@@ -87,7 +88,7 @@ def _check_array(name: str, value, expected: tuple[int, ...], axes: str) -> np.n
         raise InputError(f"{name}: must be a float array, got dtype {array.dtype}")
     if array.shape != expected:
         raise InputError(f"{name}: must have shape {axes} = {expected}, got {array.shape}")
-    if not np.all(np.isfinite(array)):
+    if not all_finite(array):
         raise InputError(f"{name}: contains NaN or infinite values")
     return np.ascontiguousarray(array, dtype=np.float32)
 
