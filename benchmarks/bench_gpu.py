@@ -20,6 +20,7 @@ to ctpipe's GPU time in the same run. Never fails on time; a peer that cannot ru
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import time
 
@@ -162,12 +163,8 @@ def fdk_phases(geometry: Geometry, grid: VolumeGrid, sino: np.ndarray, angles: n
     parts = [slice(start, min(start + chunk, n_views)) for start in range(0, n_views, chunk)]
 
     def accumulator(direct: bool):
-        saved = _cuda.fft_longest
-        _cuda.fft_longest = 0 if direct else saved
-        try:
+        with _cuda.direct_filter() if direct else contextlib.nullcontext():
             return feldkamp._gpu_accumulator(geometry, grid, "hann", extend)
-        finally:
-            _cuda.fft_longest = saved
 
     on_device = [cuda.to_device(np.ascontiguousarray(sino[part])) for part in parts]
     ones = {len(views): cuda.to_device(np.ones((len(views), cols), dtype=np.float32)) for views in on_device}

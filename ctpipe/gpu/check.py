@@ -78,13 +78,10 @@ def compare(size: int = 8, n_views: int = 3, seed: int = 0) -> dict[str, dict[st
         """The wide extended scan through the GPU's direct convolution, the filter of rows too long for its FFT."""
         if device.active() != "cuda":
             return fdk(wide_views, wide, angles, wide_grid, truncation="extend")
-        from ctpipe.recon import _cuda
+        from ctpipe.recon._cuda import direct_filter
 
-        saved, _cuda.fft_longest = _cuda.fft_longest, 0
-        try:
+        with direct_filter():
             return fdk(wide_views, wide, angles, wide_grid, truncation="extend")
-        finally:
-            _cuda.fft_longest = saved
 
     runs = {
         "forward": lambda: projector.forward(volume, angles),

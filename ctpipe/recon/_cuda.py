@@ -24,14 +24,16 @@ Imported only when :func:`ctpipe.gpu.active` is ``"cuda"``.
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 
 import numpy as np
 from numba import cuda
 
 from ctpipe._shared.device import blocks_for, memory_budget, prepare_cuda
 
-__all__ = ["FdkAccumulator"]
+__all__ = ["FdkAccumulator", "direct_filter"]
 
 prepare_cuda()
 
@@ -41,8 +43,19 @@ _FILTER_THREADS = 128
 #: The longest padded row the FFT filter holds in shared memory (two float32 arrays: 32 KiB).
 FFT_SAMPLES = 4096
 
-#: Rows padded to more samples than this take the direct convolution (a variable: the check runs both).
+#: Rows padded to more samples than this take the direct convolution (a variable: see :func:`direct_filter`).
 fft_longest = FFT_SAMPLES
+
+
+@contextlib.contextmanager
+def direct_filter() -> Iterator[None]:
+    """Within the block, every row takes the direct convolution (the check and the benchmark run both filters)."""
+    global fft_longest
+    saved, fft_longest = fft_longest, 0
+    try:
+        yield
+    finally:
+        fft_longest = saved
 
 #: Threads of an FFT block: each does ``n_pad / 2 / threads`` butterflies a stage.
 _FFT_THREADS = 256
