@@ -5,6 +5,7 @@ Arrays inside are never modified by a stage; a stage returns new containers.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -81,6 +82,19 @@ class Features:
 
     def __len__(self) -> int:
         return len(self.xy)
+
+    @property
+    def has_descriptors(self) -> bool:
+        """False for features whose descriptors were dropped (:meth:`without_descriptors`)."""
+        return self.descriptors.shape[1] > 0 or len(self) == 0
+
+    def without_descriptors(self) -> "Features":
+        """The same keypoints with descriptors of width 0: what is kept once the pairs are matched.
+
+        Matchers refuse such features (:class:`~ctpipe.errors.InputError`); keypoints, their
+        positions and counts are all a refiner that does not compare descriptors reads.
+        """
+        return dataclasses.replace(self, descriptors=np.empty((len(self), 0), dtype=self.descriptors.dtype))
 
     @classmethod
     def build(cls, *, xy, size, angle_deg, response, octave=None, class_id=None, descriptors, norm) -> "Features":
@@ -161,6 +175,8 @@ class ScanObservations:
     geometry : Geometry
     n_views : int
     features : tuple of Features, one per view
+        Without descriptors (:meth:`Features.without_descriptors`) where the pipeline's refiner
+        does not read them.
     pairs : ndarray of shape (P, 2), int64
         View indices ``(i, j)`` of each estimated pair.
     matches : tuple of Matches, one per pair

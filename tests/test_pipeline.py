@@ -151,3 +151,28 @@ def test_a_binned_detection_still_recovers_the_angles_and_says_so(bead_scan):
     # The keypoints are in the full views' pixels: the angles hold, a little less sharply.
     assert result.pair_status == ("ok",) * 4
     np.testing.assert_allclose(result.angles_deg, truth, atol=0.3)
+
+
+def test_descriptors_are_dropped_after_matching_only_where_the_refiner_does_not_read_them(bead_scan):
+    projections, geometry, _ = bead_scan
+    graph = Pipeline.from_config({"refiner": {"name": "least-squares"}})
+    observations = graph.observe(projections, geometry)
+    assert all(len(f) > 0 and f.descriptors.shape == (len(f), 0) for f in observations.features)
+    assert all(f.xy.shape == (len(f), 2) for f in observations.features)
+    result = graph.refine(observations)
+    assert result.pair_status == ("ok",) * 4 and np.all(result.n_keypoints > 0)
+
+    bundle = Pipeline.from_config({"refiner": {"name": "bundle-adjustment"}})
+    kept = bundle.observe(projections, geometry)
+    assert all(f.has_descriptors and f.descriptors.shape[1] == 128 for f in kept.features)
+    with pytest.raises(InputError, match="BundleAdjustmentRefiner reads the features' descriptors"):
+        bundle.refine(observations)
+    with pytest.raises(InputError, match="cannot match features without descriptors"):
+        graph.matcher.match(observations.features[0], observations.features[1])
+
+
+def test_projection_matching_reads_descriptors_only_through_a_refiner_start():
+    from ctpipe.builtin.bundle import BundleAdjustmentRefiner
+    from ctpipe.builtin.projection_matching import ProjectionMatchingRefiner
+    assert not ProjectionMatchingRefiner().reads_descriptors
+    assert ProjectionMatchingRefiner(start=BundleAdjustmentRefiner()).reads_descriptors

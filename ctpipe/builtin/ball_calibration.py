@@ -34,6 +34,8 @@ class BallCalibrationRefiner(Refiner):
     p_value: float = param(1e-3, doc="keep the corrected angles where the F test of the balls' reprojection errors "
                            "against the nominal angles' is below this", gt=0, lt=1)
 
+    reads_descriptors = False   # the discs' centres and sizes only
+
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
         nominal = observations.nominal_angles_deg
         if nominal is None or len(observations.features) != observations.n_views:

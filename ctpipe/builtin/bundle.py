@@ -34,6 +34,8 @@ class BundleAdjustmentRefiner(BundleSettings, Refiner):
         None, doc="pairs beyond max_pair_deviation_deg: take as correspondences the matches within this Sampson "
                   "distance of the nominal step, each point once (null: leave the pair out)", gt=0, le=1)
 
+    reads_descriptors = True   # a keypoint joins a track by its descriptor's distance (extend_tracks)
+
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
         nominal = observations.nominal_angles_deg
         start = None

@@ -30,6 +30,9 @@ class _NearestNeighbourMatcher(Matcher):
         return index, distance, self._knn(b, a, 1)[0][:, 0] if self.mutual else None
 
     def match(self, features_a: Features, features_b: Features) -> Matches:
+        if not (features_a.has_descriptors and features_b.has_descriptors):
+            raise InputError("cannot match features without descriptors (dropped once a pipeline matched its pairs, "
+                             "Features.without_descriptors); match the detector's own features")
         if features_a.norm != features_b.norm or features_a.descriptors.shape[1] != features_b.descriptors.shape[1]:
             raise InputError(
                 f"cannot match {features_a.norm} descriptors of width {features_a.descriptors.shape[1]} with "

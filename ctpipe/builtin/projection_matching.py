@@ -119,6 +119,11 @@ class ProjectionMatchingRefiner(Refiner):
             raise ConfigError(f"ProjectionMatchingRefiner.band_low_px: must be below band_high_px "
                               f"({self.band_high_px:g}), got {self.band_low_px:g}")
 
+    @property
+    def reads_descriptors(self) -> bool:
+        """Matching reads pixels; only a refiner given as the start may read descriptors."""
+        return isinstance(self.start, Refiner) and self.start.reads_descriptors
+
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
         start = self.start
         if isinstance(start, StageSpec):

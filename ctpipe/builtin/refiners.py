@@ -34,6 +34,8 @@ class LeastSquaresRefiner(Refiner):
     scale_deg: float = param(0.1, doc="pair residual (deg) beyond which the robust loss down-weights a pair",
                              gt=0, le=10)
 
+    reads_descriptors = False   # the pairs' inliers only
+
     def refine(self, observations: ScanObservations, *, rng: np.random.Generator) -> ScanSolution:
         return solve_view_graph(observations, objective=self.objective, weighting=self.weighting, loss=self.loss,
                                 scale_deg=self.scale_deg)
