@@ -15,6 +15,7 @@ import numpy as np
 
 from ctpipe._shared import device as gpu
 from ctpipe._shared.checks import short_repr
+from ctpipe._shared.resources import release_free_memory
 from ctpipe.config import PipelineConfig, StageSpec, build_stage, load_yaml, parse_geometry, parse_pipeline
 from ctpipe.data import Features, ScanObservations, ScanSolution
 from ctpipe.errors import EstimationError, InputError
@@ -734,6 +735,7 @@ class Pipeline:
                                    name="estimate") for matched_chunk, chunk in zip(tasks, chunks)]
             estimates = tuple(e for chunk in run_on.gather(tasks) for e in chunk)
             timings["estimate"] = time.perf_counter() - start
+        release_free_memory()   # what the pair stages' threads freed, before the refiner allocates
         observations = ScanObservations(geometry=geometry, n_views=n_views, features=features, pairs=pairs,
                                         matches=matches, points_a=points_a, points_b=points_b, estimates=estimates,
                                         nominal_angles_deg=nominal, projections=projections, timings_s=timings,

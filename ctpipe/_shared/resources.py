@@ -14,7 +14,8 @@ from pathlib import Path
 
 from ctpipe.errors import ResourceError
 
-__all__ = ["available_cores", "available_bytes", "format_bytes", "check_fits", "memory_guard", "FLOAT32"]
+__all__ = ["available_cores", "available_bytes", "format_bytes", "check_fits", "memory_guard", "release_free_memory",
+           "FLOAT32"]
 
 
 def available_cores() -> int:
@@ -110,3 +111,25 @@ def memory_guard(what: str, n_bytes: int | float | None = None, *, of: str | Non
 def _message(what: str, n_bytes: float, available: int, of: str | None, hint: str | None) -> str:
     return (f"{what} needs {format_bytes(n_bytes)}" + (f" of {of}" if of else "")
             + f"; {format_bytes(available)} is available" + (f"; {hint}" if hint else ""))
+
+
+def release_free_memory() -> bool:
+    """Hand memory the process has freed back to the system (glibc's ``malloc_trim(0)``); True if any was.
+
+    Many threads allocating views of a few hundred kB each (detection, matching) leave the memory
+    they freed in glibc's per-thread heaps, below the size that would be handed back on its own,
+    and the process stays that much larger for the rest of the run: 200 MB after the pair stages
+    of 1,000 views of 512^2, measured. The large arrays the refiner allocates next are mapped
+    afresh and do not reuse it. Dask's workers trim for the same reason (its documentation's
+    "Memory not released back to the OS"). Elsewhere than glibc: nothing, False.
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        trim = ctypes.CDLL(name).malloc_trim
+    except (OSError, AttributeError, TypeError):   # not glibc (macOS, Windows, musl)
+        return False
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    return bool(trim(0))
