@@ -86,7 +86,7 @@ __all__ = ["ProjectionMatchingResult", "projection_matching", "matching_levels",
            "HELD_OUT_DECISIVE_Z"]
 
 # Views reprojected at a time: bounds the memory of the reprojections to a few chunks' worth.
-_CHUNK_VIEWS = 32
+_CHUNK_VIEWS = 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -975,6 +975,9 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
 
         scores = None
         if len(binning) > 1 and int(binning[0]) != level.binning:
+            # The matched alignment is not read again (the test aligns the views anew): its copy
+            # goes before the coarse level's views are made beside it.
+            level.align(None, 0.0)
             # Two stages: the coarsest level first (a sixth of the cost or less), the finest only
             # where the coarse one leaves the answer in doubt (`HELD_OUT_DECISIVE_Z`).
             scores, scored_at = scored(_Level(data, geometry, int(binning[0]), int(max_voxels), band_px, filter))
