@@ -298,7 +298,7 @@ class Refiner(Stage):
     kind = "refiner"
     #: Whether :meth:`refine` reads the features' descriptors. A pipeline whose refiner does not
     #: drops them once the pairs are matched (:meth:`~ctpipe.data.Features.without_descriptors`):
-    #: at 2,000 views of 1,600 SIFT keypoints they are 0.4 GB that nothing reads again. True by
+    #: SIFT's are 286 MB at 2,000 views of 2,048^2 (measured) that nothing reads again. True by
     #: default, so that a refiner from a plugin keeps them unless it says otherwise.
     reads_descriptors: ClassVar[bool] = True
 
