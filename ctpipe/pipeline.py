@@ -725,7 +725,7 @@ class Pipeline:
             if not self.refiner.reads_descriptors:
                 # Nothing reads the descriptors again (286 MB of SIFT's at 2,000 views of 2,048^2,
                 # measured): keep the keypoints, where the tasks run too.
-                detected = [run_on.submit(_without_descriptors, handle, name="detect") for handle in detected]
+                detected = [run_on.submit(Features.without_descriptors, handle, name="detect") for handle in detected]
                 features = tuple(run_on.gather(detected))
 
             start = time.perf_counter()
@@ -903,10 +903,6 @@ def _match_pairs(matcher: Matcher, geometry: Geometry, features: list[Features],
 def _estimate_pairs(estimator: Estimator, matched: list, seeds: list) -> list:
     """Estimates of ``_match_pairs``'s output, pair ``k`` with its own generator ``seeds[k]``."""
     return [estimator.estimate(q_a, q_b, rng=np.random.default_rng(s)) for (_, q_a, q_b), s in zip(matched, seeds)]
-
-
-def _without_descriptors(features: Features) -> Features:
-    return features.without_descriptors()
 
 
 def _refine_task(refiner: Refiner, observations: ScanObservations, source, features: list | None,

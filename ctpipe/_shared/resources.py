@@ -124,12 +124,10 @@ def release_free_memory() -> bool:
     "Memory not released back to the OS"). Elsewhere than glibc: nothing, False.
     """
     import ctypes
-    import ctypes.util
 
-    name = ctypes.util.find_library("c")
     try:
-        trim = ctypes.CDLL(name).malloc_trim
-    except (OSError, AttributeError, TypeError):   # not glibc (macOS, Windows, musl)
+        trim = ctypes.CDLL(None).malloc_trim   # the symbols the process has loaded, libc's among them
+    except (OSError, AttributeError, TypeError):   # not glibc (macOS, musl: no such symbol; Windows: no CDLL(None))
         return False
     trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
     return bool(trim(0))
