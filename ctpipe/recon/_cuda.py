@@ -265,6 +265,15 @@ def _zero_kernel(flat):
         flat[i] = np.float32(0.0)
 
 
+def _device_zeros(shape: tuple[int, ...]):
+    """A float32 device array of ``shape``, zeroed where it lives: not made on the host and sent
+    (a 256^3 accumulator sent was some 30 ms of a 0.27 s FDK on an H200)."""
+    out = cuda.device_array(shape, dtype=np.float32)
+    flat = out.reshape(math.prod(shape))
+    _zero_kernel[blocks_for((flat.size,), (256,)), 256](flat)
+    return out
+
+
 @cuda.jit(cache=True)
 def _volume_layout_kernel(out, acc):
     """``out[iy, iz, ix] = acc[ix, iz, iy]``: :func:`ctpipe.recon.feldkamp._to_volume_layout` on the GPU."""
@@ -305,10 +314,7 @@ class FdkAccumulator:
         rows, cols = cosine.shape
         filtered = 3 * chunk_views * (rows + 2) * (cols + 2)
         memory_budget(4.0 * (2 * math.prod(shape) + filtered + 3 * n_pad + cosine.size), "reconstructing the volume")
-        # Zeroed where it lives: a 256^3 accumulator made on the host and sent was some 30 ms of a 0.27 s FDK.
-        self._acc = cuda.device_array(shape, dtype=np.float32)
-        flat = self._acc.reshape(math.prod(shape))
-        _zero_kernel[blocks_for((flat.size,), (256,)), 256](flat)
+        self._acc = _device_zeros(shape)
         self._xs = cuda.to_device(np.ascontiguousarray(xs, dtype=np.float64))
         self._zs = cuda.to_device(np.ascontiguousarray(zs, dtype=np.float64))
         self._rest = (float(y0), float(dy), *(float(value) for value in constants))
@@ -346,7 +352,7 @@ class FdkAccumulator:
         """Weight and ramp-filter a chunk of views already on the GPU (``share``: their redundancy weights) into the buffer."""
         n_views, rows, cols = views.shape
         if self._filtered is None or self._filtered.shape[0] != n_views:
-            self._filtered = cuda.to_device(np.zeros((n_views, cols + 2, rows + 2), dtype=np.float32))
+            self._filtered = _device_zeros((n_views, cols + 2, rows + 2))
         if self._fft:
             threads = min(_FFT_THREADS, self._tables[0].shape[0] // 2)
             _ramp_fft_kernel[((rows + 1) // 2, n_views), threads](self._filtered, views, self._cosine, share,
