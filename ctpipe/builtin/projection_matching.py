@@ -172,7 +172,7 @@ class ProjectionMatchingRefiner(Refiner):
             costs.update(consistency_costs(projections, geometry,
                                            {name: a for name, a in candidates.items() if name not in costs},
                                            binning=levels[0][0], band_px=band, max_voxels=self.max_voxels,
-                                           filter=self.filter, static=static))
+                                           filter=self.filter, static=static, detector=self.detector))
 
         if self.select and len(candidates) > 1:
             # Match from whichever explains the projections better: a feature start that went
