@@ -1122,14 +1122,20 @@ def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: d
         angles = np.asarray(angles, dtype=np.float64)
         try:
             _check(projections, geometry, angles, (binning,), (1,), band_px, max_voxels, filter, 1.0)
-            costs[name] = _detector_aligned_cost(level, angles) if detector else level.cost(angles)
+            if detector:
+                # Where the first candidate's detector needs no step, none is aligned: a fit costs
+                # twice a plain cost, and on an aligned scanner changes the costs in the fourth digit.
+                costs[name], detector = _detector_aligned_cost(level, angles)
+            else:
+                costs[name] = level.cost(angles)
         except InputError:
             costs[name] = math.inf
     return costs
 
 
-def _detector_aligned_cost(level: _Level, angles_deg: np.ndarray) -> float:
-    """The cost at ``angles_deg`` with the detector aligned to them: the axis column and the in-plane tilt.
+def _detector_aligned_cost(level: _Level, angles_deg: np.ndarray) -> tuple[float, bool]:
+    """The cost at ``angles_deg`` with the detector aligned to them (the axis column and the in-plane
+    tilt), and whether it was off enough to try a step.
 
     The steps :func:`projection_matching` takes first on its first level, the angles held: up to
     :data:`_DETECTOR_STEPS` of them, each tried whole then halved and kept where the cost falls by
@@ -1139,10 +1145,12 @@ def _detector_aligned_cost(level: _Level, angles_deg: np.ndarray) -> float:
     shifts_px, tilt = np.zeros((len(angles_deg), 2)), 0.0
     level.align(None, 0.0)
     fit = level.fit(angles_deg, detector=True)
+    moved = False
     for _ in range(_DETECTOR_STEPS):
         shift_step, tilt_step = _detector_step(fit.held, shifts_px, level.binning)
         if not _detector_moves(shift_step, tilt_step, level.binning):
             break
+        moved = True
         for scale in (1.0, 0.5):
             trial_shifts = _shift_gauge(shifts_px + scale * shift_step, theta)
             trial_tilt = tilt + scale * tilt_step
@@ -1154,4 +1162,4 @@ def _detector_aligned_cost(level: _Level, angles_deg: np.ndarray) -> float:
         else:
             break
     level.align(None, 0.0)
-    return fit.cost
+    return fit.cost, moved

@@ -308,6 +308,8 @@ def test_candidates_are_costed_on_the_detector_aligned_to_them():
     for name in aligned:
         assert fitted[name] == pytest.approx(aligned[name], rel=0.02)
     assert fitted["nominal"] / fitted["truth"] > 1.08
+    # On an aligned scanner there is nothing to align: the costs are the plain ones.
+    assert costs(None, True) == pytest.approx(aligned, rel=1e-3)
 
 
 def test_a_step_is_kept_only_where_the_cost_falls_beyond_fitting_noise():
