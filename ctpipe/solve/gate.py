@@ -43,7 +43,10 @@ rays' z is below ``-z`` too, the two are combined (Stouffer's sum: two
 independent lines of evidence), and where together they show the estimate better than the
 nominal angles beyond one band's threshold and the conjugate rays show no band of it worse, the
 whole estimate is returned, slow-even band included: the band conjugate rays hardly see is then
-decided by the evidence that sees it. Otherwise the bands are selected as above. The conjugate
+decided by the evidence that sees it. Views no conjugate ray reaches keep their nominal angle on
+this path too: the held-out views are interleaved with the reference's, so a slow warp is in both
+and they do not see it (a 3.7 deg warp in the middle of a 250 deg sweep scan passed with the rest
+of its estimate; ``docs/wholescan.md``). Otherwise the bands are selected as above. The conjugate
 rays' z in this is that of the estimate less its slow-even band: they see that band only through
 the spread of the fan, and with it an estimate 2.8 deg off, nearly all of it slow-even, scored
 -2.3 on a sweep scan (the band alone +2.0, the rest -0.1).
@@ -259,7 +262,8 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         two; two independent lines of evidence, the one from whole views held out of a
         reference, the other from the midplane's common rays): where the two together pass, and
         the conjugate rays show no band worse than the estimate without it, the whole estimate is
-        returned; otherwise the bands are selected as without the evidence. Conjugate rays see
+        returned on the views conjugate rays reach (the others keep their nominal angle);
+        otherwise the bands are selected as without the evidence. Conjugate rays see
         little on a small or sparse scan (on the built-in sweep the whole estimate's z against the nominal
         angles lay between -3.1 and +1.7, and estimates tens of degrees off scored +1.0 and
         -1.0), so without other evidence nothing passes; views held out of the reference they
