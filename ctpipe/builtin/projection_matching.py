@@ -67,9 +67,9 @@ class ProjectionMatchingRefiner(Refiner):
     column and the detector's tilt (``detector``) and what does not turn taken out (``static``).
     With ``select``, matching starts from whichever of the start and the nominal angles explains
     the projections better (a reconstruct-and-reproject residual, each on the detector aligned to
-    it where ``detector``: :func:`~ctpipe.solve.reprojection.consistency_costs`), and the matched angles are returned
-    only where they predict views held out of the reference better than the nominal angles do,
-    beyond noise (:func:`~ctpipe.solve.reprojection.held_out_scores`; a reference built from
+    it where ``detector``: :func:`~ctpipe.solve.reprojection.consistency_costs`), and the matched
+    angles are returned only where they predict views held out of the reference better than the
+    nominal angles do, beyond noise (:func:`~ctpipe.solve.reprojection.held_out_scores`; a reference built from
     wrong angles bends towards them, so its own residual cannot judge them), so a scan the
     matching cannot handle keeps its nominal angles; the evidence goes to the gate.
     With ``shifts`` each view's detector shift is fitted with its angle, so a detector or source
@@ -104,8 +104,9 @@ class ProjectionMatchingRefiner(Refiner):
                          "views' mean on a full turn, their per-pixel median on a short scan), where 16 views or "
                          "more span 180 deg or more")
     select: bool = param(True, doc="start matching from whichever of the start and the nominal angles fits the "
-                         "projections better (each on the detector aligned to it, with detector), and return the matched angles only where they predict views held out "
-                         "of the reference better than the nominal ones, beyond noise")
+                         "projections better (each on the detector aligned to it, with detector), and return the "
+                         "matched angles only where they predict views held out of the reference better than the "
+                         "nominal ones, beyond noise")
     min_views: int = param(32, doc="fewest views worth reconstructing a reference from; fewer keep the start",
                            ge=8, le=100000)
 

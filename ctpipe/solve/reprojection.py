@@ -1118,14 +1118,15 @@ def consistency_costs(projections: np.ndarray, geometry: Geometry, candidates: d
         data = data - static_part(data, next(iter(candidates.values())))
     level = _Level(data, geometry, int(binning), int(max_voxels), band_px, filter)
     costs = {}
+    # Where the first candidate's detector needs no step, none is aligned: a fit costs twice a
+    # plain cost, and on an aligned scanner changes the costs in the fourth digit.
+    align = detector
     for name, angles in candidates.items():
         angles = np.asarray(angles, dtype=np.float64)
         try:
             _check(projections, geometry, angles, (binning,), (1,), band_px, max_voxels, filter, 1.0)
-            if detector:
-                # Where the first candidate's detector needs no step, none is aligned: a fit costs
-                # twice a plain cost, and on an aligned scanner changes the costs in the fourth digit.
-                costs[name], detector = _detector_aligned_cost(level, angles)
+            if align:
+                costs[name], align = _detector_aligned_cost(level, angles)
             else:
                 costs[name] = level.cost(angles)
         except InputError:
