@@ -961,9 +961,13 @@ def _gate(observations: ScanObservations, solution: ScanSolution) -> GateDecisio
     line_integrals, converted = as_line_integrals(rows[:, None, :])
     if converted:   # d(-log I)/dv = -(dI/dv) / I
         slopes = -slopes / np.maximum(rows, 1e-30)
-    held_out = solution.info.get("held_out", {}).get(solution.info.get("chosen", ""), {})
+    chosen = solution.info.get("chosen", "")
+    held_out = solution.info.get("held_out", {}).get(chosen, {})
+    band = solution.info.get("held_out_slow_even", {}) if chosen == "matched" else {}
     return gate_angles(line_integrals[:, 0].astype(np.float64), observations.geometry, observations.nominal_angles_deg,
-                       estimate, slopes=slopes, held_out_z=held_out.get("z"))
+                       estimate, slopes=slopes, held_out_z=held_out.get("z"),
+                       held_out_slow_even_z=band.get("band", {}).get("z"),
+                       held_out_without_slow_even_z=band.get("without", {}).get("z"))
 
 
 class _Placed(NamedTuple):

@@ -213,6 +213,11 @@ class ProjectionMatchingRefiner(Refiner):
             chosen = best if best == reference or scores[best].z < -HELD_OUT_Z else reference
             angles = candidates[chosen]
             info["held_out"] = {name: score.to_dict() for name, score in scores.items()}
+            if result.held_out_slow_even is not None:
+                # The slow-even band of the matched correction on its own: what the gate decides
+                # that band by where the held-out views vouch for the whole beyond doubt.
+                info["held_out_slow_even"] = {name: score.to_dict()
+                                              for name, score in result.held_out_slow_even.items()}
             info["matching"]["held_out_binning"] = result.held_out_binning * prebin
             info["consistency_cost"] = {name: score.cost for name, score in scores.items()}
         info["matching"]["seconds"] = time.perf_counter() - begin

@@ -82,8 +82,8 @@ from ctpipe.recon.volume import VolumeGrid
 
 __all__ = ["ProjectionMatchingResult", "projection_matching", "matching_levels", "consistency_costs", "reconstruction_grid",
            "tangential_derivative", "band_pass", "as_line_integrals", "static_part", "static_part_applies",
-           "step_cap_deg", "HeldOutScore", "held_out_scores", "held_out_decisive", "HELD_OUT_Z",
-           "HELD_OUT_DECISIVE_Z"]
+           "step_cap_deg", "HeldOutScore", "held_out_scores", "held_out_decisive", "slow_even_band_scores",
+           "HELD_OUT_Z", "HELD_OUT_DECISIVE_Z"]
 
 # Views reprojected at a time: bounds the memory of the reprojections to a few chunks' worth.
 _CHUNK_VIEWS = 16
@@ -132,6 +132,13 @@ class ProjectionMatchingResult:
     held_out_binning : int or None
         The binning (of the projections given) the held-out scores were made at; None without
         ``compare``.
+    held_out_slow_even : dict of str to HeldOutScore or None
+        Where the matched angles' held-out z against the first set compared is decisive
+        (at or below ``-HELD_OUT_DECISIVE_Z``): the slow-even band of their change from it (the
+        constant and the even harmonics up to the third, as the gate splits it) judged on its
+        own, at the same level: ``band``, the matched angles against the same less that band,
+        and ``without``, the matched angles less the band against the first set compared
+        (:func:`slow_even_band_scores`). Else None.
     """
 
     angles_deg: np.ndarray
@@ -143,6 +150,7 @@ class ProjectionMatchingResult:
     tilt_deg: float | None = None
     held_out: dict[str, HeldOutScore] | None = None
     held_out_binning: int | None = None
+    held_out_slow_even: dict[str, HeldOutScore] | None = None
 
 
 #: Standard errors by which matched angles must predict held-out views better than the nominal ones
@@ -186,9 +194,13 @@ def held_out_scores(level: "_Level", candidates: dict[str, np.ndarray], referenc
                     folds: int = 2) -> dict[str, HeldOutScore]:
     """:class:`HeldOutScore` of every candidate angle set (degrees) at one level, against ``reference``,
     each view predicted from the views of the other ``folds - 1`` folds (:meth:`_Level.held_out`)."""
+    return _scores_against({name: level.held_out(angles, folds) for name, angles in candidates.items()}, reference)
+
+
+def _scores_against(energies: dict[str, tuple[np.ndarray, np.ndarray]], reference: str) -> dict[str, HeldOutScore]:
+    """:class:`HeldOutScore` of every angle set from its per-view held-out energies (:meth:`_Level.held_out`)."""
     from ctpipe.solve.conjugate import _blocked_se
 
-    energies = {name: level.held_out(angles, folds) for name, angles in candidates.items()}
     base, data = energies[reference]
     total = max(float(data.sum()), 1e-300)
     scores = {}
@@ -969,9 +981,18 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
         common = np.zeros_like(shifts_px)
         common[:, 0] = _axis_part(shifts_px[:, 0], theta) if shifts or detector else 0.0
 
+        band = None
+
         def scored(at: _Level) -> tuple[dict[str, HeldOutScore], int]:
+            nonlocal band
             at.align(common / at.binning, tilt)
-            return held_out_scores(at, candidates, reference), at.binning
+            energies = {name: at.held_out(values) for name, values in candidates.items()}
+            scores = _scores_against(energies, reference)
+            if scores["matched"].z <= -HELD_OUT_DECISIVE_Z:
+                band = slow_even_band_scores(at, candidates[reference], angles,
+                                             energies={"reference": energies[reference],
+                                                       "matched": energies["matched"]})
+            return scores, at.binning
 
         scores = None
         if len(binning) > 1 and int(binning[0]) != level.binning:
@@ -985,15 +1006,47 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
                 scores = None
         if scores is None:
             scores, scored_at = scored(level)
-        result = dataclasses.replace(result, held_out=scores, held_out_binning=scored_at)
+        result = dataclasses.replace(result, held_out=scores, held_out_binning=scored_at, held_out_slow_even=band)
     return result
+
+
+def slow_even_band_scores(level: "_Level", reference_deg: np.ndarray, matched_deg: np.ndarray, *,
+                          harmonics: int = 3, energies: dict | None = None) -> dict[str, HeldOutScore]:
+    """The slow-even band of a correction judged by held-out views on its own.
+
+    The band (the constant and the even harmonics of the turn up to ``harmonics`` of
+    ``matched_deg - reference_deg``, as :func:`ctpipe.solve.gate.split_bands` splits it) is what
+    neither the conjugate rays (they see it only through the fan) nor a test of the whole
+    correction can vouch for: a sweep scan whose matched angles fixed two 2 deg jumps and added a
+    4 deg twice-per-turn warp scored z -5.1 against the nominal angles as a whole. Returns
+    ``band`` (the matched angles against the same less the band: below ``-HELD_OUT_Z`` the
+    held-out views show the band itself better) and ``without`` (the matched angles less the
+    band against ``reference_deg``). ``energies`` may hold the held-out energies
+    (:meth:`_Level.held_out`) already made at this level, on its present alignment, of
+    ``reference_deg`` (key ``reference``) and ``matched_deg`` (``matched``).
+    """
+    from ctpipe.solve.gate import split_bands
+
+    reference = np.asarray(reference_deg, dtype=np.float64)
+    matched = np.asarray(matched_deg, dtype=np.float64)
+    correction = matched - reference
+    correction -= np.median(correction)
+    without = matched - split_bands(correction, reference, harmonics)["slow-even"]
+    made = dict(energies or {})
+    for name, values in (("reference", reference), ("matched", matched), ("without", without)):
+        if name not in made:
+            made[name] = level.held_out(values)
+    return {"band": _scores_against(made, "without")["matched"],
+            "without": _scores_against(made, "reference")["without"]}
 
 
 #: How far past the held-out threshold the coarsest level's z must be, either way, to decide
 #: without the finest level's test: three times `HELD_OUT_Z`. Measured on the default scan and six
 #: sweep scenarios, with the true and the nominal angles (docs/wholescan.md): where the coarse
 #: level's |z| was 6 or more (-25.6, -6.5), the finest level's had the same sign and was larger
-#: (-26.0, -11.3); between, the two levels disagreed (-2.7 and -1.3, -0.2 and -2.1).
+#: (-26.0, -11.3); between, the two levels disagreed (-2.7 and -1.3, -0.2 and -2.1). The gate takes
+#: held-out evidence this strong on its own, where the conjugate rays do not contradict it
+#: (:func:`ctpipe.solve.gate.gate_angles`).
 HELD_OUT_DECISIVE_Z = 3.0 * HELD_OUT_Z
 
 

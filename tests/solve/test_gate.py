@@ -222,6 +222,74 @@ def test_strong_held_out_evidence_does_not_carry_conjugate_rays_that_see_too_lit
     assert (stands is not None) == returned
 
 
+def _mock_scored(whole_z: float, seen_z: float, band_worse: str | None = None):
+    """A conjugate-ray scorer that gives the estimate (whole and without its slow-even band) these z
+    against the nominal angles, and shows removing ``band_worse`` better than keeping it."""
+    from ctpipe.solve.conjugate import ConjugateRayScore
+
+    def delta(name, reference):
+        if reference != "nominal":
+            return 0.0 if name == reference else (-5.0 if name == band_worse else 1.0)
+        return {"returned": whole_z, "visible": seen_z}.get(name, 0.0)
+
+    def scored(candidates, reference):
+        return {name: ConjugateRayScore(cost=1.0, u0_px=0.0, n_pairs=100, versus=reference,
+                                        delta=delta(name, reference), delta_se=1.0, dof=30) for name in candidates}
+    return scored
+
+
+@pytest.mark.parametrize("held_out_z, band_z, without_z, whole_z, seen_z, band_worse, kept", [
+    # A twice-per-turn correction the conjugate rays hardly see, its band shown better on its own.
+    (-9.4, -6.6, None, -2.4, -0.1, None, "all"),
+    (-6.0, -2.1, None, 0.0, 0.0, None, "all"),                 # decisive from -6 on
+    (-5.9, -6.6, None, -2.4, -0.1, None, None),                # short of it: the conjugate rays must agree
+    (-9.4, None, None, -2.4, -0.1, None, None),                # the band never judged on its own
+    # The band not shown better on its own: the rest, where the held-out views vouch for it.
+    (-9.4, -1.3, -7.0, -1.5, -1.5, None, "without slow-even"),
+    (-9.4, -1.3, -5.0, -1.5, -1.5, None, None),
+    (-9.4, -6.6, None, 3.0, 3.0, None, None),                  # the conjugate rays show the nominal angles better
+    (-9.4, -6.6, None, -2.4, -0.1, "slow-odd", None),          # or a band of the estimate worse
+])
+def test_decisive_held_out_evidence_stands_alone_band_by_band_unless_the_conjugate_rays_contradict_it(
+        held_out_z, band_z, without_z, whole_z, seen_z, band_worse, kept):
+    """Held-out views that show the estimate better beyond doubt (``HELD_OUT_DECISIVE_Z``) decide the
+    band the conjugate rays cannot see where they show that band better on its own: on a sweep scan
+    whose error was nearly all twice per turn the held-out z was -9.4 (the band alone -6.6) and the
+    conjugate rays' -0.1 without the band. A whole decisive on its other bands (two jumps fixed, a
+    4 deg twice-per-turn warp added: -5.1 as a whole, the band alone -1.3) keeps the nominal band."""
+    from ctpipe.solve.gate import _backward
+
+    theta = np.linspace(0.0, 360.0, 90, endpoint=False)
+    correction = 0.5 * np.cos(np.deg2rad(2 * theta)) + np.random.default_rng(0).normal(0.0, 0.05, 90)
+    parts = split_bands(correction, theta, harmonics=3)
+    stands = _backward(_mock_scored(whole_z, seen_z, band_worse), theta, correction, list(parts), parts, 2.0,
+                       held_out_z, band_z, without_z)
+    if kept is None:
+        assert stands is None
+        return
+    assert stands is not None and "beyond doubt" in stands[0]
+    assert list(stands[4]) == (list(parts) if kept == "all" else ["fast", "slow-odd"])
+
+
+def test_decisive_held_out_evidence_returns_a_correct_twice_per_turn_correction_whole():
+    """On a simulated full turn whose nominal angles are off twice per turn (the band conjugate rays
+    see only through the fan), a correct estimate comes back whole where the held-out views vouch
+    for the whole and for the band beyond doubt; without the band's own evidence, or short of
+    decisive, the gate keeps the nominal angles."""
+    s = simulate_scan()
+    rows = midplane_rows(s.projections, s.geometry)
+    truth = s.true_angles_deg
+    nominal = truth + 0.5 * np.cos(np.deg2rad(2 * truth))
+    estimate = truth + np.random.default_rng(3).normal(0.0, 0.02, len(truth))
+    decision = gate_angles(rows, s.geometry, nominal, estimate, held_out_z=-9.0, held_out_slow_even_z=-7.0,
+                           held_out_without_slow_even_z=-2.0)
+    assert decision.chosen == "estimate" and "beyond doubt" in decision.reason
+    assert _rms(decision.angles_deg, truth) < 0.05
+    assert gate_angles(rows, s.geometry, nominal, estimate, held_out_z=-9.0).chosen == "nominal"
+    assert gate_angles(rows, s.geometry, nominal, estimate, held_out_z=-3.0, held_out_slow_even_z=-7.0).chosen == \
+        "nominal"
+
+
 def test_on_a_full_turn_what_does_not_turn_is_taken_out_before_the_conjugate_rays_judge():
     """A static edge over a third of the detector makes the true angles' conjugate rays disagree
     more than the nominal ones' (z about +4.7 on this scan); without the views' mean they score
