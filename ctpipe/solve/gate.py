@@ -34,25 +34,29 @@ base a decision on.
 
 **The refiner's own evidence.** Conjugate rays are one row of the detector: on the small and
 sparse scans of the built-in sweep they barely see anything (the whole estimate's z against the
-nominal angles lay between -3.1 and +1.7, and estimates tens of degrees off scored -1.0 to +1.0),
-so by them alone every correction was refused, right or wrong. Projection matching scores its
-angles on views held out of the reference they are compared with
+nominal angles lay between -3.1 and +1.7, and estimates tens of degrees off scored -1.0 to
++1.0), so by them alone every correction was refused, right or wrong. Projection matching scores
+its angles on views held out of the reference they are compared with
 (:func:`~ctpipe.solve.reprojection.held_out_scores`), which a reference built from wrong angles
-cannot bend to fit. Where it gives that evidence (``held_out_z``, below ``-z``) and the conjugate
-rays' z is below ``-z`` too, the two are combined (Stouffer's sum: two
-independent lines of evidence), and where together they show the estimate better than the
-nominal angles beyond one band's threshold and the conjugate rays show no band of it worse, the
-whole estimate is returned, slow-even band included: the band conjugate rays hardly see is then
-decided by the evidence that sees it. Held-out evidence beyond doubt (z at or below
-minus ``HELD_OUT_DECISIVE_Z``: -6) stands on its own unless the conjugate rays contradict it (a band
-shown worse, or the nominal angles shown better): an estimate whose correction is nearly all
-twice per turn scores near zero by the conjugate rays however right it is. Views no conjugate ray reaches keep their nominal angle on
-this path too: the held-out views are interleaved with the reference's, so a slow warp is in both
-and they do not see it (a 3.7 deg warp in the middle of a 250 deg sweep scan passed with the rest
-of its estimate; ``docs/wholescan.md``). Otherwise the bands are selected as above. The conjugate
-rays' z in this is that of the estimate less its slow-even band: they see that band only through
-the spread of the fan, and with it an estimate 2.8 deg off, nearly all of it slow-even, scored
--2.3 on a sweep scan (the band alone +2.0, the rest -0.1).
+cannot bend to fit. Where it gives that evidence (``held_out_z``, below ``-z``) and the
+conjugate rays' z is below ``-z`` too, the two are combined (Stouffer's sum: two independent
+lines of evidence), and where together they show the estimate better than the nominal angles
+beyond one band's threshold and the conjugate rays show no band of it worse, the whole estimate
+is returned, slow-even band included: the band conjugate rays hardly see is then decided by the
+evidence that sees it. Held-out evidence beyond doubt (z at or below minus
+``HELD_OUT_DECISIVE_Z``: -6) stands without the conjugate rays' agreement unless they contradict
+it (a band shown worse, or the nominal angles shown better), band by band: an estimate whose
+correction is nearly all twice per turn scores near zero by the conjugate rays however right it
+is, so its slow-even band comes in where the held-out views show that band better on its own,
+and otherwise the rest of the estimate where that alone is decisive (a whole can be decisive on
+its other bands while a wrong twice-per-turn warp rides along). Views no conjugate ray reaches
+keep their nominal angle on this path too: the held-out views are interleaved with the
+reference's, so a slow warp is in both and they do not see it (a 3.7 deg warp in the middle of a
+250 deg sweep scan passed with the rest of its estimate; ``docs/wholescan.md``). Otherwise the
+bands are selected as above. The conjugate rays' z in this is that of the estimate less its
+slow-even band: they see that band only through the spread of the fan, and with it an estimate
+2.8 deg off, nearly all of it slow-even, scored -2.3 on a sweep scan (the band alone +2.0, the
+rest -0.1).
 
 **What does not turn.** On a full turn the midplane rows are taken less their mean over the views
 (:func:`~ctpipe.solve.conjugate.turning_part`) before anything is scored: a table edge or clamp
@@ -415,9 +419,10 @@ def _backward(scored, nominal, correction, present, parts, z, held_out_z, held_o
     if worse or record["returned"].z > one or conjugate.z > one:
         return None
     if conjugate.z < -z and combined < -one:
-        return (f"the refiner's held-out views (z {held_out_z:+.1f}) and the projections' conjugate rays (z "
-                f"{conjugate.z:+.1f}, without the slow-even band they hardly see) together show its angles better "
-                f"than the nominal ones (z {combined:+.1f}), and no band of them worse"), steps, needed, record, present
+        reason = (f"the refiner's held-out views (z {held_out_z:+.1f}) and the projections' conjugate rays (z "
+                  f"{conjugate.z:+.1f}, without the slow-even band they hardly see) together show its angles better "
+                  f"than the nominal ones (z {combined:+.1f}), and no band of them worse")
+        return reason, steps, needed, record, present
     if held_out_z > -HELD_OUT_DECISIVE_Z:
         return None
     # Held-out evidence beyond doubt stands without the conjugate rays where they do not contradict
@@ -427,11 +432,12 @@ def _backward(scored, nominal, correction, present, parts, z, held_out_z, held_o
     # A whole can be decisive on its other bands alone: a sweep scan whose matched angles fixed two
     # 2 deg jumps and added a 4 deg twice-per-turn warp scored -5.1 as a whole, the band alone -1.3.
     settled = (f"the refiner's held-out views show its angles better than the nominal ones beyond doubt (z "
-               f"{held_out_z:+.1f}, decisive below {-HELD_OUT_DECISIVE_Z:.0f}), and the projections' conjugate rays "
-               f"(z {conjugate.z:+.1f} without the slow-even band they hardly see) show no band of them worse")
-    if "slow-even" not in present or (held_out_slow_even_z is not None and held_out_slow_even_z < -z):
-        band = "" if "slow-even" not in present else f"; the slow-even band on its own z {held_out_slow_even_z:+.1f}"
-        return settled + band, steps, needed, record, present
+               f"{held_out_z:+.1f}, decisive below {-HELD_OUT_DECISIVE_Z:.0f}), and the projections' conjugate "
+               f"rays (z {conjugate.z:+.1f} without the slow-even band they hardly see) show no band of them worse")
+    if "slow-even" not in present:
+        return settled, steps, needed, record, present
+    if held_out_slow_even_z is not None and held_out_slow_even_z < -z:
+        return settled + f"; the slow-even band on its own z {held_out_slow_even_z:+.1f}", steps, needed, record, present
     if held_out_without_slow_even_z is not None and held_out_without_slow_even_z <= -HELD_OUT_DECISIVE_Z:
         record["returned"] = conjugate
         shown = ("not shown" if held_out_slow_even_z is None else
