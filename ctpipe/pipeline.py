@@ -28,7 +28,8 @@ from ctpipe.model import wrap_deg
 from ctpipe.plugins import get_registry
 from ctpipe.registry import StageRegistry
 from ctpipe.solve.conjugate import midplane_rows
-from ctpipe.solve.gate import GateDecision, cannot_tell, gate_angles, split_bands
+from ctpipe.solve.bands import split_bands
+from ctpipe.solve.gate import GateDecision, cannot_tell, gate_angles
 from ctpipe.solve.graph import view_pairs
 from ctpipe.solve.reprojection import as_line_integrals
 from ctpipe.stages import Detector, Estimator, Matcher, Refiner

@@ -4,7 +4,7 @@ import pytest
 from ctpipe.errors import EstimationError, InputError
 from ctpipe.pipeline import Pipeline
 from ctpipe.solve import view_pairs
-from ctpipe.solve.gate import split_bands
+from ctpipe.solve.bands import split_bands
 
 
 def test_pipeline_recovers_view_angles_of_a_rendered_bead_scan(bead_scan):

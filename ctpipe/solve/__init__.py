@@ -11,7 +11,8 @@ point per track, through the camera model of :mod:`~ctpipe.solve.camera`;
 :mod:`~ctpipe.solve.reprojection` matches every view against the reprojection of the scan's own
 reconstruction (projection matching); :mod:`~ctpipe.solve.conjugate` checks a set of angles
 against the projections alone, by the rays that two views half a turn apart both measure, and
-:mod:`~ctpipe.solve.gate` returns corrected angles only where that check shows them better;
+:mod:`~ctpipe.solve.gate` returns corrected angles only where that check shows them better, band by
+band (:mod:`~ctpipe.solve.bands`);
 :mod:`~ctpipe.solve.balls` calibrates a ball phantom's angles and detector from all views at once. :mod:`~ctpipe.solve.simulated` draws observations of
 known points for testing the solvers without images. ``docs/wholescan.md`` has the methods and
 figures; the refiner stages that call these are in :mod:`ctpipe.builtin`.
@@ -22,14 +23,16 @@ from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bu
 from ctpipe.solve.camera import pixels_to_rays, project_points
 from ctpipe.solve.conjugate import (ConjugateRayScore, conjugate_pairs, conjugate_ray_costs, conjugate_ray_mismatch,
                                      midplane_row, midplane_rows, turning_part)
-from ctpipe.solve.gate import BANDS, GateDecision, cannot_tell, gate_angles, needed_z, split_bands
+from ctpipe.solve.bands import BANDS, split_bands
+from ctpipe.solve.gate import GateDecision, cannot_tell, gate_angles, needed_z
 from ctpipe.solve.graph import (PairGraphSolution, chain_pair_angles, covers_full_turn, solve_pair_graph,
                                 solve_view_graph, turn_pairs, unwrap_pair_angles_deg, view_pairs)
 from ctpipe.solve.losses import LOSSES, check_loss, robust_loss, robust_weight
 from ctpipe.solve.pairs import one_to_one, pair_estimate
 from ctpipe.solve.reprojection import (HELD_OUT_DECISIVE_Z, HELD_OUT_Z, HeldOutScore, ProjectionMatchingResult,
                                        consistency_costs, held_out_decisive, held_out_scores, matching_levels,
-                                       projection_matching, static_part, static_part_applies, step_cap_deg)
+                                       projection_matching, slow_even_band_scores, static_part, static_part_applies,
+                                       step_cap_deg)
 from ctpipe.solve.simulated import SyntheticScan, synthetic_scan
 from ctpipe.solve.tracks import Tracks, build_tracks, extend_tracks, static_tracks, triangulate_tracks
 
@@ -39,6 +42,7 @@ __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pai
            "triangulate_tracks", "bundle_adjust", "solve_bundle", "BundleResult", "BundleSettings", "BundleSolution",
            "projection_matching", "consistency_costs", "matching_levels", "ProjectionMatchingResult",
            "HELD_OUT_Z", "HELD_OUT_DECISIVE_Z", "HeldOutScore", "held_out_scores", "held_out_decisive",
+           "slow_even_band_scores",
            "static_part", "static_part_applies", "step_cap_deg",
            "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "midplane_row", "conjugate_pairs",
            "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "turning_part",

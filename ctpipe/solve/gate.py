@@ -7,7 +7,7 @@ themselves, through the conjugate rays of :mod:`ctpipe.solve.conjugate`, which n
 can bend to fit.
 
 The correction (``estimate - nominal``, its median removed) is split into three bands
-(:func:`split_bands`): ``fast`` (what the turn's first ``harmonics`` harmonics leave: jitter,
+(:func:`~ctpipe.solve.bands.split_bands`): ``fast`` (what the turn's first ``harmonics`` harmonics leave: jitter,
 jumps, slips), ``slow-odd`` (odd harmonics: an eccentric table, a scale error) and
 ``slow-even`` (even harmonics, which conjugate rays see only weakly). Starting from the nominal
 angles, bands are added one at a time (forward selection): of the bands not yet added, the one
@@ -77,44 +77,11 @@ import numpy as np
 from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.model import wrap_deg
+from ctpipe.solve.bands import BANDS, split_bands
 from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_pairs, conjugate_ray_costs, turning_part
 from ctpipe.solve.reprojection import HELD_OUT_DECISIVE_Z
 
-__all__ = ["GateDecision", "split_bands", "gate_angles", "cannot_tell", "needed_z", "BANDS"]
-
-#: The bands of a correction, in the order they are reported.
-BANDS = ("fast", "slow-odd", "slow-even")
-
-
-def split_bands(correction_deg: np.ndarray, nominal_deg: np.ndarray, harmonics: int,
-                fit: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """The ``fast``, ``slow-odd`` and ``slow-even`` parts of a per-view correction, each shape (V,).
-
-    The slow parts are the least-squares fit of ``cos(k theta), sin(k theta)`` for odd and even
-    ``k`` up to ``harmonics`` (``theta`` the nominal angles; the constant goes with the even
-    part), the fast part what the fit leaves. They add up to the correction. On a short scan the
-    harmonics are not orthogonal over its range; they still span its smooth errors. ``fit``, a
-    boolean mask of shape (V,), fits the harmonics to those views only (the others' values do not
-    pull the fit).
-    """
-    correction = np.asarray(correction_deg, dtype=np.float64)
-    theta = np.deg2rad(np.asarray(nominal_deg, dtype=np.float64))
-    columns = {"slow-odd": [], "slow-even": [np.ones_like(theta)]}
-    for k in range(1, harmonics + 1):
-        columns["slow-odd" if k % 2 else "slow-even"] += [np.cos(k * theta), np.sin(k * theta)]
-    names = [name for name in ("slow-odd", "slow-even") if columns[name]]
-    basis = np.stack([column for name in names for column in columns[name]], axis=1)
-    rows = slice(None) if fit is None else np.asarray(fit, dtype=bool)
-    coeffs, *_ = np.linalg.lstsq(basis[rows], correction[rows], rcond=None)
-    parts, first = {}, 0
-    for name in names:
-        count = len(columns[name])
-        parts[name] = basis[:, first:first + count] @ coeffs[first:first + count]
-        first += count
-    parts.setdefault("slow-odd", np.zeros_like(correction))
-    return {"fast": correction - parts["slow-odd"] - parts["slow-even"], "slow-odd": parts["slow-odd"],
-            "slow-even": parts["slow-even"]}
-
+__all__ = ["GateDecision", "gate_angles", "cannot_tell", "needed_z"]
 
 def needed_z(z: float, tests: int, dof: int) -> float:
     """The z a band needs when ``tests`` bands are tried at once on a standard error with ``dof`` degrees of freedom.

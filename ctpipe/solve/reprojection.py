@@ -79,6 +79,7 @@ from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.recon.feldkamp import FILTERS, bin_detector, covers_full_circle, fdk
 from ctpipe.recon.volume import VolumeGrid
+from ctpipe.solve.bands import split_bands
 
 __all__ = ["ProjectionMatchingResult", "projection_matching", "matching_levels", "consistency_costs", "reconstruction_grid",
            "tangential_derivative", "band_pass", "as_line_integrals", "static_part", "static_part_applies",
@@ -1015,7 +1016,7 @@ def slow_even_band_scores(level: "_Level", reference_deg: np.ndarray, matched_de
     """The slow-even band of a correction judged by held-out views on its own.
 
     The band (the constant and the even harmonics of the turn up to ``harmonics`` of
-    ``matched_deg - reference_deg``, as :func:`ctpipe.solve.gate.split_bands` splits it) is what
+    ``matched_deg - reference_deg``, as :func:`ctpipe.solve.bands.split_bands` splits it) is what
     neither the conjugate rays (they see it only through the fan) nor a test of the whole
     correction can vouch for: a sweep scan whose matched angles fixed two 2 deg jumps and added a
     4 deg twice-per-turn warp scored z -5.1 against the nominal angles as a whole. Returns
@@ -1025,8 +1026,6 @@ def slow_even_band_scores(level: "_Level", reference_deg: np.ndarray, matched_de
     (:meth:`_Level.held_out`) already made at this level, on its present alignment, of
     ``reference_deg`` (key ``reference``) and ``matched_deg`` (``matched``).
     """
-    from ctpipe.solve.gate import split_bands
-
     reference = np.asarray(reference_deg, dtype=np.float64)
     matched = np.asarray(matched_deg, dtype=np.float64)
     correction = matched - reference

@@ -7,7 +7,8 @@ import pytest
 
 from ctpipe.errors import InputError
 from ctpipe.solve.conjugate import conjugate_pairs, midplane_rows
-from ctpipe.solve.gate import gate_angles, needed_z, split_bands
+from ctpipe.solve.bands import split_bands
+from ctpipe.solve.gate import gate_angles, needed_z
 
 from conjugate_scans import simulate_scan
 
