@@ -45,18 +45,18 @@ beyond one band's threshold and the conjugate rays show no band of it worse, the
 is returned, slow-even band included: the band conjugate rays hardly see is then decided by the
 evidence that sees it. Held-out evidence beyond doubt (z at or below minus
 ``HELD_OUT_DECISIVE_Z``: -6) stands without the conjugate rays' agreement unless they contradict
-it (a band shown worse, or the nominal angles shown better), band by band: an estimate whose
-correction is nearly all twice per turn scores near zero by the conjugate rays however right it
-is, so its slow-even band comes in where the held-out views show that band better on its own,
-and otherwise the rest of the estimate where that alone is decisive (a whole can be decisive on
-its other bands while a wrong twice-per-turn warp rides along). Views no conjugate ray reaches
-keep their nominal angle on this path too: the held-out views are interleaved with the
-reference's, so a slow warp is in both and they do not see it (a 3.7 deg warp in the middle of a
-250 deg sweep scan passed with the rest of its estimate; ``docs/wholescan.md``). Otherwise the
-bands are selected as above. The conjugate rays' z in this is that of the estimate less its
-slow-even band: they see that band only through the spread of the fan, and with it an estimate
-2.8 deg off, nearly all of it slow-even, scored -2.3 on a sweep scan (the band alone +2.0, the
-rest -0.1).
+it (a band shown worse, or the nominal angles shown better) or lean the other way, band by band:
+an estimate whose correction is nearly all twice per turn scores near zero by the conjugate rays
+however right it is, so its slow-even band comes in where the held-out views show that band
+better on its own, and otherwise the rest of the estimate where that alone is decisive (a whole
+can be decisive on its other bands while a wrong twice-per-turn warp rides along). Views no
+conjugate ray reaches keep their nominal angle on this path too: the held-out views are
+interleaved with the reference's, so a slow warp is in both and they do not see it (a 3.7 deg
+warp in the middle of a 250 deg sweep scan passed with the rest of its estimate;
+``docs/wholescan.md``). Otherwise the bands are selected as above. The conjugate rays' z in this
+is that of the estimate less its slow-even band: they see that band only through the spread of
+the fan, and with it an estimate 2.8 deg off, nearly all of it slow-even, scored -2.3 on a sweep
+scan (the band alone +2.0, the rest -0.1).
 
 **What does not turn.** On a full turn the midplane rows are taken less their mean over the views
 (:func:`~ctpipe.solve.conjugate.turning_part`) before anything is scored: a table edge or clamp
@@ -246,10 +246,10 @@ def gate_angles(rows: np.ndarray, geometry: Geometry, nominal_deg, estimate_deg,
         -1.0), so without other evidence nothing passes; views held out of the reference they
         are matched against are that evidence, and they rank the estimate the right way on
         those scans (``docs/wholescan.md``). At or below ``-HELD_OUT_DECISIVE_Z`` (-6) it stands
-        without the conjugate rays' agreement where they do not contradict it, band by band: the
-        slow-even band (which they see only through the fan) where the held-out views show that
-        band better on its own (``held_out_slow_even_z`` below ``-z``), else the rest where that
-        is decisive (``held_out_without_slow_even_z``).
+        without the conjugate rays' agreement where they neither contradict it nor lean the other
+        way (a z above 0), band by band: the slow-even band (which they see only through the fan)
+        where the held-out views show that band better on its own (``held_out_slow_even_z`` below
+        ``-z``), else the rest where that is decisive (``held_out_without_slow_even_z``).
     held_out_slow_even_z, held_out_without_slow_even_z : float, optional
         The refiner's held-out evidence for the slow-even band of its correction: its angles
         against the same less that band, and those against the nominal angles
@@ -357,10 +357,10 @@ def _backward(scored, nominal, correction, present, parts, z, held_out_z, held_o
     """The refiner's held-out evidence with the conjugate rays': the estimate, where the two together show it
     better than the nominal angles and the conjugate rays show no band of it worse nor the nominal angles
     better; or, where the held-out views show it better beyond doubt (``held_out_z`` at or below
-    ``-HELD_OUT_DECISIVE_Z``) and the conjugate rays do not contradict it, the estimate with its
-    slow-even band where the held-out views show that band better on its own, else without it where
-    that is decisive. Returns ``(reason, steps, needed, record, bands kept)`` when it stands, None when
-    not."""
+    ``-HELD_OUT_DECISIVE_Z``) and the conjugate rays neither contradict it nor lean the other way (their z
+    of what is returned at most 0), the estimate with its slow-even band where the held-out views show that
+    band better on its own, else without it where that is decisive. Returns ``(reason, steps, needed,
+    record, bands kept)`` when it stands, None when not."""
     whole = nominal + correction
     scores = scored({"estimate": whole, "nominal": nominal, **{name: whole - parts[name] for name in present}},
                     "estimate")
@@ -390,7 +390,12 @@ def _backward(scored, nominal, correction, present, parts, z, held_out_z, held_o
                   f"{conjugate.z:+.1f}, without the slow-even band they hardly see) together show its angles better "
                   f"than the nominal ones (z {combined:+.1f}), and no band of them worse")
         return reason, steps, needed, record, present
-    if held_out_z > -HELD_OUT_DECISIVE_Z:
+    if held_out_z > -HELD_OUT_DECISIVE_Z or record["returned"].z > 0.0:
+        # Nor where the conjugate rays, too weak to decide, lean the other way: seed-0 sweep scenario
+        # 13 (a bead cloud, 63 views, jitter not visible at the grid) had held-out z -8.1 (the
+        # slow-even band alone -5.6) while the conjugate rays scored the whole at +1.1 and each band
+        # alone at +1.4 to +2.1; its angles came out a little better (0.410 -> 0.383 deg RMS) and its
+        # reconstruction 0.41 dB worse against the jitter-free scan's.
         return None
     # Held-out evidence beyond doubt stands without the conjugate rays where they do not contradict
     # it, band by band. They see a twice-per-turn error only through the fan: on a sweep scan whose
@@ -405,7 +410,8 @@ def _backward(scored, nominal, correction, present, parts, z, held_out_z, held_o
         return settled, steps, needed, record, present
     if held_out_slow_even_z is not None and held_out_slow_even_z < -z:
         return settled + f"; the slow-even band on its own z {held_out_slow_even_z:+.1f}", steps, needed, record, present
-    if held_out_without_slow_even_z is not None and held_out_without_slow_even_z <= -HELD_OUT_DECISIVE_Z:
+    if (held_out_without_slow_even_z is not None and held_out_without_slow_even_z <= -HELD_OUT_DECISIVE_Z
+            and conjugate.z <= 0.0):
         record["returned"] = conjugate
         shown = ("not shown" if held_out_slow_even_z is None else
                  f"not shown better on its own, z {held_out_slow_even_z:+.1f}")
