@@ -929,9 +929,7 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
                 except InputError as exc:
                     notes.append(f"binning {factor}, step {iteration}: {exc}")
                     trial = None
-                # Kept only where the cost falls by more than twice what fitting the unknowns to noise
-                # would take off it (Akaike's criterion: each unknown pays two units of the noise).
-                better = trial is not None and fit.cost - trial.cost > 2.0 * fit.noise_drop
+                better = trial is not None and _lowers(fit, trial)
                 history.append(_entry(factor, iteration, kind, trial, angle_step, start, trial_shifts, trial_tilt,
                                       accepted=better))
                 if progress is not None:
@@ -946,12 +944,9 @@ def projection_matching(projections: np.ndarray, geometry: Geometry, angles_deg,
             # The detector first, the angles held: an axis a pixel or two off (or a tilted
             # detector) fitted together with the angles from the start bends them while the
             # linearisation is poor; a few steps of the detector alone bring it in range.
-            for iteration in range(_DETECTOR_STEPS):
-                shift_step, tilt_step = _detector_step(state[0].held, state[2], factor)
-                if not _detector_moves(shift_step, tilt_step, factor) or not attempt(
-                        0, [("detector", np.zeros_like(angles), shift_step, tilt_step),
-                            ("detector, half", np.zeros_like(angles), 0.5 * shift_step, 0.5 * tilt_step)]):
-                    break
+            _align_detector(lambda: (state[0].held, state[2]), factor, lambda shift_step, tilt_step: attempt(
+                0, [("detector", np.zeros_like(angles), shift_step, tilt_step),
+                    ("detector, half", np.zeros_like(angles), 0.5 * shift_step, 0.5 * tilt_step)]))
         previous = None
         for iteration in range(1, int(count) + 1):
             fit = state[0]
@@ -1056,6 +1051,34 @@ def held_out_decisive(scores: dict[str, "HeldOutScore"], reference: str) -> bool
 
 #: Most steps of the detector alone (the angles held) before the first level's angle steps.
 _DETECTOR_STEPS = 3
+
+
+def _lowers(fit: _Fit, trial: _Fit) -> bool:
+    """Whether ``trial`` is kept over ``fit``: its cost lower by more than twice what fitting the
+    unknowns to noise would take off it (Akaike's criterion: each unknown pays two units of the noise)."""
+    return fit.cost - trial.cost > 2.0 * fit.noise_drop
+
+
+def _align_detector(current, factor: int, try_step) -> bool:
+    """The detector alone, the angles held: up to :data:`_DETECTOR_STEPS` steps of the axis column and
+    the in-plane tilt, while they move enough to be worth a reconstruction and ``try_step`` keeps one.
+
+    ``current()`` gives the fit's detector steps ``(shift_px or None, tilt_rad, axis_px)`` and the
+    unbinned shifts (V, 2) they step from; ``try_step(shift_step, tilt_step)`` tries the step (whole,
+    then halved: its own business) and says whether one was kept. Shared by :func:`projection_matching`'s
+    first level and :func:`consistency_costs`' aligned costs, so a start is costed on the detector
+    matching from it would find. Returns whether the detector was off enough to try a step.
+    """
+    moved = False
+    for _ in range(_DETECTOR_STEPS):
+        held, shifts_px = current()
+        shift_step, tilt_step = _detector_step(held, shifts_px, factor)
+        if not _detector_moves(shift_step, tilt_step, factor):
+            break
+        moved = True
+        if not try_step(shift_step, tilt_step):
+            break
+    return moved
 
 
 def _detector_step(found: tuple, shifts_px: np.ndarray, factor: int) -> tuple[np.ndarray, float]:
@@ -1195,24 +1218,22 @@ def _detector_aligned_cost(level: _Level, angles_deg: np.ndarray) -> tuple[float
     more than fitting noise would take off it. The level is left unaligned.
     """
     theta = np.deg2rad(angles_deg)
-    shifts_px, tilt = np.zeros((len(angles_deg), 2)), 0.0
     level.align(None, 0.0)
-    fit = level.fit(angles_deg, detector=True)
-    moved = False
-    for _ in range(_DETECTOR_STEPS):
-        shift_step, tilt_step = _detector_step(fit.held, shifts_px, level.binning)
-        if not _detector_moves(shift_step, tilt_step, level.binning):
-            break
-        moved = True
+    state = (level.fit(angles_deg, detector=True), np.zeros((len(angles_deg), 2)), 0.0)
+
+    def try_step(shift_step, tilt_step) -> bool:
+        nonlocal state
+        fit, shifts_px, tilt = state
         for scale in (1.0, 0.5):
             trial_shifts = _shift_gauge(shifts_px + scale * shift_step, theta)
             trial_tilt = tilt + scale * tilt_step
             level.align(trial_shifts / level.binning, trial_tilt)
             trial = level.fit(angles_deg, detector=True)
-            if fit.cost - trial.cost > 2.0 * fit.noise_drop:
-                fit, shifts_px, tilt = trial, trial_shifts, trial_tilt
-                break
-        else:
-            break
+            if _lowers(fit, trial):
+                state = (trial, trial_shifts, trial_tilt)
+                return True
+        return False
+
+    moved = _align_detector(lambda: (state[0].held, state[1]), level.binning, try_step)
     level.align(None, 0.0)
-    return fit.cost, moved
+    return state[0].cost, moved
