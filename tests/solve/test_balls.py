@@ -129,3 +129,40 @@ def test_ball_weights_follow_each_balls_own_spread():
     residual *= np.where(np.arange(30) % 2, 1.0, -1.0)[:, None]
     ball_of = np.repeat([0, 1, 2], 10)
     np.testing.assert_allclose(_ball_weights(residual, ball_of, 4), [1.0, 1.0, 0.1, 1.0])
+
+
+def test_a_ball_pulled_in_some_views_weighs_by_all_its_error():
+    """A faint ball whose rim is pulled half a pixel in a third of the views (a holder's edge, the
+    clipped background) is weighted by its whole error, not by its good views alone."""
+    from ctpipe.solve.balls import _ball_weights
+
+    steady = np.full((12, 2), 0.05)
+    pulled = np.full((12, 2), 0.05)
+    pulled[:4] = 0.6
+    residual = np.concatenate([steady, steady, pulled]) * np.where(np.arange(36) % 2, 1.0, -1.0)[:, None]
+    weights = _ball_weights(residual, np.repeat([0, 1, 2], 12), 3)
+    assert weights[0] == weights[1] == 1.0
+    assert weights[2] < 0.2      # its root mean square is 0.35 px; a robust scale saw only its 0.05
+
+
+def test_flagged_discs_weigh_what_their_residuals_show():
+    from ctpipe.solve.balls import _FLAGGED_WEIGHT, _flagged_weight
+
+    residual = np.full((20, 2), 0.05)
+    flagged = np.arange(20) < 5
+    assert _flagged_weight(residual, flagged) == 1.0                 # placed as well as clean discs
+    residual[flagged] = 0.2
+    assert _flagged_weight(residual, flagged) == pytest.approx(0.25)  # four times the error
+    assert _flagged_weight(residual, np.zeros(20, bool)) == _FLAGGED_WEIGHT
+
+
+def test_nominal_angles_each_within_the_stated_error_are_corrected():
+    """Every view off by up to 2 deg either way: the corrections span nearly 4 deg, and that is allowed."""
+    nominal = np.linspace(0.0, 360.0, 24, endpoint=False)
+    off = np.random.default_rng(10).uniform(-2.0, 2.0, 24)
+    off[[3, 17]] = [-1.95, 1.95]
+    detections = _detections(nominal + off, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=10)
+    found = calibrate_balls(detections, GEOMETRY, nominal, max_error_deg=2.0)
+    error = (found.angles_deg - (nominal + off)) - np.median(found.angles_deg - (nominal + off))
+    assert found.kept, found.reason
+    assert np.abs(error).max() < 0.01
