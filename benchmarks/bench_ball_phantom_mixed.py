@@ -97,7 +97,8 @@ def main(argv=None) -> int:
         start = time.perf_counter()
         result = pipeline.run(scan.projections, scan.geometry, nominal_angles_deg=nominal)
         ran = time.perf_counter() - start
-        balls = result.refiner_info.get("balls", {})
+        balls = result.refiner_info.get("balls")
+        balls = balls if isinstance(balls, dict) else {"reason": str(balls)}   # a string where it was skipped
         errors = view_errors_deg(result.angles_deg, truth)
         largest, rms = float(np.abs(errors).max()), float(np.sqrt(np.mean(errors ** 2)))
         nominal_errors = view_errors_deg(nominal, truth)

@@ -339,9 +339,9 @@ def _flagged_weight(residual_px: np.ndarray, flagged: np.ndarray) -> float:
     """
     if not flagged.any() or flagged.all():
         return _FLAGGED_WEIGHT
-    clean = float(np.sqrt(np.mean(residual_px[~flagged] ** 2)))
-    pulled = float(np.sqrt(np.mean(residual_px[flagged] ** 2)))
-    return min(1.0, clean / max(pulled, 1e-9))
+    clean = max(float(np.sqrt(np.mean(residual_px[~flagged] ** 2))), 1e-3)
+    pulled = max(float(np.sqrt(np.mean(residual_px[flagged] ** 2))), 1e-3)
+    return min(1.0, clean / pulled)
 
 
 @dataclass
@@ -503,6 +503,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             np.all(np.isfinite(balls), axis=1) & (np.hypot(balls[:, 0], balls[:, 2]) <= 2.0 * reach_mm)
         if not good.all() and good.sum() >= 2:
             balls, tol, radii_mm, ball_weight = balls[good], tol[good], radii_mm[good], ball_weight[good]
+            flagged_weight = _FLAGGED_WEIGHT   # its residuals held the dropped ball's discs
             angles, detector = theta0.copy(), np.array([geometry.u0_px, geometry.v0_px, 0.0])   # as it bent them
             continue
         done += 1

@@ -390,12 +390,7 @@ def _backward(scored, nominal, correction, present, parts, z, held_out_z, held_o
                   f"{conjugate.z:+.1f}, without the slow-even band they hardly see) together show its angles better "
                   f"than the nominal ones (z {combined:+.1f}), and no band of them worse")
         return reason, steps, needed, record, present
-    if held_out_z > -HELD_OUT_DECISIVE_Z or record["returned"].z > 0.0:
-        # Nor where the conjugate rays, too weak to decide, lean the other way: seed-0 sweep scenario
-        # 13 (a bead cloud, 63 views, jitter not visible at the grid) had held-out z -8.1 (the
-        # slow-even band alone -5.6) while the conjugate rays scored the whole at +1.1 and each band
-        # alone at +1.4 to +2.1; its angles came out a little better (0.410 -> 0.383 deg RMS) and its
-        # reconstruction 0.41 dB worse against the jitter-free scan's.
+    if held_out_z > -HELD_OUT_DECISIVE_Z:
         return None
     # Held-out evidence beyond doubt stands without the conjugate rays where they do not contradict
     # it, band by band. They see a twice-per-turn error only through the fan: on a sweep scan whose
@@ -406,9 +401,15 @@ def _backward(scored, nominal, correction, present, parts, z, held_out_z, held_o
     settled = (f"the refiner's held-out views show its angles better than the nominal ones beyond doubt (z "
                f"{held_out_z:+.1f}, decisive below {-HELD_OUT_DECISIVE_Z:.0f}), and the projections' conjugate "
                f"rays (z {conjugate.z:+.1f} without the slow-even band they hardly see) show no band of them worse")
+    # Nor where the conjugate rays, too weak to decide, lean the other way on what is returned:
+    # seed-0 sweep scenario 13 (a bead cloud, 63 views, jitter not visible at the grid) had held-out
+    # z -8.1 (the slow-even band alone -5.6) while the conjugate rays scored the whole at +1.1 and
+    # each band alone at +1.4 to +2.1; its angles came out a little better (0.410 -> 0.383 deg RMS)
+    # and its reconstruction 0.41 dB worse against the jitter-free scan's.
+    whole_leans_against = record["returned"].z > 0.0
     if "slow-even" not in present:
-        return settled, steps, needed, record, present
-    if held_out_slow_even_z is not None and held_out_slow_even_z < -z:
+        return None if whole_leans_against else (settled, steps, needed, record, present)
+    if held_out_slow_even_z is not None and held_out_slow_even_z < -z and not whole_leans_against:
         return settled + f"; the slow-even band on its own z {held_out_slow_even_z:+.1f}", steps, needed, record, present
     if (held_out_without_slow_even_z is not None and held_out_without_slow_even_z <= -HELD_OUT_DECISIVE_Z
             and conjugate.z <= 0.0):

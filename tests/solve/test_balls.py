@@ -151,8 +151,8 @@ def test_flagged_discs_weigh_what_their_residuals_show():
     residual = np.full((20, 2), 0.05)
     flagged = np.arange(20) < 5
     assert _flagged_weight(residual, flagged) == 1.0                 # placed as well as clean discs
-    residual[flagged] = 0.2
-    assert _flagged_weight(residual, flagged) == pytest.approx(0.25)  # four times the error
+    residual[flagged] = 0.1
+    assert _flagged_weight(residual, flagged) == pytest.approx(0.5)   # twice the error
     assert _flagged_weight(residual, np.zeros(20, bool)) == _FLAGGED_WEIGHT
 
 

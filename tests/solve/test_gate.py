@@ -249,6 +249,8 @@ def _mock_scored(whole_z: float, seen_z: float, band_worse: str | None = None):
     (-9.4, -1.3, -7.0, -1.5, -1.5, None, "without slow-even"),
     (-9.4, -1.3, -5.0, -1.5, -1.5, None, None),
     (-9.4, -1.3, -7.0, -1.5, +0.5, None, None),                # ... where the conjugate rays lean against it
+    (-9.4, -1.3, -7.0, +0.5, -1.5, None, "without slow-even"), # ... not where only the whole leans against it
+    (-9.4, -6.6, -7.0, +1.1, -0.5, None, "without slow-even"), # a whole leaning against it keeps the nominal band
     # The conjugate rays lean the other way, too weakly to decide (a bead cloud of 63 views whose
     # angles came out a little better and its reconstruction 0.4 dB worse).
     (-9.4, -6.6, None, +1.1, +0.9, None, None),
