@@ -314,14 +314,14 @@ def _ball_weights(residual_px: np.ndarray, ball_of: np.ndarray, n_balls: int) ->
     and a scale that looks past them (1.4826 times the median absolute residual) weighted such a
     ball as if they were not there. On the mixed ball phantom of
     ``benchmarks/bench_ball_phantom_mixed.py`` (seeds 0-2), the worst view 0.064, 0.024 and 0.027
-    deg with the robust scale, 0.029, 0.024 and 0.012 with the root mean square
-    (``docs/calibration-phantoms.md``).
+    deg with the robust scale, 0.029, 0.024 and 0.012 with the root mean square (flagged discs
+    still at a fixed quarter weight; ``docs/calibration-phantoms.md``).
     """
     spread = np.full(n_balls, np.nan)
     for b in range(n_balls):
         mine = residual_px[ball_of == b]
         if mine.size:
-            spread[b] = max(float(np.sqrt(np.mean(mine ** 2))), 1e-3)
+            spread[b] = _spread_px(mine)
     reference = float(np.nanmedian(spread)) if np.isfinite(spread).any() else 1.0
     return np.where(np.isfinite(spread), np.minimum(reference / spread, 1.0), 1.0)
 
@@ -339,9 +339,12 @@ def _flagged_weight(residual_px: np.ndarray, flagged: np.ndarray) -> float:
     """
     if not flagged.any() or flagged.all():
         return _FLAGGED_WEIGHT
-    clean = max(float(np.sqrt(np.mean(residual_px[~flagged] ** 2))), 1e-3)
-    pulled = max(float(np.sqrt(np.mean(residual_px[flagged] ** 2))), 1e-3)
-    return min(1.0, clean / pulled)
+    return min(1.0, _spread_px(residual_px[~flagged]) / _spread_px(residual_px[flagged]))
+
+
+def _spread_px(residual_px: np.ndarray) -> float:
+    """The root mean square of some residuals (px), at least 1e-3 px (a weight's floor)."""
+    return max(float(np.sqrt(np.mean(residual_px ** 2))), 1e-3)
 
 
 @dataclass
@@ -473,14 +476,14 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     flagged_weight = _FLAGGED_WEIGHT
     while done < rounds:   # a round that drops a ball does not count (at most all but two are dropped)
         assigned = _assign(detections, balls, radii_mm, angles, geometry, *detector, tol)
-        view_of, ball_of, observed, disc_px, weight, flagged = [], [], [], [], [], []
+        view_of, ball_of, observed, disc_px, flagged = [], [], [], [], []
         for view, (found, labels) in enumerate(zip(detections, assigned)):
             for k in np.flatnonzero(labels >= 0):
                 view_of.append(view), ball_of.append(labels[k]), observed.append(found[k, :2])
-                disc_px.append(found[k, 2])
-                weight.append((1.0 if found[k, 3] == 0 else flagged_weight) * ball_weight[labels[k]])
-                flagged.append(found[k, 3] != 0)
-        view_of, ball_of, observed, weight = np.array(view_of), np.array(ball_of), np.array(observed), np.array(weight)
+                disc_px.append(found[k, 2]), flagged.append(found[k, 3] != 0)
+        view_of, ball_of = np.array(view_of, dtype=int), np.array(ball_of, dtype=int)
+        observed, flagged = np.array(observed), np.array(flagged, dtype=bool)
+        weight = np.where(flagged, flagged_weight, 1.0) * ball_weight[ball_of]
         counts = np.bincount(view_of, minlength=V)
         # Views with a single clean ball still fix their angle (two residuals, one unknown), if barely.
         free_views = np.array([v for v in range(V) if counts[v] >= 2])
@@ -514,7 +517,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         scale_px = max(3.0 * 1.4826 * float(np.median(np.abs(fit.residual))), 0.1)
         unweighted = fit.residual / weight[:, None]
         ball_weight = _ball_weights(unweighted, ball_of, len(balls))
-        flagged_weight = _flagged_weight(unweighted, np.array(flagged, dtype=bool))
+        flagged_weight = _flagged_weight(unweighted, flagged)
     nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
                           free_views=free_views, fit_angles=False, fit_detector=fit_detector, scale_px=scale_px)
     chi_corrected = float(np.sum(fit.residual ** 2))

@@ -83,6 +83,7 @@ from ctpipe.solve.reprojection import HELD_OUT_DECISIVE_Z
 
 __all__ = ["GateDecision", "gate_angles", "cannot_tell", "needed_z"]
 
+
 def needed_z(z: float, tests: int, dof: int) -> float:
     """The z a band needs when ``tests`` bands are tried at once on a standard error with ``dof`` degrees of freedom.
 
