@@ -12,8 +12,9 @@ Output: ``xy`` the centre, ``size`` the diameter, ``angle_deg`` NaN, ``response`
 ``descriptors`` ``[radius_px, contrast]`` (float32, L2) and in ``class_id`` a quality flag:
 0 clean, 1 the disc overlaps another (centres closer than the sum of the radii: balls at
 different depths projecting onto each other) or belongs to a crowd the model does not fully
-explain, 2 the disc is cut by the image border (before 1). A ball whose centre is off the
-image is not reported.
+explain, 2 the disc is cut by the image border (before 1), 3 (the rim method only) the disc's
+rim crosses the edge of a clipped background, which pulls its circle
+(:mod:`ctpipe.features.ball_edges`). A ball whose centre is off the image is not reported.
 """
 
 from __future__ import annotations
@@ -78,7 +79,8 @@ class BeadDetector(Detector):
         Features
             One keypoint per ball, highest contrast first: ``xy`` the centre (x=col, y=row, px),
             ``size`` the diameter (px), ``response`` the contrast (image units), ``class_id``
-            0 clean / 1 overlapping / 2 cut by the border, ``descriptors`` ``[radius_px, contrast]``.
+            0 clean / 1 overlapping / 2 cut by the border / 3 rim across a clip edge, ``descriptors``
+            ``[radius_px, contrast]``.
             Empty when there is none.
         """
         factor = self._binning(image)

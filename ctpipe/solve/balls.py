@@ -17,9 +17,10 @@ nothing is decided pair by pair:
    (the axis column ``u0``, the principal row ``v0``, the in-plane tilt), robust (Huber at
    one pixel), on the detections assigned to a ball one-to-one in each view; assignment and
    adjustment alternate. Observations are weighted by what their residuals show: each ball by
-   its own root mean square (a faint ball's rim is pulled in some views), discs flagged as
-   overlapping another or cut by the border by theirs against the clean discs' (a quarter of a
-   clean disc's weight in the first round). A ball's projected disc is an ellipse
+   its own root mean square (a faint ball's rim is pulled in some views), and each kind of
+   flagged disc (overlapping another, cut by the border, its rim across the edge of a clipped
+   background) by its residuals' against the clean discs' (a quarter of a clean disc's weight in
+   the first round). A ball's projected disc is an ellipse
    whose centre is not the projection of the ball's centre (Clackdoyle and Mennessier 2011):
    the model predicts the ellipse's centre (:func:`ellipse_centres`).
 3. **A verdict from the balls themselves.** The same fit with the angles held at the nominal
@@ -298,8 +299,10 @@ def _assign(detections, balls, radii_mm, angles, geometry, u0, v0, tilt, tol_px)
 
 #: A disc that overlaps another or is cut by the border still places its ball: in the first round at a
 #: quarter of the weight (four times the error) of a clean one, since its fitted centre may be pulled
-#: by its neighbour; after it, at the weight the flagged discs' own residuals give (:func:`_flagged_weight`).
+#: by its neighbour; after it, at the weight each kind's own residuals give (:func:`_flag_weights`).
 _FLAGGED_WEIGHT = 0.25
+#: Disc flags of the ``beads`` detector: 0 clean, 1 overlapping, 2 cut by the border, 3 rim across a clip edge.
+_CLEAN_FLAG, _FLAG_KINDS = 0, 4
 
 
 def _ball_weights(residual_px: np.ndarray, ball_of: np.ndarray, n_balls: int) -> np.ndarray:
@@ -326,20 +329,30 @@ def _ball_weights(residual_px: np.ndarray, ball_of: np.ndarray, n_balls: int) ->
     return np.where(np.isfinite(spread), np.minimum(reference / spread, 1.0), 1.0)
 
 
-def _flagged_weight(residual_px: np.ndarray, flagged: np.ndarray) -> float:
-    """The weight of a flagged disc (overlapping another, cut by the border) against a clean one: the
-    clean discs' residual root mean square over the flagged ones', at most 1 (``_FLAGGED_WEIGHT``
-    while either kind is missing).
+def _flag_weights(residual_px: np.ndarray, flag: np.ndarray) -> np.ndarray:
+    """Each kind of flagged disc's weight against a clean one, indexed by the flag: the clean discs'
+    residual root mean square over that kind's, at most 1 (``_FLAGGED_WEIGHT`` while either is missing).
 
     The rim fit places most overlapping discs as well as clean ones (a few hundredths of a pixel on
     the mixed ball phantom), so a fixed quarter weight threw away the views where three of seven
     balls overlap: on ``benchmarks/bench_ball_phantom_mixed.py`` seed 4 a view with four clean
     discs, one of them a ruby pulled 0.55 px by the clipped background, was 0.039 deg off; weighted
-    by what they show, 0.015 (``docs/calibration-phantoms.md``).
+    by what they show, 0.015 (``docs/calibration-phantoms.md``). A disc whose rim crosses the edge
+    of a clipped background (flag 3) is pulled by tenths of a pixel, an overlapping one is not: each
+    kind gets the weight its own residuals earn.
     """
-    if not flagged.any() or flagged.all():
-        return _FLAGGED_WEIGHT
-    return min(1.0, _spread_px(residual_px[~flagged]) / _spread_px(residual_px[flagged]))
+    weights = np.ones(_FLAG_KINDS)
+    clean = flag == _CLEAN_FLAG
+    for kind in range(1, _FLAG_KINDS):
+        mine = flag == kind
+        weights[kind] = (min(1.0, _spread_px(residual_px[clean]) / _spread_px(residual_px[mine]))
+                         if mine.any() and clean.any() else _FLAGGED_WEIGHT)
+    return weights
+
+
+def _first_flag_weights() -> np.ndarray:
+    """The flags' weights before any residual is seen: a clean disc 1, every flagged kind ``_FLAGGED_WEIGHT``."""
+    return np.r_[1.0, np.full(_FLAG_KINDS - 1, _FLAGGED_WEIGHT)]
 
 
 def _spread_px(residual_px: np.ndarray) -> float:
@@ -473,17 +486,18 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     done = 0
     scale_px = 1.0      # Huber's corner: a pixel at first, then three robust deviations of the residuals
     ball_weight = np.ones(len(balls))   # each ball's weight from its own residuals' spread, after the first round
-    flagged_weight = _FLAGGED_WEIGHT
+    flag_weight = _first_flag_weights()
     while done < rounds:   # a round that drops a ball does not count (at most all but two are dropped)
         assigned = _assign(detections, balls, radii_mm, angles, geometry, *detector, tol)
         view_of, ball_of, observed, disc_px, flagged = [], [], [], [], []
         for view, (found, labels) in enumerate(zip(detections, assigned)):
             for k in np.flatnonzero(labels >= 0):
                 view_of.append(view), ball_of.append(labels[k]), observed.append(found[k, :2])
-                disc_px.append(found[k, 2]), flagged.append(found[k, 3] != 0)
+                disc_px.append(found[k, 2]), flagged.append(found[k, 3])
         view_of, ball_of = np.array(view_of, dtype=int), np.array(ball_of, dtype=int)
-        observed, flagged = np.array(observed), np.array(flagged, dtype=bool)
-        weight = np.where(flagged, flagged_weight, 1.0) * ball_weight[ball_of]
+        observed = np.array(observed)
+        flagged = np.clip(np.array(flagged), 0, _FLAG_KINDS - 1).astype(int)
+        weight = flag_weight[flagged] * ball_weight[ball_of]
         counts = np.bincount(view_of, minlength=V)
         # Views with a single clean ball still fix their angle (two residuals, one unknown), if barely.
         free_views = np.array([v for v in range(V) if counts[v] >= 2])
@@ -497,8 +511,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         rms = float(np.sqrt(np.mean(fit.residual ** 2)))
         # A "ball" that fits far worse than the others, or is seen in too few views, is not one (dust
         # that lined up by chance, a merged pair): it is dropped and the adjustment made again. Judged
-        # without its own weight, which would otherwise hide how badly it fits.
-        judged = fit.residual / ball_weight[ball_of][:, None]
+        # without the weights, which would otherwise hide how badly it fits: a faint ball whose discs
+        # are mostly flagged across a clip edge is judged by how far they are off, not by their weight.
+        judged = fit.residual / weight[:, None]
         per_ball = np.array([np.sqrt(np.mean(judged[ball_of == b] ** 2)) if np.any(ball_of == b) else np.inf
                              for b in range(len(balls))])
         seen = np.bincount(ball_of, minlength=len(balls))
@@ -506,7 +521,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             np.all(np.isfinite(balls), axis=1) & (np.hypot(balls[:, 0], balls[:, 2]) <= 2.0 * reach_mm)
         if not good.all() and good.sum() >= 2:
             balls, tol, radii_mm, ball_weight = balls[good], tol[good], radii_mm[good], ball_weight[good]
-            flagged_weight = _FLAGGED_WEIGHT   # its residuals held the dropped ball's discs
+            flag_weight = _first_flag_weights()   # their residuals held the dropped ball's discs
             angles, detector = theta0.copy(), np.array([geometry.u0_px, geometry.v0_px, 0.0])   # as it bent them
             continue
         done += 1
@@ -517,7 +532,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         scale_px = max(3.0 * 1.4826 * float(np.median(np.abs(fit.residual))), 0.1)
         unweighted = fit.residual / weight[:, None]
         ball_weight = _ball_weights(unweighted, ball_of, len(balls))
-        flagged_weight = _flagged_weight(unweighted, flagged)
+        flag_weight = _flag_weights(unweighted, flagged)
     nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
                           free_views=free_views, fit_angles=False, fit_detector=fit_detector, scale_px=scale_px)
     chi_corrected = float(np.sum(fit.residual ** 2))

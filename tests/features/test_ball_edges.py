@@ -59,3 +59,28 @@ def test_overlapping_balls_and_dust_keep_their_centres():
 
 def test_nothing_to_refine_is_nothing():
     assert edge_centres(np.zeros((64, 64)), np.zeros((0, 5))).shape == (0, 5)
+
+
+def _clipped(image, level):
+    """The line integrals a detector that clips at ``level`` reports (a full well, a background set flat)."""
+    return np.maximum(image - level, 0.0).astype(np.float32)
+
+
+def test_a_faint_disc_across_the_edge_of_a_clipped_background_is_flagged():
+    """Where a holder lifts the background above the clip level, a faint ball's edge shows in full; beside it, cut.
+
+    The disc straddling the holder's edge is flagged 3 (its circle is pulled towards the holder); a
+    disc wholly over the open beam or wholly over the holder is not; nor is anything in the same
+    view unclipped.
+    """
+    shape = (900, 1200)
+    rng = np.random.default_rng(1)
+    rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    holder = 0.004 * 2.0 * np.sqrt(np.clip(160.0 ** 2 - (cols - 600.0) ** 2, 0.0, None))   # a rod along the rows
+    centres = [(450.0, 300.0), (250.0, 600.0), (600.0, 620.0)]     # across the rod's edge (440), open beam, on the rod
+    balls = sum(_ball(shape, c, 70.0, 0.004) for c in centres) + holder
+    image = ndimage.gaussian_filter(balls, 0.7) + rng.normal(0.0, 0.005, shape)
+    start = np.array([[c[0] + 0.5, c[1] - 0.5, 70.0, 1.0, 0.0] for c in centres])
+    flags = edge_centres(_clipped(image, 0.2), start)[:, 4]
+    assert list(flags) == [3, 0, 0]
+    assert not edge_centres(image.astype(np.float32), start)[:, 4].any()

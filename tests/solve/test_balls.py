@@ -145,15 +145,18 @@ def test_a_ball_pulled_in_some_views_weighs_by_all_its_error():
     assert weights[2] < 0.2      # its root mean square is 0.35 px; a robust scale saw only its 0.05
 
 
-def test_flagged_discs_weigh_what_their_residuals_show():
-    from ctpipe.solve.balls import _FLAGGED_WEIGHT, _flagged_weight
+def test_each_kind_of_flagged_disc_weighs_what_its_residuals_show():
+    from ctpipe.solve.balls import _FLAGGED_WEIGHT, _flag_weights
 
-    residual = np.full((20, 2), 0.05)
-    flagged = np.arange(20) < 5
-    assert _flagged_weight(residual, flagged) == 1.0                 # placed as well as clean discs
-    residual[flagged] = 0.1
-    assert _flagged_weight(residual, flagged) == pytest.approx(0.5)   # twice the error
-    assert _flagged_weight(residual, np.zeros(20, bool)) == _FLAGGED_WEIGHT
+    residual = np.full((30, 2), 0.05)
+    flag = np.zeros(30, dtype=int)
+    flag[:5], flag[5:10] = 1, 3                  # overlapping; rim across a clip edge
+    residual[5:10] = 0.5                         # pulled ten times as far as a clean disc
+    weights = _flag_weights(residual, flag)
+    assert weights[0] == 1.0 and weights[1] == pytest.approx(1.0)   # overlapping discs placed as well as clean ones
+    assert weights[3] == pytest.approx(0.1)                 # each kind its own: the pulled ones a tenth
+    assert weights[2] == _FLAGGED_WEIGHT                    # a kind not seen keeps the first round's weight
+    assert np.all(_flag_weights(residual, np.ones(30, dtype=int))[1:] == _FLAGGED_WEIGHT)   # no clean disc to compare
 
 
 def test_nominal_angles_each_within_the_stated_error_are_corrected():
