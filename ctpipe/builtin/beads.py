@@ -35,6 +35,8 @@ __all__ = ["BeadDetector"]
 
 #: Where the rim places the balls, they are found at this fraction of ``fit_radius_px``.
 _RIM_FIND_FRACTION = 0.5
+#: The smallest radius (px) :func:`ctpipe.features.find_balls` looks for by default (10 px across).
+_SMALLEST_FOUND_RADIUS_PX = 5.0
 
 
 @dataclass(frozen=True)
@@ -86,7 +88,7 @@ class BeadDetector(Detector):
             ``[radius_px, contrast]``.
             Empty when there is none.
         """
-        factor, radius_px = self._binning(image)
+        factor, radius_px, smallest_px = self._binning(image)
         # Large balls: found on the binned image (by the disc fit and, for the hollow balls it
         # refuses, the top-hat's centroid), placed on their rim at full resolution (measured on a 2000^2 view of solid
         # and hollow balls 110-190 px across: within 0.03 px of the ellipse centre, where the disc
@@ -94,11 +96,7 @@ class BeadDetector(Detector):
         # deg on the 16-view ball bar against 0.0099 by the rim.
         method = self.centre_method if self.centre_method != "auto" else "rim" if factor > 1 else "fit"
         if method == "rim" and radius_px is not None:
-            # The rim places the balls; the binned fit only finds them and splits overlapping ones, which it
-            # does as well at half the radius: on the mixed ball phantom's 2000^2 views (balls 110-190 px
-            # across), 1.06 s a view against 2.54, the rims' centres as close to the truth (median 0.031 px
-            # against 0.032), as many balls found (docs/calibration-phantoms.md).
-            factor = max(factor, int(radius_px // (_RIM_FIND_FRACTION * self.fit_radius_px)))
+            factor = _rim_binning(factor, radius_px, smallest_px, self.fit_radius_px)
         work = image if factor == 1 else block_mean(image, factor)
         scale = 1.0 / factor
         options = dict(min_diameter_px=None if self.min_diameter_px is None else self.min_diameter_px * scale,
@@ -122,23 +120,37 @@ class BeadDetector(Detector):
                               response=beads[:, 3], class_id=beads[:, 4].astype(np.int32),
                               descriptors=beads[:, 2:4].astype(np.float32), norm="L2")
 
-    def _binning(self, image: np.ndarray) -> tuple[int, float | None]:
-        """The binning the balls are fitted at (1, or what brings their radius near ``fit_radius_px``) and
-        their radius (px; None where it was not looked at).
+    def _binning(self, image: np.ndarray) -> tuple[int, float | None, float | None]:
+        """The binning the balls are fitted at (1, or what brings their radius near ``fit_radius_px``),
+        their median radius and the smallest one's (px; None where they were not looked at).
 
         Their size is read off a coarse look (the image binned to about 256 px a side); balls too
         small to be seen there are fitted at full resolution.
         """
         if self.fit_radius_px is None or min(image.shape) < 512:
-            return 1, None
+            return 1, None, None
         coarse = max(1, min(image.shape) // 256)
         look = find_balls(block_mean(image, coarse), polarity=self.polarity,
                           min_contrast_sigma=self.min_contrast_sigma, max_beads=self.max_beads,
                           centre_method="centroid")
         if not len(look):
-            return 1, None
+            return 1, None, None
         radius_px = float(np.median(look[:, 2])) * coarse
-        return max(1, int(radius_px // self.fit_radius_px)), radius_px
+        return max(1, int(radius_px // self.fit_radius_px)), radius_px, float(np.min(look[:, 2])) * coarse
+
+
+def _rim_binning(factor: int, radius_px: float, smallest_px: float, fit_radius_px: float) -> int:
+    """The binning balls are found at where their rims place them: their radius near half ``fit_radius_px``.
+
+    The rim places the balls; the binned fit only finds them and splits overlapping ones, which it
+    does as well at half the radius: on the mixed ball phantom's 2000^2 views (balls 110-190 px
+    across), 1.06 s a view against 2.54, the rims' centres as close to the truth (median 0.031 px
+    against 0.032), as many balls found (docs/calibration-phantoms.md). No coarser than keeps the
+    smallest ball of the look at the finder's smallest radius, and no finer than ``factor``.
+    """
+    rim_factor = min(int(radius_px // (_RIM_FIND_FRACTION * fit_radius_px)),
+                     int(smallest_px // _SMALLEST_FOUND_RADIUS_PX))
+    return max(factor, rim_factor)
 
 
 @hookimpl

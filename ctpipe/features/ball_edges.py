@@ -24,8 +24,9 @@ write it: the issue's Nikon scan reads 50000 over the open beam) cuts a faint ba
 the open beam is behind it, and not where a holder is: the rim seen over the open beam lies
 inside the true one, over the holder on it, and where a disc crosses from one to the other its
 circle is pulled towards the holder. A clipped image is one where 1 % or more of the pixels read
-its lowest line integral exactly; a disc is flagged 3 when between 5 % and 95 % of the pixels 3 px
-outside its fitted rim read it, so that the calibration weighs such discs by their own residuals.
+its lowest line integral exactly, most of them with their four neighbours (a plateau); a disc is
+flagged 3 when between 5 % and 95 % of the pixels 3 px outside its fitted rim read it, so that
+the calibration weighs such discs by their own residuals.
 On the mixed ball phantom (``benchmarks/bench_ball_phantom_mixed.py``, seeds 0 and 1, every disc
 against its true ellipse centre) those discs were off by 0.07-0.09 px RMS for steel balls and
 0.46-0.88 px for ruby and polymer ones, the others by 0.02-0.13 px.
@@ -52,6 +53,8 @@ _PASSES, _SETTLED_PX = 3, 0.02
 _OVERLAP, _TRUNCATED, _ACROSS_CLIP = 1, 2, 3
 #: A clipped image: this fraction of its pixels or more read its lowest line integral exactly.
 _CLIPPED_FRACTION = 0.01
+#: ... and this fraction of them or more with all four neighbours too (a plateau, not noise clamped at a level).
+_CLIP_INTERIOR = 0.5
 #: A disc crosses a clip edge when the fraction of its outside that reads the clip level is within these.
 _CLIP_MIXED = (0.05, 0.95)
 #: Where its outside is read: this far beyond the fitted rim (px).
@@ -132,9 +135,20 @@ def _rim_circle(smooth: np.ndarray, cx: float, cy: float, r: float, direction: n
 
 
 def _clip_level(g: np.ndarray) -> float | None:
-    """The lowest line integral if the detector clipped there (``_CLIPPED_FRACTION`` of pixels read it), else None."""
+    """The lowest line integral if the detector clipped there, else None.
+
+    Clipped: ``_CLIPPED_FRACTION`` of the pixels or more read it exactly, and most of them
+    (``_CLIP_INTERIOR``) with their four neighbours too, as a plateau does. Line integrals clamped
+    at 0 after a noisy flat field also read 0 on half the background, but pixel by pixel (a quarter
+    of a quarter of them with all four neighbours), and they cut no ball's edge.
+    """
     lowest = float(np.min(g))
-    return lowest if np.count_nonzero(g == lowest) >= _CLIPPED_FRACTION * g.size else None
+    at = g == lowest
+    count = np.count_nonzero(at)
+    if count < _CLIPPED_FRACTION * g.size:
+        return None
+    interior = np.count_nonzero(at[1:-1, 1:-1] & at[:-2, 1:-1] & at[2:, 1:-1] & at[1:-1, :-2] & at[1:-1, 2:])
+    return lowest if interior >= _CLIP_INTERIOR * count else None
 
 
 def _across_clip(g: np.ndarray, x0: float, y0: float, radius: float, direction: np.ndarray, clip: float) -> bool:

@@ -75,7 +75,7 @@ class BallCalibration:
     f_statistic, p_value : float
         The F test of the corrected against the nominal angles.
     observations : int
-        Detections fitted (assigned to a ball, not flagged).
+        Detections fitted (assigned to a ball, flagged or not).
     assigned : list of ndarray
         Per view, the ball of each detection (-1: none).
     """
@@ -297,9 +297,9 @@ def _assign(detections, balls, radii_mm, angles, geometry, u0, v0, tilt, tol_px)
     return assigned
 
 
-#: A disc that overlaps another or is cut by the border still places its ball: in the first round at a
-#: quarter of the weight (four times the error) of a clean one, since its fitted centre may be pulled
-#: by its neighbour; after it, at the weight each kind's own residuals give (:func:`_flag_weights`).
+#: A flagged disc (overlapping another, cut by the border, across a clip edge) still places its ball:
+#: in the first round at a quarter of the weight (four times the error) of a clean one, since its
+#: fitted centre may be pulled; after it, at the weight each kind's own residuals give (:func:`_flag_weights`).
 _FLAGGED_WEIGHT = 0.25
 #: Disc flags of the ``beads`` detector: 0 clean, 1 overlapping, 2 cut by the border, 3 rim across a clip edge.
 _CLEAN_FLAG, _FLAG_KINDS = 0, 4
@@ -439,8 +439,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     ----------
     detections : sequence of ndarray of shape (N_k, 4)
         Per view, every disc found: ``x=col, y=row`` of its centre (px), its radius (px) and a flag
-        (0 clean, 1 overlapping another disc, 2 cut by the border), as the ``beads`` detector
-        reports them.
+        (0 clean, 1 overlapping another disc, 2 cut by the border, 3 its rim across the edge of a
+        clipped background), as the ``beads`` detector reports them; any other flag (-1, the
+        ``class_id`` of keypoints without one) counts as clean.
     geometry : Geometry
         The scanner's nominal geometry.
     nominal_angles_deg : array_like of shape (V,)
@@ -496,7 +497,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                 disc_px.append(found[k, 2]), flagged.append(found[k, 3])
         view_of, ball_of = np.array(view_of, dtype=int), np.array(ball_of, dtype=int)
         observed = np.array(observed)
-        flagged = np.clip(np.array(flagged), 0, _FLAG_KINDS - 1).astype(int)
+        # Flags beyond the beads detector's (another detector's -1, a NaN) count as clean; above 3 as 3.
+        flagged = np.clip(np.nan_to_num(np.array(flagged), nan=0.0), 0, _FLAG_KINDS - 1).astype(int)
         weight = flag_weight[flagged] * ball_weight[ball_of]
         counts = np.bincount(view_of, minlength=V)
         # Views with a single clean ball still fix their angle (two residuals, one unknown), if barely.

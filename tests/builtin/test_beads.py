@@ -278,3 +278,11 @@ def test_a_large_ball_is_found_on_a_coarse_level_and_fitted_at_full_resolution()
     features = BeadDetector().detect(image)
     error, _ = matched(features, centres)
     assert len(features) == 1 and error[0] <= 0.05
+
+
+def test_balls_placed_by_their_rims_are_found_at_half_the_fit_radius_but_none_below_the_finders_smallest():
+    from ctpipe.builtin.beads import _rim_binning
+
+    assert _rim_binning(4, 76.0, 52.0, 16.0) == 9        # the mixed phantom: 76 px balls found at about 8 px
+    assert _rim_binning(4, 76.0, 20.0, 16.0) == 4        # a 20 px ball would fall under 5 px: no coarser than before
+    assert _rim_binning(4, 76.0, 30.0, 16.0) == 6        # the smallest ball kept at 5 px

@@ -84,3 +84,7 @@ def test_a_faint_disc_across_the_edge_of_a_clipped_background_is_flagged():
     flags = edge_centres(_clipped(image, 0.2), start)[:, 4]
     assert list(flags) == [3, 0, 0]
     assert not edge_centres(image.astype(np.float32), start)[:, 4].any()
+    # Clamped at 0 after a noisy flat field, half the open beam reads 0, pixel by pixel: not a clip.
+    open_beam = _clipped(image, 0.0) * (holder == 0) + image.astype(np.float32) * (holder > 0)
+    assert np.mean(open_beam == 0) > 0.2
+    assert not edge_centres(open_beam, start)[:, 4].any()

@@ -169,3 +169,17 @@ def test_nominal_angles_each_within_the_stated_error_are_corrected():
     error = (found.angles_deg - (nominal + off)) - np.median(found.angles_deg - (nominal + off))
     assert found.kept, found.reason
     assert np.abs(error).max() < 0.01
+
+
+@pytest.mark.parametrize("flag", [-1.0, np.nan])
+def test_discs_without_a_beads_flag_count_as_clean(flag):
+    """Keypoints of another detector carry class_id -1; a flag column of NaN is read the same way."""
+    rng = np.random.default_rng(5)
+    nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
+    truth = nominal + rng.uniform(-0.5, 0.5, 16)
+    detections = _detections(truth, BALLS, 2.5, seed=5)
+    clean = calibrate_balls(detections, GEOMETRY, nominal)
+    for found in detections:
+        found[:, 3] = flag
+    other = calibrate_balls(detections, GEOMETRY, nominal)
+    np.testing.assert_allclose(other.angles_deg, clean.angles_deg, atol=1e-9)
