@@ -27,6 +27,7 @@ import numpy as np
 from ctpipe.data import Features
 from ctpipe.errors import ConfigError
 from ctpipe.features import bright_view, edge_centres, find_balls
+from ctpipe.features.balls import _AUTO_MIN_DIAMETER_PX
 from ctpipe.hookspecs import hookimpl
 from ctpipe.images import block_mean
 from ctpipe.stages import Detector, param
@@ -35,8 +36,8 @@ __all__ = ["BeadDetector"]
 
 #: Where the rim places the balls, they are found at this fraction of ``fit_radius_px``.
 _RIM_FIND_FRACTION = 0.5
-#: The smallest radius (px) :func:`ctpipe.features.find_balls` looks for by default (10 px across).
-_SMALLEST_FOUND_RADIUS_PX = 5.0
+#: The smallest radius (px) :func:`ctpipe.features.find_balls` looks for by default.
+_SMALLEST_FOUND_RADIUS_PX = 0.5 * _AUTO_MIN_DIAMETER_PX
 
 
 @dataclass(frozen=True)

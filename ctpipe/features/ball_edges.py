@@ -39,6 +39,8 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from ctpipe.features.balls import _OVERLAP, _TRUNCATED
+
 __all__ = ["edge_centres", "bright_view"]
 
 #: Rays per ball, and the step along them (px).
@@ -49,8 +51,8 @@ _WINDOW = 0.25
 _MIN_CLEAN = 0.7
 #: The rays are cast again from the rim's centre until it moves less than _SETTLED_PX, at most _PASSES times.
 _PASSES, _SETTLED_PX = 3, 0.02
-#: Flags (:func:`ctpipe.features.find_balls`' 0, 1, 2, and one more): a disc whose rim crosses a clip edge.
-_OVERLAP, _TRUNCATED, _ACROSS_CLIP = 1, 2, 3
+#: A flag beyond :func:`ctpipe.features.find_balls`' 0, 1, 2: a disc whose rim crosses a clip edge.
+_ACROSS_CLIP = 3
 #: A clipped image: this fraction of its pixels or more read its lowest line integral exactly.
 _CLIPPED_FRACTION = 0.01
 #: ... and this fraction of them or more with all four neighbours too (a plateau, not noise clamped at a level).
@@ -94,7 +96,7 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0) -> n
             found = _rim_circle(smooth, cx, cy, r, direction)
             if found is None:
                 break
-            (x0, y0, radius), clean = found
+            (x0, y0, radius), _ = found
             if math.hypot(x0 - cx0, y0 - cy0) > 0.5 * r0 or not 0.5 * r0 < radius < 1.5 * r0:
                 break
             fitted, moved = found, math.hypot(x0 - cx, y0 - cy)

@@ -515,8 +515,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         # that lined up by chance, a merged pair): it is dropped and the adjustment made again. Judged
         # without the weights, which would otherwise hide how badly it fits: a faint ball whose discs
         # are mostly flagged across a clip edge is judged by how far they are off, not by their weight.
-        judged = fit.residual / weight[:, None]
-        per_ball = np.array([np.sqrt(np.mean(judged[ball_of == b] ** 2)) if np.any(ball_of == b) else np.inf
+        unweighted = fit.residual / weight[:, None]   # also what the next round's weights are set from
+        per_ball = np.array([np.sqrt(np.mean(unweighted[ball_of == b] ** 2)) if np.any(ball_of == b) else np.inf
                              for b in range(len(balls))])
         seen = np.bincount(ball_of, minlength=len(balls))
         good = (per_ball <= max(5.0 * float(np.median(per_ball)), 1.0)) & (seen >= min_views) & \
@@ -532,7 +532,6 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         # A disc pulled by a neighbour or by dust is off by tenths of a pixel where the others are
         # off by hundredths: Huber's corner at three robust deviations lets it count linearly.
         scale_px = max(3.0 * 1.4826 * float(np.median(np.abs(fit.residual))), 0.1)
-        unweighted = fit.residual / weight[:, None]
         ball_weight = _ball_weights(unweighted, ball_of, len(balls))
         flag_weight = _flag_weights(unweighted, flagged)
     nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
