@@ -99,3 +99,26 @@ def test_a_start_pixels_off_is_cast_again_until_the_rim_settles():
         start = np.array([[centre[0] + off, centre[1] - 0.9 * off, 60.0, 1.0, 0.0]])
         refined = edge_centres(view, start)
         assert np.hypot(refined[0, 0] - centre[0], refined[0, 1] - centre[1]) < 0.04
+
+
+def test_a_faint_rim_running_onto_a_holders_faint_edge_is_flagged():
+    """The clip cuts a faint rim deeper over the open beam than where a holder lifts what lies beyond it;
+    a holder's faint edge, its line integrals under the clip level, reads clipped like the open beam, so
+    one ring 3 px out reads all of such a disc's outside clipped. Its rays tell: those whose every pixel
+    out to 15 % of the radius further reads the clip level (the open beam) against those that reach the
+    holder. A disc wholly over the open beam, specks of dust beside its rim, is not flagged."""
+    shape = (700, 1000)
+    rng = np.random.default_rng(3)
+    rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    clip = 0.2
+    holder = np.maximum(clip + 0.015 * (cols - 586.0), 0.0)      # under the clip up to column 586, above beyond
+    centres = [(510.0, 350.0), (200.0, 350.0)]                   # the first's rim cut at column 578; the open beam
+    image = sum(_ball(shape, c, 70.0, 0.01) for c in centres) + holder
+    for x, y in [(200.0 + 77.0, 350.0), (200.0, 350.0 - 77.0)]:
+        image = image + _ball(shape, (x, y), 3.0, 0.2)           # dust beside the second disc's rim
+    image = ndimage.gaussian_filter(image, 0.7) + rng.normal(0.0, 0.005, shape)
+    clipped = _clipped(image, clip)
+    assert np.all(clipped[340:361, 580:585] == 0.0)              # 3-7 px out, towards the holder: clipped
+    assert np.all(clipped[340:361, 590:594] > 0.0)               # 12 px out: the holder above the clip
+    start = np.array([[c[0] + 0.3, c[1] - 0.3, 70.0, 1.0, 0.0] for c in centres])
+    assert list(edge_centres(clipped, start)[:, 4]) == [3, 0]
