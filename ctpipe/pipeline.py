@@ -469,7 +469,9 @@ class ScanResult:
         if gate is not None:
             lines.append(_gate_line(gate, measured=self.before_after is not None and bool(self.before_after.scores)))
         if self.before_after is not None:
-            lines.append(self.before_after.verdict())
+            # A ball calibration is judged by its balls (its line above); the slices still show it.
+            lines.append(self.before_after.verdict()
+                         + ("; the balls' reprojection decides a ball phantom's angles" if isinstance(balls, dict) else ""))
         estimated = self.estimated_deg
         for reference, label in ((self.nominal_angles_deg, "nominal angles"),
                                  (self.recorded_angles_deg, "scanner's angle log")):

@@ -37,6 +37,11 @@ __all__ = ["BeforeAfter", "before_after", "before_after_png"]
 
 #: The two angle sets compared, in the order shown.
 LABELS = ("nominal", "corrected")
+#: Below this relative cost at the nominal angles the conjugate rays read the same to rounding: they
+#: cross nothing that turns (a ball phantom's clipped background, its holder static), so the measure
+#: has nothing to compare, and a change relative to it is a ratio of rounding errors. Any noise in
+#: the views puts the cost near its variance relative to the signal's (1e-6 or more).
+_NOTHING_TO_COMPARE = 1e-12
 
 
 @dataclass(frozen=True)
@@ -88,7 +93,7 @@ class BeforeAfter:
         if self.max_change_deg < 1e-9:   # the same angles, but for rounding
             return "before/after: the returned angles are the nominal ones; nothing changed"
         if not self.scores:
-            return f"before/after: no truth-free measure ({self.note}){where}"
+            return f"before/after: the projections' conjugate rays cannot judge the angles ({self.note}){where}"
         score = self.scores["corrected"]
         helped = "helped" if score.z < -2.0 else "made it worse" if score.z > 2.0 else "made no difference beyond noise"
         return (f"before/after: the correction {helped}: the projections' conjugate rays disagree "
@@ -164,6 +169,10 @@ def before_after(projections, geometry: Geometry, nominal_deg, corrected_deg, *,
         scored = conjugate_ray_costs(None, g, sets, reference="nominal", fit_u0_px=search, rows=turning)
         scores = dict(scored)
         u0 = {label: score.u0_px for label, score in scored.items()}
+        if scores["nominal"].cost < _NOTHING_TO_COMPARE:
+            scores, note = {}, ("the conjugate rays read the same to rounding at the nominal angles: where they "
+                                "cross the midplane the views show nothing that turns (a flat or clipped background)")
+            u0 = {label: g.u0_px for label in LABELS}
     except InputError as error:
         note = str(error)
         u0 = {label: g.u0_px for label in LABELS}
