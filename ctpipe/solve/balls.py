@@ -518,6 +518,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         radii_mm = radii_mm * (z + geometry.source_to_object_mm) / geometry.source_to_detector_mm
         fit = _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry,
                       free_views=free_views, fit_detector=fit_detector, scale_px=scale_px, loss=loss)
+        fit_loss = loss   # the nominal fit below is made with the loss of the fit it is tested against
         angles, balls, detector = fit.angles, fit.balls, fit.detector
         rms = float(np.sqrt(np.mean(fit.residual ** 2)))
         # A "ball" that fits far worse than the others, or is seen in too few views, is not one (dust
@@ -547,7 +548,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         loss = _SETTLED_LOSS
     nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
                           free_views=free_views, fit_angles=False, fit_detector=fit_detector, scale_px=scale_px,
-                          loss=loss)
+                          loss=fit_loss)
     chi_corrected = float(np.sum(fit.residual ** 2))
     chi_nominal = float(np.sum(nominal_fit.residual ** 2))
     # The gauge row takes one unknown back: the angles add len(free_views) - 1 over the nominal fit.

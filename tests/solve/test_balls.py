@@ -189,3 +189,22 @@ def test_discs_without_a_beads_flag_count_as_clean(flag):
         found[:, 3] = flag
     other = calibrate_balls(detections, GEOMETRY, nominal)
     np.testing.assert_allclose(other.angles_deg, clean.angles_deg, atol=1e-9)
+
+
+def test_the_nominal_fit_is_made_with_the_loss_of_the_fit_it_is_tested_against(monkeypatch):
+    """The F test compares two fits' residuals: both Huber's after one round, both Cauchy's after three."""
+    from ctpipe.solve import balls as module
+
+    nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
+    detections = _detections(nominal + np.linspace(-0.5, 0.5, 16), BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=3)
+    adjust, losses = module._adjust, []
+
+    def recorded(*args, **kwargs):
+        losses.append((kwargs.get("fit_angles", True), kwargs["loss"]))
+        return adjust(*args, **kwargs)
+
+    monkeypatch.setattr(module, "_adjust", recorded)
+    for rounds, last in ((1, "huber"), (3, module._SETTLED_LOSS)):
+        losses.clear()
+        calibrate_balls(detections, GEOMETRY, nominal, rounds=rounds)
+        assert losses[-1] == (False, last) and losses[-2] == (True, last)
