@@ -166,16 +166,14 @@ def before_after(projections, geometry: Geometry, nominal_deg, corrected_deg, *,
     try:
         # What does not turn out, as the gate takes it (:func:`~ctpipe.solve.conjugate.turning_part`).
         turning, _ = turning_part(midplane, sets["nominal"])
-        scored = conjugate_ray_costs(None, g, sets, reference="nominal", fit_u0_px=search, rows=turning)
-        scores = dict(scored)
-        u0 = {label: score.u0_px for label, score in scored.items()}
+        scores = dict(conjugate_ray_costs(None, g, sets, reference="nominal", fit_u0_px=search, rows=turning))
         if scores["nominal"].cost < _NOTHING_TO_COMPARE:
             scores, note = {}, ("the conjugate rays read the same to rounding at the nominal angles: where they "
                                 "cross the midplane the views show nothing that turns (a flat or clipped background)")
-            u0 = {label: g.u0_px for label in LABELS}
     except InputError as error:
         note = str(error)
-        u0 = {label: g.u0_px for label in LABELS}
+    # Each set's own axis column where the conjugate rays fitted one; the geometry's where they could not.
+    u0 = {label: scores[label].u0_px if scores else g.u0_px for label in LABELS}
 
     row_geometry = replace(g, detector_rows=1, v0_px=0.0)
     axial_voxel = _voxel_mm(g, max_axial_voxels)
