@@ -424,3 +424,35 @@ def test_the_parallel_gradients_and_normal_equations_are_numpys():
     _normal_equations(columns, images, gram, rhs)
     np.testing.assert_allclose(gram, np.einsum("vaij,vbij->vab", columns, columns, dtype=np.float64), rtol=1e-12)
     np.testing.assert_allclose(rhs, np.einsum("vaij,vij->va", columns, images, dtype=np.float64), rtol=1e-12)
+
+
+def test_a_spent_array_takes_the_aligned_views_and_keeps_the_recorded_ones_in_16_bits(scan):
+    """The finest level aligns into the array handed over, with the views as recorded kept as codes
+    (issue 35: a second float32 copy of 2,000 views of 256^2 was half a gigabyte), and matches as
+    the float32 copy did."""
+    from ctpipe.solve.reprojection import _Level, _Views
+
+    data, _ = as_line_integrals(scan.projections)
+    kept = data.copy()
+    views = _Views(data, spend=True)
+    level = _Level(views, scan.geometry, 1, 96, (0.7, 4.0), "ram-lak")
+    assert views.codes is None and level.data is data        # not aligned: the views themselves, exact
+    shifts = np.column_stack([np.linspace(-0.7, 0.7, len(data)), np.zeros(len(data))])
+    level.align(shifts, 0.002)
+    assert np.shares_memory(level.data, data) and views.codes.dtype == np.int16
+    decoded = views.recorded(0, len(data))
+    step = (kept.max(axis=(1, 2)) - kept.min(axis=(1, 2))) / 65534.0
+    assert np.all(np.abs(decoded - kept) <= 0.51 * step[:, None, None] + 1e-6)
+    unspent = _Level(kept, scan.geometry, 1, 96, (0.7, 4.0), "ram-lak")
+    unspent.align(shifts, 0.002)
+    assert not np.shares_memory(unspent.data, kept)          # an array not ours gets a copy beside it
+    np.testing.assert_allclose(level.data, unspent.data, atol=float(step.max()))
+    truth = scan.true_angles_deg
+    assert level.cost(truth) == pytest.approx(unspent.cost(truth), rel=1e-4)
+    level.align(None, 0.0)                                     # back to the views as recorded, decoded
+    assert level.data is data and np.all(np.abs(data - kept) <= 0.51 * step[:, None, None] + 1e-6)
+    spent = projection_matching(kept.copy(), scan.geometry, scan.nominal_angles_deg, binning=(2, 1),
+                                iterations=(2, 2), max_voxels=96, detector=True, overwrite=True)
+    held = projection_matching(kept, scan.geometry, scan.nominal_angles_deg, binning=(2, 1),
+                               iterations=(2, 2), max_voxels=96, detector=True)
+    assert np.max(np.abs(spent.angles_deg - held.angles_deg)) < 1e-4
