@@ -521,7 +521,8 @@ class _Views:
     few 1e-5 of a line integral, far under the noise of a binned view), and the array itself
     takes the aligned views: at 2,000 views of 256^2 that is 0.26 GB beside the aligned views'
     0.52 GB, where a second float32 copy was 0.52 GB. Until the first alignment the array holds
-    the views as recorded, exactly, and no codes are made.
+    the views as recorded, exactly, and no codes are made. One level at a time aligns into it: a
+    level made at binning 1 from the same views takes them back as recorded.
     """
 
     def __init__(self, views: np.ndarray, *, spend: bool = False) -> None:
