@@ -17,7 +17,8 @@ seed: whether the check recognised the phantom, the time (simulation apart; the 
 may load or compile numba's cache), the balls followed and seen per ball, every view's error
 against the truth (after the common offset), the largest and the RMS, and the fitted detector
 against the true one (axis column in pixels, tilt in degrees, the camera convention of
-:mod:`ctpipe.solve.balls`: the simulator's ``tilt_deg`` with the opposite sign). Exits with 1
+:mod:`ctpipe.solve.balls`: the simulator's ``tilt_deg`` with the opposite sign) and how deep the
+clip cuts each ball's rim as the calibration fitted it (null: no disc of that ball cut on one side). Exits with 1
 when a view is beyond ``--bar-deg`` (0.01, the issue's) or the geometry beyond 0.1 px / 0.01 deg.
 
     python benchmarks/bench_ball_phantom_mixed.py [--seeds 0 1 2] [--views 24] [--max-error-deg 2]
@@ -113,7 +114,8 @@ def main(argv=None) -> int:
         print(f"  per-view error (deg): max {largest:.4f}, RMS {rms:.4f}; "
               f"{np.array2string(errors, precision=4, max_line_width=150, suppress_small=True)}")
         print(f"  detector: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it; reprojection "
-              f"RMS {balls.get('rms_px', np.nan):.3f} px (nominal angles {balls.get('nominal_rms_px', np.nan):.3f})")
+              f"RMS {balls.get('rms_px', np.nan):.3f} px (nominal angles {balls.get('nominal_rms_px', np.nan):.3f}); "
+              f"rims cut by the clip (px, per ball): {balls.get('ball_cut_px')}")
         failed |= not (largest <= args.bar_deg and abs(axis_px) <= GEOMETRY_BAR_PX and abs(tilt_deg) <= GEOMETRY_BAR_DEG)
     return 1 if failed else 0
 

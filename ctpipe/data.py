@@ -49,6 +49,12 @@ class Features:
         Matchers compare float and uint8 descriptors of one norm alike.
     norm : str
         Distance the descriptors are compared with, one of ``DESCRIPTOR_NORMS``.
+    clipped_side : ndarray of shape (N, 2), float32, or None
+        For discs whose rim a clipped background cuts (the ``beads`` detector): the mean, over
+        the rays cast from the disc's centre, of the outward direction (x, y) of those whose
+        outside is the clip's plateau; 0 where none or all are. The fitted centre of a rim cut
+        ``d`` px deep there is pulled by about ``-2 d`` times it
+        (:func:`ctpipe.solve.balls.calibrate_balls` fits ``d`` per ball). None for other detectors.
     """
 
     xy: np.ndarray
@@ -59,6 +65,7 @@ class Features:
     class_id: np.ndarray
     descriptors: np.ndarray
     norm: str
+    clipped_side: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.xy)
@@ -77,8 +84,12 @@ class Features:
         if not binary and self.descriptors.dtype not in (np.float32, np.uint8):
             raise InputError(f"Features with norm {self.norm} need float32 (or whole-number uint8) descriptors, "
                              f"got {self.descriptors.dtype}")
-        for array in (self.xy, self.size, self.angle_deg, self.response, self.octave, self.class_id, self.descriptors):
-            array.flags.writeable = False
+        if self.clipped_side is not None and self.clipped_side.shape != (n, 2):
+            raise InputError(f"Features.clipped_side must have shape ({n}, 2), got {self.clipped_side.shape}")
+        for array in (self.xy, self.size, self.angle_deg, self.response, self.octave, self.class_id, self.descriptors,
+                      self.clipped_side):
+            if array is not None:
+                array.flags.writeable = False
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -97,7 +108,8 @@ class Features:
         return dataclasses.replace(self, descriptors=np.empty((len(self), 0), dtype=self.descriptors.dtype))
 
     @classmethod
-    def build(cls, *, xy, size, angle_deg, response, octave=None, class_id=None, descriptors, norm) -> "Features":
+    def build(cls, *, xy, size, angle_deg, response, octave=None, class_id=None, descriptors, norm,
+              clipped_side=None) -> "Features":
         """Normalise dtypes and apply the ordering rule; detectors construct through this."""
         xy = np.asarray(xy, dtype=np.float32).reshape(-1, 2)
         n = len(xy)
@@ -116,6 +128,8 @@ class Features:
             class_id=(np.full(n, -1) if class_id is None else np.asarray(class_id)).astype(np.int32).reshape(n)[order],
             descriptors=np.ascontiguousarray(descriptors[order].astype(dtype, copy=False)),
             norm=norm,
+            clipped_side=(None if clipped_side is None else
+                          np.ascontiguousarray(np.asarray(clipped_side, dtype=np.float32).reshape(n, 2)[order])),
         )
 
 

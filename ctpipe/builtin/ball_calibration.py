@@ -19,7 +19,7 @@ __all__ = ["BallCalibrationRefiner"]
 class BallCalibrationRefiner(Refiner):
     """Every ball a 3-D point on a circle about the axis: balls found by their trajectories, one bundle adjustment.
 
-    Needs the ``beads`` detector's discs (centre, diameter, flag) and the nominal angles; the
+    Needs the ``beads`` detector's discs (centre, diameter, flag, the side a clip cuts) and the nominal angles; the
     pairs the matcher and estimator made are not used (:mod:`ctpipe.solve.balls`). Without
     nominal angles it solves the pairs on the view graph, and says so. The corrected
     angles are returned only where they explain the balls better than the nominal angles beyond
@@ -48,7 +48,8 @@ class BallCalibrationRefiner(Refiner):
         detections = []
         for features in observations.features:
             flags = np.zeros(len(features.xy)) if features.class_id is None else np.asarray(features.class_id)
-            detections.append(np.column_stack([features.xy, 0.5 * np.asarray(features.size), flags]))
+            side = np.zeros((len(features.xy), 2)) if features.clipped_side is None else features.clipped_side
+            detections.append(np.column_stack([features.xy, 0.5 * np.asarray(features.size), flags, side]))
         found = calibrate_balls(detections, observations.geometry, nominal, max_error_deg=self.max_error_deg,
                                 fit_detector=self.fit_detector, p_value=self.p_value)
         angles = found.angles_deg

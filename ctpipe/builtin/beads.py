@@ -14,7 +14,9 @@ Output: ``xy`` the centre, ``size`` the diameter, ``angle_deg`` NaN, ``response`
 different depths projecting onto each other) or belongs to a crowd the model does not fully
 explain, 2 the disc is cut by the image border (before 1), 3 (the rim method only) the disc's
 rim crosses the edge of a clipped background, which pulls its circle
-(:mod:`ctpipe.features.ball_edges`). A ball whose centre is off the image is not reported.
+(:mod:`ctpipe.features.ball_edges`); with the rim method, ``clipped_side`` the side a clipped
+background cuts the rim on, from which the calibration models that pull
+(:attr:`ctpipe.data.Features.clipped_side`). A ball whose centre is off the image is not reported.
 """
 
 from __future__ import annotations
@@ -115,11 +117,12 @@ class BeadDetector(Detector):
         if factor > 1:   # back to the full image's pixels: a block's centre is (index + 0.5) factor - 0.5
             beads[:, :2] = (beads[:, :2] + 0.5) * factor - 0.5
             beads[:, 2] *= factor
+        side = None
         if method == "rim":
-            beads = edge_centres(bright_view(image, self.polarity), beads)
+            beads, side = edge_centres(bright_view(image, self.polarity), beads, clipped_side=True)
         return Features.build(xy=beads[:, :2], size=2.0 * beads[:, 2], angle_deg=np.full(len(beads), np.nan),
                               response=beads[:, 3], class_id=beads[:, 4].astype(np.int32),
-                              descriptors=beads[:, 2:4].astype(np.float32), norm="L2")
+                              descriptors=beads[:, 2:4].astype(np.float32), norm="L2", clipped_side=side)
 
     def _binning(self, image: np.ndarray) -> tuple[int, float | None, float | None]:
         """The binning the balls are fitted at (1, or what brings their radius near ``fit_radius_px``),

@@ -41,6 +41,8 @@ rays read the clip level on every pixel from 3 px beyond the rim to 15 % of the 
 (seeds 90-95, 24 views), worst view 0.0062-0.0095 deg with the ring alone, 0.0049-0.0075 with the
 rays too; of nine scans of 16 views (seeds 120-128), where each disc weighs more, median 0.0272
 against 0.0127, better on all 9 (``docs/calibration-phantoms.md``, with scans drawn after the choice).
+Those rays also say on which side the clip cuts the rim (``clipped_side``: the mean over the rays
+of the outward directions of the open beam's), from which the calibration models the pull.
 """
 
 from __future__ import annotations
@@ -76,7 +78,7 @@ _OUTSIDE_PX = 3.0
 _BAND_FRACTION = 0.15
 
 
-def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0) -> np.ndarray:
+def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clipped_side: bool = False):
     """Refine every ball's centre and radius on its outer rim (the module docstring).
 
     Parameters
@@ -87,6 +89,8 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0) -> n
         ``(cx, cy, r, contrast, flag)`` as :func:`ctpipe.features.find_balls` returns them.
     blur_px : float
         Gaussian smoothing (px) before the derivative along the rays: noise, not the rim.
+    clipped_side : bool
+        Also return, per disc, the side its rim is cut on (:attr:`ctpipe.data.Features.clipped_side`).
 
     Returns
     -------
@@ -95,10 +99,16 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0) -> n
         where less than 70 % of the rim fits the circle, set to 3 where a clean or overlapping
         disc's rim crosses the edge of a clipped background (the module docstring), and the
         detected centre kept where the rim could not be fitted.
+    ndarray of shape (n, 2)
+        With ``clipped_side``: the mean over the rays of the outward direction (x, y) of those
+        whose outside is the clip's plateau (every pixel from 3 px beyond the rim to 15 % of the
+        radius further reads the clip level); 0 where the image is not clipped, the rim was not
+        fitted, or no ray or every ray reads it.
     """
     out = np.array(balls, dtype=np.float64, copy=True)
+    side = np.zeros((len(out), 2))
     if not len(out):
-        return out
+        return (out, side) if clipped_side else out
     smooth = ndimage.gaussian_filter(np.asarray(g, dtype=np.float32), blur_px, mode="nearest")
     clip = _clip_level(g)
     phi = np.linspace(0.0, 2.0 * math.pi, _RAYS, endpoint=False)
@@ -122,9 +132,11 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0) -> n
         out[k, 0], out[k, 1], out[k, 2] = x0, y0, radius
         if clean < _MIN_CLEAN * _RAYS:
             out[k, 4] = max(out[k, 4], _OVERLAP)
-        if clip is not None and out[k, 4] != _TRUNCATED and _across_clip(g, x0, y0, radius, direction, clip):
-            out[k, 4] = _ACROSS_CLIP
-    return out
+        if clip is not None and out[k, 4] != _TRUNCATED:
+            mixed, side[k] = _across_clip(g, x0, y0, radius, direction, clip)
+            if mixed:
+                out[k, 4] = _ACROSS_CLIP
+    return (out, side) if clipped_side else out
 
 
 def _rim_circle(smooth: np.ndarray, cx: float, cy: float, r: float, direction: np.ndarray):
@@ -166,8 +178,10 @@ def _clip_level(g: np.ndarray) -> float | None:
     return lowest if interior >= _CLIP_INTERIOR * count else None
 
 
-def _across_clip(g: np.ndarray, x0: float, y0: float, radius: float, direction: np.ndarray, clip: float) -> bool:
-    """Whether what lies beyond a disc's rim is the clip's plateau on some of its rays and not on the others.
+def _across_clip(g: np.ndarray, x0: float, y0: float, radius: float, direction: np.ndarray,
+                 clip: float) -> tuple[bool, np.ndarray]:
+    """Whether what lies beyond a disc's rim is the clip's plateau on some of its rays and not on the
+    others, and the mean outward direction of the plateau's rays (over all rays; shape (2,)).
 
     Two readings, either of which decides: the pixels ``_OUTSIDE_PX`` beyond the rim, and the
     rays whose every pixel from there to ``_BAND_FRACTION`` of the radius further reads the clip
@@ -183,10 +197,12 @@ def _across_clip(g: np.ndarray, x0: float, y0: float, radius: float, direction: 
     if ring.any():
         mixed = _CLIP_MIXED[0] < float(np.mean(g[y[ring, 0], x[ring, 0]] == clip)) < _CLIP_MIXED[1]
     whole = on.all(axis=1)
-    if not mixed and whole.any():
-        plateau = np.all(g[y[whole], x[whole]] == clip, axis=1)
-        mixed = _CLIP_MIXED[0] < float(np.mean(plateau)) < _CLIP_MIXED[1]
-    return mixed
+    plateau = np.zeros(len(direction), dtype=bool)
+    if whole.any():
+        plateau[whole] = np.all(g[y[whole], x[whole]] == clip, axis=1)
+        mixed = mixed or _CLIP_MIXED[0] < float(np.mean(plateau[whole])) < _CLIP_MIXED[1]
+    side = direction[plateau].sum(axis=0) / len(direction) if 0 < plateau.sum() < len(direction) else np.zeros(2)
+    return mixed, side
 
 
 def bright_view(image, polarity: str = "auto") -> np.ndarray:

@@ -570,7 +570,10 @@ class _Views:
         return self.views
 
     def aligned_out(self) -> np.ndarray:
-        """The float32 array the aligned views are to be written into; :meth:`recorded` reads the views as recorded meanwhile."""
+        """The float32 array the aligned views are to be written into.
+
+        :meth:`recorded` reads the views as recorded meanwhile (from the codes, where the array is spent).
+        """
         if self.spend and self.codes is None:
             self._encode()
         if self.codes is not None:
