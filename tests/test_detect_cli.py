@@ -162,6 +162,17 @@ def test_angle_nan_is_written_as_opencv_minus_one(tmp_path):
     with np.load(write_keypoints(tmp_path / "kp.npz", features, detector="x", params={"k": (1, 2)})) as kp:
         np.testing.assert_array_equal(kp["angle"], np.float32([-1.0, 45.0]))
         assert json.loads(str(kp["params"])) == {"k": [1, 2]} and str(kp["norm"]) == "HAMMING"
+        assert "clipped_side" not in kp.files
+
+
+def test_the_side_a_clip_cuts_a_disc_on_is_written_with_its_keypoint(tmp_path):
+    """The ``beads`` detector's ``clipped_side``, in the keypoints' order (strongest first)."""
+    features = Features.build(xy=[[1.0, 2.0], [3.0, 4.0]], size=[5.0, 6.0], angle_deg=[np.nan, np.nan],
+                              response=[1.0, 2.0], descriptors=np.zeros((2, 2), np.float32), norm="L2",
+                              clipped_side=[[0.0, 0.0], [-0.3, 0.1]])
+    with np.load(write_keypoints(tmp_path / "kp.npz", features, detector="beads", params={})) as kp:
+        np.testing.assert_array_equal(kp["pt"][0], np.float32([3.0, 4.0]))
+        np.testing.assert_array_equal(kp["clipped_side"], np.float32([[-0.3, 0.1], [0.0, 0.0]]))
 
 
 @pytest.mark.parametrize("text, expected", [
