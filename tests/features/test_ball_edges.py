@@ -128,3 +128,29 @@ def test_a_faint_rim_running_onto_a_holders_faint_edge_is_flagged():
     assert np.all(clipped[340:361, 590:594] > 0.0)               # 12 px out: the holder above the clip
     start = np.array([[c[0] + 0.3, c[1] - 0.3, 70.0, 1.0, 0.0] for c in centres])
     assert list(edge_centres(clipped, start)[:, 4]) == [3, 0]
+
+
+def test_a_faint_rim_on_a_holders_faint_edge_that_reads_as_the_open_beam_is_flagged(monkeypatch):
+    """A holder's faint edge wide enough to read clipped on every ray's first band (3 px to 15 % of the
+    radius beyond the rim) looks like the open beam there, yet lifts the rim the clip would cut: rubies
+    whose rims lie on the rod's faint edge were 0.16-0.22 px off, unflagged, and set the worst view of
+    every 17-view scan of the mixed ball phantom (issue 34). Read out to half the radius, those rays
+    reach the holder's body above the clip level: flagged 3. The side is still the first band's."""
+    from ctpipe.features import ball_edges
+
+    shape = (700, 1000)
+    rng = np.random.default_rng(4)
+    rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    clip = 0.2
+    holder = np.maximum(clip + 0.015 * (cols - 600.0), 0.0)     # under the clip up to column 600, above beyond
+    centres = [(510.0, 350.0), (200.0, 350.0)]                   # the first's rim at column 580; the open beam
+    image = sum(_ball(shape, c, 70.0, 0.01) for c in centres) + holder
+    image = ndimage.gaussian_filter(image, 0.7) + rng.normal(0.0, 0.005, shape)
+    clipped = _clipped(image, clip)
+    assert np.all(clipped[330:371, 583:595] == 0.0)              # the first band towards the holder: clipped
+    start = np.array([[c[0] + 0.3, c[1] - 0.3, 70.0, 1.0, 0.0] for c in centres])
+    refined, side = edge_centres(clipped, start, clipped_side=True)
+    assert list(refined[:, 4]) == [3, 0]
+    assert np.all(side == 0.0)                                   # every ray's first band reads the plateau
+    monkeypatch.setattr(ball_edges, "_REACH_FRACTION", ball_edges._BAND_FRACTION)
+    assert list(edge_centres(clipped, start)[:, 4]) == [0, 0]    # the first band alone does not tell
