@@ -199,22 +199,24 @@ def _across_clip(g: np.ndarray, x0: float, y0: float, radius: float, direction: 
     steepest fall of a rim the clip cuts lies a pixel or two inside where the clip starts, blurred.
     The side is the first band's.
     """
+    # Every ray read once, out to the longer reach; the first band is its first pixels.
+    reach = np.arange(_OUTSIDE_PX, _OUTSIDE_PX + max(_REACH_FRACTION * radius, 3.0), 1.0)
+    band = len(np.arange(_OUTSIDE_PX, _OUTSIDE_PX + max(_BAND_FRACTION * radius, 3.0), 1.0))
+    x = np.rint(x0 + direction[:, 0, None] * (radius + reach)).astype(np.intp)
+    y = np.rint(y0 + direction[:, 1, None] * (radius + reach)).astype(np.intp)
+    on = (x >= 0) & (y >= 0) & (x < g.shape[1]) & (y < g.shape[0])
+    at_clip = np.where(on, g[np.where(on, y, 0), np.where(on, x, 0)] == clip, False)
     mixed = False
+    ring = on[:, 0]
+    if ring.any():
+        mixed = _CLIP_MIXED[0] < float(np.mean(at_clip[ring, 0])) < _CLIP_MIXED[1]
     side = np.zeros(2)
-    for k, fraction in enumerate((_BAND_FRACTION, _REACH_FRACTION)):
-        steps = np.arange(_OUTSIDE_PX, _OUTSIDE_PX + max(fraction * radius, 3.0), 1.0)
-        x = np.rint(x0 + direction[:, 0, None] * (radius + steps)).astype(np.intp)
-        y = np.rint(y0 + direction[:, 1, None] * (radius + steps)).astype(np.intp)
-        on = (x >= 0) & (y >= 0) & (x < g.shape[1]) & (y < g.shape[0])
-        ring = on[:, 0]
-        if k == 0 and ring.any():
-            mixed = _CLIP_MIXED[0] < float(np.mean(g[y[ring, 0], x[ring, 0]] == clip)) < _CLIP_MIXED[1]
-        whole = on.all(axis=1)
-        plateau = np.zeros(len(direction), dtype=bool)
+    for length in (band, len(reach)):
+        whole = on[:, :length].all(axis=1)
+        plateau = whole & at_clip[:, :length].all(axis=1)
         if whole.any():
-            plateau[whole] = np.all(g[y[whole], x[whole]] == clip, axis=1)
             mixed = mixed or _CLIP_MIXED[0] < float(np.mean(plateau[whole])) < _CLIP_MIXED[1]
-        if k == 0 and 0 < plateau.sum() < len(direction):
+        if length == band and 0 < plateau.sum() < len(direction):
             side = direction[plateau].sum(axis=0) / len(direction)
     return mixed, side
 

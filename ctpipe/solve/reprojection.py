@@ -536,10 +536,6 @@ class _Views:
     def __len__(self) -> int:
         return len(self.views)
 
-    @property
-    def shape(self) -> tuple[int, ...]:
-        return self.views.shape
-
     def recorded(self, start: int, stop: int) -> np.ndarray:
         """Views ``start:stop`` as recorded (float32; decoded where the array holds aligned views)."""
         if self.codes is None:
