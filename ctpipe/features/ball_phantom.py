@@ -1,11 +1,12 @@
 """Is this a ball phantom? A few large round blobs that hold nearly all of what the views show.
 
-``ctpipe estimate`` with the default pipeline asks this of three views spread over the scan
+``ctpipe estimate`` with the default pipeline asks this of five views spread over the scan
 before detecting keypoints: a ball phantom (a ball bar, balls on a plate or in foam) has no
 texture for keypoint detectors, and the default pipeline would refuse it, while the ball
 calibration (:mod:`ctpipe.solve.balls`) is exact there. The measure is the share of the views'
 small-scale structure (the line integrals less a grey opening a quarter of the detector wide: a
-holder or a container wider than that is background) that lies in round blobs of one size.
+holder or a container wider than that is background) that lies in round blobs of one size, or
+in blobs of two to four such balls merged where they overlap.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import math
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import ConvexHull
 
 from ctpipe.features.ball_edges import bright_view
 from ctpipe.images import block_mean
@@ -81,18 +83,50 @@ def ball_phantom_share(view: np.ndarray) -> tuple[float, int]:
     # One size of ball (within 2.5x of the round blobs' energy-weighted median radius).
     typical = float(np.median(radius[round_]))
     balls = round_ & (radius <= 2.5 * typical) & (radius >= typical / 2.5)
-    return (float(weight[balls].sum()) / total if total > 0 else 0.0), int(balls.sum())
+    merged = _merged_balls(labels, index, area, typical) * ~round_
+    share = float(weight[balls].sum() + weight[merged > 0].sum()) / total if total > 0 else 0.0
+    return share, int(balls.sum() + merged.sum())
 
 
-def looks_like_ball_phantom(projections, views: int = 3) -> tuple[bool, str]:
+def _merged_balls(labels: np.ndarray, index: np.ndarray, area: np.ndarray, typical: float) -> np.ndarray:
+    """How many balls each blob holds where it is two or more merged where they overlap, else 0.
+
+    Balls that overlap on the detector (twice a turn for two at one height) merge into one blob
+    that is not round. Such a blob holds 1.15 to 4.5 times the area of the largest disc inside it
+    (the distance transform's maximum, a radius within 2.5x of ``typical``, as round balls must
+    be) and is convex but for the notches where its discs meet (its area over its convex hull's
+    at least 0.8: 0.85 for three equal balls touching in a row, more where they overlap). On 16
+    layouts of the mixed phantom drawn at random, the views' share went from 4-99 % to 25-99 %
+    (one view below 50 % in 144); the samples' stayed below 35 % (the bead cylinder 2-24 % ->
+    5-34 %).
+    """
+    inscribed = np.asarray(ndimage.maximum(ndimage.distance_transform_edt(labels > 0), labels, index))
+    discs = area / (np.pi * np.maximum(inscribed, 1e-9) ** 2)
+    merged = np.zeros(len(index), dtype=np.int64)
+    one_size = np.abs(np.log(np.maximum(inscribed, 1e-9) / typical)) <= math.log(2.5)
+    candidates = one_size & (discs >= 1.15) & (discs <= 4.5)
+    for k in np.flatnonzero(candidates):
+        rows, cols = np.nonzero(labels == index[k])
+        corners = np.concatenate([np.column_stack([rows + dr, cols + dc]) for dr in (-0.5, 0.5) for dc in (-0.5, 0.5)])
+        if area[k] >= 0.8 * ConvexHull(corners).volume:
+            merged[k] = max(2, int(round(discs[k])))
+    return merged
+
+
+def looks_like_ball_phantom(projections, views: int = 5) -> tuple[bool, str]:
     """Whether ``projections`` (V, rows, cols) show a ball phantom, and the evidence in words.
 
-    Three views spread over the scan must each show 2 to :data:`MAX_BALLS` round blobs holding
-    :data:`BALL_PHANTOM_SHARE` or more of their small-scale structure.
+    Most of ``views`` views spread over the scan must each show 2 to :data:`MAX_BALLS` balls
+    (round blobs, or balls merged where they overlap) holding :data:`BALL_PHANTOM_SHARE` or more
+    of their small-scale structure. Most, not all: twice a turn a ball bar's balls line up along
+    the rays and two balls at one height overlap, and a view that happens to fall there says
+    little about the scan (measured on 16 layouts of the mixed phantom drawn at random: 0-44 % of
+    the views fail, every layout passes by the majority of five; docs/calibration-phantoms.md).
     """
     picked = np.unique(np.linspace(0, len(projections) - 1, min(views, len(projections))).round().astype(int))
     found = [ball_phantom_share(np.asarray(projections[k])) for k in picked]
-    yes = bool(found) and all(2 <= n <= MAX_BALLS and s >= BALL_PHANTOM_SHARE for s, n in found)
+    passed = sum(2 <= n <= MAX_BALLS and s >= BALL_PHANTOM_SHARE for s, n in found)
+    yes = bool(found) and passed > len(found) // 2
     what = ", ".join(f"{n} ({s:.0%})" for s, n in found)
-    return yes, (f"{len(picked)} views show {what} round blobs (their share of the views' structure); a ball phantom "
-                 f"has 2-{MAX_BALLS} holding {BALL_PHANTOM_SHARE:.0%} or more")
+    return yes, (f"{len(picked)} views show {what} balls (their share of the views' structure); a ball phantom "
+                 f"has 2-{MAX_BALLS} holding {BALL_PHANTOM_SHARE:.0%} or more in most views")
