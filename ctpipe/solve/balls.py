@@ -401,6 +401,11 @@ _GAUGE_PX_PER_RAD = 1e3
 #: first order, least squares of a circle with its rim points uniform in angle (``J^T J`` is
 #: ``diag(N/2, N/2, N)`` in the centre and the radius).
 _CUT_PULL = 2.0
+#: The deepest a clip may cut a ball's rim, as a share of the ball's radius on the detector. The clip
+#: only takes rim away (a depth of 0 or more), and even a polymer ball's (0.02/mm, 2.5 mm) rim is cut
+#: 11 px of 72 by a clip at 95 % of the open beam. Unbounded, the depth of a "ball" that is not one
+#: (a holder's end on the axis, followed through the views) came out at -124 px, absorbing its misfit.
+_MAX_CUT_FRACTION = 0.25
 
 
 def _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry, *, free_views, fit_angles=True,
@@ -413,8 +418,8 @@ def _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detecto
 
     ``side`` (M, 2): each disc's :attr:`~ctpipe.data.Features.clipped_side`; each ball with a disc
     cut on one side gets one more unknown, how deep the clip cuts its rim (``cut_px``, its
-    start; NaN for the others), and a disc's fitted centre is taken as pulled by
-    ``-2 cut side`` (:func:`_CUT_PULL`).
+    start; NaN for the others; within 0 and :data:`_MAX_CUT_FRACTION` of its radius), and a
+    disc's fitted centre is taken as pulled by ``-2 cut side`` (:data:`_CUT_PULL`).
     """
     from scipy.optimize import least_squares
 
@@ -469,8 +474,14 @@ def _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detecto
         if n_det:
             for j in range(3):
                 sparsity[rows, n_free + 3 * B + n_cut + j] = 1
-    solved = least_squares(residuals, x0, jac_sparsity=sparsity, loss=loss, f_scale=scale_px, x_scale="jac",
-                           xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    lower, upper = np.full(len(x0), -np.inf), np.full(len(x0), np.inf)
+    depth = slice(n_free + 3 * B, n_free + 3 * B + n_cut)
+    lower[depth] = 0.0
+    upper[depth] = _MAX_CUT_FRACTION * radii_mm[cut_balls] * geometry.magnification / min(
+        geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm)
+    x0[depth] = np.clip(x0[depth], lower[depth], upper[depth])
+    solved = least_squares(residuals, x0, jac_sparsity=sparsity, bounds=(lower, upper), loss=loss, f_scale=scale_px,
+                           x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
     a, p, c, d = unpack(solved.x)
     cut = np.full(B, np.nan)
     cut[cut_balls] = c[cut_balls]
