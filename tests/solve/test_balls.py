@@ -260,6 +260,18 @@ def test_a_rim_cut_by_the_clip_on_one_side_is_modelled_per_ball():
     assert modelled.to_dict()["ball_cut_px"][faint[0]] == pytest.approx(1.0, abs=0.1)
 
 
+def test_a_cut_depth_stays_within_what_a_clip_can_take():
+    """The clip only takes rim away, and at most a quarter of the radius: discs pulled towards their
+    cut side (no clip does that) give a depth of 0, not a negative one that absorbs their misfit."""
+    rng = np.random.default_rng(13)
+    nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
+    truth = nominal + np.clip(rng.normal(0.0, 0.5, 16), -2.0, 2.0)
+    detections = _cut(_detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=13), truth, -3.0, seed=13)
+    result = calibrate_balls(detections, GEOMETRY, nominal)
+    faint = [int(np.argmin(np.linalg.norm(result.balls_mm - BALLS[b], axis=1))) for b in FAINT]
+    assert np.all(result.ball_cut_px[faint] >= 0.0) and np.all(result.ball_cut_px[faint] < 0.05)
+
+
 def test_discs_cut_on_no_side_fit_as_they_did():
     """Sides of zero (no clip, or a disc cut all round) add no unknown: the same angles as four columns."""
     nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
