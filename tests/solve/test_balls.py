@@ -282,3 +282,32 @@ def test_discs_cut_on_no_side_fit_as_they_did():
     assert np.all(np.isnan(six.ball_cut_px))
     with pytest.raises(InputError, match=r"\(N, 4\) or \(N, 6\)"):
         calibrate_balls([d[:, :3] for d in detections], GEOMETRY, nominal)
+
+
+def test_a_view_settled_on_the_wrong_discs_is_found_again_by_its_angle_alone():
+    """With the balls and the detector fixed, a view's angle is a search in one dimension: a view
+    1.5 deg off is brought back within the search's step; one at its best stays exactly put."""
+    from ctpipe.solve.balls import _relocate_views
+
+    truth = np.array([10.0, 32.5, 55.0])
+    detections = _detections(truth, BALLS, 2.5, noise_px=0.0, seed=14)
+    angles = np.deg2rad(truth + np.array([0.0, 1.5, 0.0]))
+    moved = _relocate_views(detections, BALLS, np.full(len(BALLS), 2.5), angles, np.deg2rad(truth + 0.3),
+                            np.deg2rad(2.0), GEOMETRY, np.array([999.5, GEOMETRY.v0_px, 0.0]))
+    assert moved[0] == angles[0] and moved[2] == angles[2]
+    assert abs(np.rad2deg(moved[1]) - truth[1]) <= 0.011
+
+
+def test_a_view_whose_discs_miss_their_balls_returns_the_nominal_angles_and_says_which():
+    """A view whose discs are not where any angle puts its balls (here every one pixels off at
+    random) cannot be corrected: the F test over the others would pass, the verdict does not."""
+    rng = np.random.default_rng(15)
+    nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
+    truth = nominal + np.clip(rng.normal(0.0, 0.3, 16), -1.0, 1.0)
+    detections = _detections(truth, BALLS, 2.5, seed=15)
+    detections[5][:, :2] += rng.uniform(6.0, 10.0, (len(BALLS), 2)) * rng.choice([-1.0, 1.0], (len(BALLS), 2))
+    result = calibrate_balls(detections, GEOMETRY, nominal)
+    assert not result.kept and "view 5's discs lie a median" in result.reason
+    np.testing.assert_array_equal(result.angles_deg, nominal)
+    clean = calibrate_balls(_detections(truth, BALLS, 2.5, seed=15), GEOMETRY, nominal)
+    assert clean.kept
