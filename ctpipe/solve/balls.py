@@ -704,9 +704,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         kept, reason = False, "too few balls in too few views to test the correction"
     elif len(lost):
         worst = int(lost[np.argmax(miss_px[lost])])
+        typical = float(np.median(miss_px))
         kept, reason = False, (f"view {int(free_views[worst])}'s discs lie a median {miss_px[worst]:.1f} px from their "
-                               f"balls, the views' median {float(np.median(miss_px)):.3f} px: the balls are not followed "
-                               f"there ({len(lost)} view(s) so)")
+                               f"balls, the views' median {typical:.3f} px: the balls are not followed there "
+                               f"({len(lost)} view(s) so)")
     elif moved > max_error_deg:
         kept, reason = False, (f"a view moved {moved:.2f} deg from the views' common turn, more than the nominal "
                                f"angles' error allows ({max_error_deg:g} deg): the balls are not followed reliably")
