@@ -36,6 +36,9 @@ nothing is decided pair by pair:
    better on 16 (``docs/calibration-phantoms.md``). Between rounds, each view's angle is searched
    again in one dimension with the balls and the detector as the others fix them
    (:func:`_relocate_views`), so that a view whose discs went to the wrong balls is found again.
+   A ball dropped while the angles were still the nominal ones (its discs given to a neighbour
+   at the same height, pixels off) is looked for again among the leftover discs once the others
+   have settled the angles (:data:`_READMIT_ERROR_RAD`), and the rounds run again with it.
 3. **A verdict from the balls themselves.** The same fit with the angles held at the nominal
    ones; the corrected angles are kept only where they explain the balls better beyond noise
    (an F test of the residuals, the angles' degrees of freedom against the rest), none moved
@@ -49,6 +52,7 @@ only up to scale: a phantom scaled about the source projects the same).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -361,6 +365,10 @@ def _relocate_views(detections, balls, radii_mm, angles, nominal, error_rad, geo
     return moved
 
 
+#: How far off the settled angles may be where dropped balls are looked for again (rad): what a ball's
+#: tolerance then allows beyond its disc's half radius is a few pixels.
+_READMIT_ERROR_RAD = math.radians(0.1)
+
 #: A view whose discs lie a median of more than this (px; and twenty times the views' median) from their balls
 #: has its balls not followed, and the correction is not returned.
 _LOST_VIEW_PX = 1.0
@@ -606,65 +614,85 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     radii_mm = np.full(len(balls), radius_px * pitch / geometry.magnification)
     tol = _tolerance_px(balls, geometry, error_rad, radius_px)
     fit = None
-    done = 0
     scale_px = 1.0      # the loss's scale: a pixel at first, then three robust deviations of the residuals
     ball_weight = np.ones(len(balls))   # each ball's weight from its own residuals' spread, after the first round
     cut_px = np.zeros(len(balls))       # how deep a clipped background cuts each ball's rim, fitted with the rest
     flag_weight = _first_flag_weights()
     loss = "huber"
-    while done < rounds:   # a round that drops a ball does not count (at most all but two are dropped)
-        if fit is not None:
-            angles = _relocate_views(detections, balls, radii_mm, angles, theta0, error_rad, geometry, detector)
-        assigned = _assign(detections, balls, radii_mm, angles, geometry, *detector, tol)
-        view_of, ball_of, observed, disc_px, flagged, side = [], [], [], [], [], []
-        for view, (found, labels) in enumerate(zip(detections, assigned)):
-            for k in np.flatnonzero(labels >= 0):
-                view_of.append(view), ball_of.append(labels[k]), observed.append(found[k, :2])
-                disc_px.append(found[k, 2]), flagged.append(found[k, 3]), side.append(found[k, 4:6])
-        view_of, ball_of = np.array(view_of, dtype=int), np.array(ball_of, dtype=int)
-        observed, side = np.array(observed).reshape(-1, 2), np.array(side).reshape(-1, 2)
-        # Flags beyond the beads detector's (another detector's -1, a NaN) count as clean; above 3 as 3.
-        flagged = np.clip(np.nan_to_num(np.array(flagged), nan=0.0), 0, _FLAG_KINDS - 1).astype(int)
-        weight = flag_weight[flagged] * ball_weight[ball_of]
-        counts = np.bincount(view_of, minlength=V)
-        # Views with a single clean ball still fix their angle (two residuals, one unknown), if barely.
-        free_views = np.array([v for v in range(V) if counts[v] >= 2])
-        radii_mm = np.array([np.median(np.array(disc_px)[ball_of == b]) * pitch for b in range(len(balls))])
-        z = np.array([np.median(np.sin(angles[view_of[ball_of == b]]) * balls[b, 0]
-                                + np.cos(angles[view_of[ball_of == b]]) * balls[b, 2]) for b in range(len(balls))])
-        radii_mm = radii_mm * (z + geometry.source_to_object_mm) / geometry.source_to_detector_mm
-        fit = _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry,
-                      free_views=free_views, fit_detector=fit_detector, scale_px=scale_px, loss=loss,
-                      side=side, cut_px=cut_px)
-        fit_loss = loss   # the nominal fit below is made with the loss of the fit it is tested against
-        angles, balls, detector, cut_px = fit.angles, fit.balls, fit.detector, fit.cut_px
-        rms = float(np.sqrt(np.mean(fit.residual ** 2)))
-        # A "ball" that fits far worse than the others, or is seen in too few views, is not one (dust
-        # that lined up by chance, a merged pair): it is dropped and the adjustment made again. Judged
-        # without the weights, which would otherwise hide how badly it fits: a faint ball whose discs
-        # are mostly flagged across a clip edge is judged by how far they are off, not by their weight.
-        unweighted = fit.residual / weight[:, None]   # also what the next round's weights are set from
-        per_ball = np.array([np.sqrt(np.mean(unweighted[ball_of == b] ** 2)) if np.any(ball_of == b) else np.inf
-                             for b in range(len(balls))])
-        seen = np.bincount(ball_of, minlength=len(balls))
-        good = (per_ball <= max(5.0 * float(np.median(per_ball)), 1.0)) & (seen >= min_views) & \
-            np.all(np.isfinite(balls), axis=1) & (np.hypot(balls[:, 0], balls[:, 2]) <= 2.0 * reach_mm)
-        if not good.all() and good.sum() >= 2:
-            balls, tol, radii_mm, ball_weight = balls[good], tol[good], radii_mm[good], ball_weight[good]
-            cut_px = np.zeros(len(balls))
-            flag_weight = _first_flag_weights()   # their residuals held the dropped ball's discs
-            angles, detector = theta0.copy(), np.array([geometry.u0_px, geometry.v0_px, 0.0])   # as it bent them
-            loss = "huber"
-            continue
-        done += 1
-        # Tighter for the next assignment: what the fit explains, plus room for a poorly fitted ball.
-        tol = np.full(len(balls), max(6.0 * rms + 1.0, 0.25 * radius_px))
-        # A disc pulled by a neighbour or by dust is off by tenths of a pixel where the others are
-        # off by hundredths: the loss's scale at three robust deviations lets it count less than quadratically.
-        scale_px = max(3.0 * 1.4826 * float(np.median(np.abs(fit.residual))), 0.1)
-        ball_weight = _ball_weights(unweighted, ball_of, len(balls))
-        flag_weight = _flag_weights(unweighted, flagged)
-        loss = _SETTLED_LOSS
+    start_angles, start_detector = theta0.copy(), detector.copy()
+    dropped = False
+    for readmitted in (False, True):
+        done = 0
+        while done < rounds:   # a round that drops a ball does not count (at most all but two are dropped)
+            if fit is not None:
+                angles = _relocate_views(detections, balls, radii_mm, angles, theta0, error_rad, geometry, detector)
+            assigned = _assign(detections, balls, radii_mm, angles, geometry, *detector, tol)
+            view_of, ball_of, observed, disc_px, flagged, side = [], [], [], [], [], []
+            for view, (found, labels) in enumerate(zip(detections, assigned)):
+                for k in np.flatnonzero(labels >= 0):
+                    view_of.append(view), ball_of.append(labels[k]), observed.append(found[k, :2])
+                    disc_px.append(found[k, 2]), flagged.append(found[k, 3]), side.append(found[k, 4:6])
+            view_of, ball_of = np.array(view_of, dtype=int), np.array(ball_of, dtype=int)
+            observed, side = np.array(observed).reshape(-1, 2), np.array(side).reshape(-1, 2)
+            # Flags beyond the beads detector's (another detector's -1, a NaN) count as clean; above 3 as 3.
+            flagged = np.clip(np.nan_to_num(np.array(flagged), nan=0.0), 0, _FLAG_KINDS - 1).astype(int)
+            weight = flag_weight[flagged] * ball_weight[ball_of]
+            counts = np.bincount(view_of, minlength=V)
+            # Views with a single clean ball still fix their angle (two residuals, one unknown), if barely.
+            free_views = np.array([v for v in range(V) if counts[v] >= 2])
+            radii_mm = np.array([np.median(np.array(disc_px)[ball_of == b]) * pitch for b in range(len(balls))])
+            z = np.array([np.median(np.sin(angles[view_of[ball_of == b]]) * balls[b, 0]
+                                    + np.cos(angles[view_of[ball_of == b]]) * balls[b, 2]) for b in range(len(balls))])
+            radii_mm = radii_mm * (z + geometry.source_to_object_mm) / geometry.source_to_detector_mm
+            fit = _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry,
+                          free_views=free_views, fit_detector=fit_detector, scale_px=scale_px, loss=loss,
+                          side=side, cut_px=cut_px)
+            fit_loss = loss   # the nominal fit below is made with the loss of the fit it is tested against
+            angles, balls, detector, cut_px = fit.angles, fit.balls, fit.detector, fit.cut_px
+            rms = float(np.sqrt(np.mean(fit.residual ** 2)))
+            # A "ball" that fits far worse than the others, or is seen in too few views, is not one (dust
+            # that lined up by chance, a merged pair): it is dropped and the adjustment made again. Judged
+            # without the weights, which would otherwise hide how badly it fits: a faint ball whose discs
+            # are mostly flagged across a clip edge is judged by how far they are off, not by their weight.
+            unweighted = fit.residual / weight[:, None]   # also what the next round's weights are set from
+            per_ball = np.array([np.sqrt(np.mean(unweighted[ball_of == b] ** 2)) if np.any(ball_of == b) else np.inf
+                                 for b in range(len(balls))])
+            seen = np.bincount(ball_of, minlength=len(balls))
+            good = (per_ball <= max(5.0 * float(np.median(per_ball)), 1.0)) & (seen >= min_views) & \
+                np.all(np.isfinite(balls), axis=1) & (np.hypot(balls[:, 0], balls[:, 2]) <= 2.0 * reach_mm)
+            if not good.all() and good.sum() >= 2:
+                balls, tol, radii_mm, ball_weight = balls[good], tol[good], radii_mm[good], ball_weight[good]
+                cut_px = np.zeros(len(balls))
+                flag_weight = _first_flag_weights()   # their residuals held the dropped ball's discs
+                angles, detector = start_angles.copy(), start_detector.copy()   # as it bent them
+                dropped = True
+                loss = "huber"
+                continue
+            done += 1
+            # Tighter for the next assignment: what the fit explains, plus room for a poorly fitted ball.
+            tol = np.full(len(balls), max(6.0 * rms + 1.0, 0.25 * radius_px))
+            # A disc pulled by a neighbour or by dust is off by tenths of a pixel where the others are
+            # off by hundredths: the loss's scale at three robust deviations lets it count less than quadratically.
+            scale_px = max(3.0 * 1.4826 * float(np.median(np.abs(fit.residual))), 0.1)
+            ball_weight = _ball_weights(unweighted, ball_of, len(balls))
+            flag_weight = _flag_weights(unweighted, flagged)
+            loss = _SETTLED_LOSS
+        if readmitted or not dropped:
+            break
+        # Balls dropped while the angles were still the nominal ones (their discs given to a neighbour at
+        # the same height, pixels off) are looked for again among the discs left over, the angles settled.
+        leftover = [found[labels < 0] for found, labels in zip(detections, assigned)]
+        settled = dataclasses.replace(geometry, u0_px=float(detector[0]), v0_px=float(detector[1]))
+        more = _find_balls(leftover, angles, settled, _READMIT_ERROR_RAD, radius_px, min_views)
+        if not more:
+            break
+        more = np.array(more)
+        balls = np.vstack([balls, more])
+        tol = np.append(tol, np.full(len(more), tol.max()))
+        radii_mm = np.append(radii_mm, np.full(len(more), np.median(radii_mm)))
+        ball_weight, cut_px = np.append(ball_weight, np.ones(len(more))), np.append(cut_px, np.zeros(len(more)))
+        start_angles, start_detector = angles.copy(), detector.copy()
+        loss = "huber"
     nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
                           free_views=free_views, fit_angles=False, fit_detector=fit_detector, scale_px=scale_px,
                           loss=fit_loss, side=side, cut_px=cut_px)
