@@ -21,7 +21,12 @@ against the true one (axis column in pixels, tilt in degrees, the camera convent
 clip cuts each ball's rim as the calibration fitted it (null: no disc of that ball cut on one side). Exits with 1
 when a view is beyond ``--bar-deg`` (0.01, the issue's) or the geometry beyond 0.1 px / 0.01 deg.
 
-    python benchmarks/bench_ball_phantom_mixed.py [--seeds 0 1 2] [--views 24] [--max-error-deg 2]
+    python benchmarks/bench_ball_phantom_mixed.py [--seeds 0 1 2] [--views 24] [--max-error-deg 2] [--random-layout]
+
+``--random-layout`` places the phantom's nine balls anew for each seed (:func:`random_layout`: the
+same four kinds and the same holder, 7-18 mm from the axis at random heights, none touching), so
+that what is measured is not one layout's luck: several balls at one height overlap in many
+views, and a faint one may never be found.
 
 Figures and what they mean: ``docs/calibration-phantoms.md`` ("Balls as real scanners image them").
 """
@@ -38,7 +43,7 @@ import numpy as np
 from ctpipe.evaluate.scoring import view_errors_deg
 from ctpipe.features.ball_phantom import looks_like_ball_phantom
 from ctpipe.pipeline import Pipeline
-from ctpipe.sim.phantoms import load_phantom
+from ctpipe.sim.phantoms import load_phantom, parse_phantom
 from ctpipe.sim.scan_spec import parse_scan_spec
 from ctpipe.sim.simulator import simulate
 
@@ -63,11 +68,44 @@ def scan_spec(views: int, jitter_deg: float, seed: int) -> dict:
             "seed": seed}
 
 
-def simulate_scan(views: int, jitter_deg: float, max_error_deg: float | None, seed: int):
+#: The mixed phantom's kinds of ball: (attenuation per mm, that of a hollow ball's core or None).
+KINDS = ((0.49, None), (0.09, None), (0.02, None), (0.49, -0.46))
+
+
+def random_layout(seed: int, balls: int = 9):
+    """The mixed phantom's holder and kinds of ball, the balls placed anew from ``seed``.
+
+    Radii 2-3 mm (a hollow ball's shell 0.4 mm), 7-18 mm from the axis at any azimuth, heights
+    spread uniformly over -21 to +21 mm; a ball is drawn again until it clears every other by
+    0.5 mm. Two of each kind, the ninth of any.
+    """
+    rng = np.random.default_rng(10_000 + seed)
+    objects = [{"cylinder": {"centre_mm": [0.0, 0.0, 0.0], "radius_mm": 5.0, "height_mm": 50.0,
+                             "density_per_mm": 0.01}}]
+    heights = np.sort(rng.uniform(-21.0, 21.0, balls))
+    placed = []
+    for k in range(balls):
+        density, core = KINDS[k % len(KINDS)] if k < 2 * len(KINDS) else KINDS[int(rng.integers(len(KINDS)))]
+        while True:
+            radius = float(rng.uniform(2.0, 3.0))
+            distance, azimuth = float(rng.uniform(7.0, 18.0)), float(rng.uniform(0.0, 2.0 * np.pi))
+            centre = np.array([distance * np.cos(azimuth), heights[k], distance * np.sin(azimuth)])
+            if all(np.linalg.norm(centre - other) > radius + other_radius + 0.5 for other, other_radius in placed):
+                break
+        placed.append((centre, radius))
+        objects.append({"sphere": {"centre_mm": centre.tolist(), "radius_mm": radius, "density_per_mm": density}})
+        if core is not None:
+            core_ball = {"centre_mm": centre.tolist(), "radius_mm": radius - 0.4, "density_per_mm": core}
+            objects.append({"sphere": core_ball})
+    return parse_phantom({"name": f"ball-phantom-mixed-layout-{seed}", "units": "mm", "objects": objects})
+
+
+def simulate_scan(views: int, jitter_deg: float, max_error_deg: float | None, seed: int, random: bool = False):
     """The simulated scan and the nominal angles given to the pipeline."""
     spec = parse_scan_spec(scan_spec(views, jitter_deg, seed))
     rng = np.random.default_rng(seed)
-    scan = simulate(load_phantom(str(PHANTOM)), spec, rng=rng, jitter=not max_error_deg)
+    phantom = random_layout(seed) if random else load_phantom(str(PHANTOM))
+    scan = simulate(phantom, spec, rng=rng, jitter=not max_error_deg)
     nominal = scan.nominal_angles_deg
     if max_error_deg:
         # Scanned at the nominal angles: the error is in the angles the pipeline is told instead.
@@ -84,12 +122,13 @@ def main(argv=None) -> int:
     parser.add_argument("--max-error-deg", type=float, default=None,
                         help="instead, every nominal angle off by an error uniform within +-this (deg)")
     parser.add_argument("--bar-deg", type=float, default=0.01, help="the largest view error asked for")
+    parser.add_argument("--random-layout", action="store_true", help="place the balls anew for each seed")
     args = parser.parse_args(argv)
 
     failed = False
     for seed in args.seeds:
         start = time.perf_counter()
-        scan, nominal, truth = simulate_scan(args.views, args.jitter_deg, args.max_error_deg, seed)
+        scan, nominal, truth = simulate_scan(args.views, args.jitter_deg, args.max_error_deg, seed, args.random_layout)
         simulated = time.perf_counter() - start
         start = time.perf_counter()
         recognised, why = looks_like_ball_phantom(scan.projections)
