@@ -87,7 +87,7 @@ def test_a_faint_disc_across_the_edge_of_a_clipped_background_is_flagged():
     # round, or nowhere). The rim cut there pulls the centre the other way, by about -2 depth side.
     refined, side = edge_centres(_clipped(image, 0.2), start, clipped_side=True)
     assert side[0, 0] < -0.1 and abs(side[0, 1]) < 0.02
-    assert np.all(side[1:] == 0.0)
+    assert np.all(np.abs(side[1:]) < 0.01)       # a ray or two of hundreds at most: no pull to speak of
     assert refined[0, 0] - centres[0][0] > 0.1
     assert not edge_centres(image.astype(np.float32), start)[:, 4].any()
     # Clamped at 0 after a noisy flat field, half the open beam reads 0, pixel by pixel: not a clip.
