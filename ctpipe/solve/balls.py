@@ -369,7 +369,7 @@ def _relocate_views(detections, balls, radii_mm, angles, nominal, error_rad, geo
 #: tolerance then allows beyond its disc's half radius is a few pixels.
 _READMIT_ERROR_RAD = math.radians(0.1)
 
-#: A view whose discs lie a median of more than this (px; and twenty times the views' median) from their balls
+#: A view most of whose discs lie more than this (px; and twenty times the views' median) from their balls
 #: has its balls not followed, and the correction is not returned.
 _LOST_VIEW_PX = 1.0
 
@@ -726,7 +726,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     # A view whose discs mostly miss their balls has them assigned wrongly (its angle settled far off): the
     # residual sum can still be far below the nominal angles', and the F test pass, with that view degrees off.
     unweighted = fit.residual / weight[:, None]
-    miss_px = np.array([float(np.median(np.hypot(*unweighted[view_of == v].T))) for v in free_views])
+    # The lower median: most of the view's discs miss (of two, both), not one garbage disc of two or four.
+    miss_px = np.array([float(np.sort(np.hypot(*unweighted[view_of == v].T))[(np.sum(view_of == v) - 1) // 2])
+                        for v in free_views])
     lost = np.flatnonzero(miss_px > max(_LOST_VIEW_PX, 20.0 * float(np.median(miss_px)))) if len(miss_px) else []
     if not math.isfinite(p):
         kept, reason = False, "too few balls in too few views to test the correction"

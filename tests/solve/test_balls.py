@@ -334,3 +334,20 @@ def test_a_ball_dropped_while_the_angles_were_nominal_is_looked_for_again_once_t
     result = calibrate_balls(detections, GEOMETRY, nominal)
     error = (result.corrected_deg - truth) - np.median(result.corrected_deg - truth)
     assert result.kept and len(result.balls_mm) >= 3 and np.abs(error).max() < 0.01
+
+
+def test_one_stray_disc_of_a_view_with_two_does_not_stop_the_correction():
+    """A view is lost when most of its discs miss their balls: of a view's two discs, one 5 px off
+    (a merged blob, dust) is a stray disc, and the correction stands (the plain median, 2.5 px,
+    refused it)."""
+    rng = np.random.default_rng(16)
+    nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
+    truth = nominal + np.clip(rng.normal(0.0, 0.3, 16), -1.0, 1.0)
+    detections = _detections(truth, BALLS, 2.5, seed=16)
+    uv = ellipse_centres(BALLS, np.full(len(BALLS), 2.5), np.full(len(BALLS), np.deg2rad(truth[7])), GEOMETRY, 999.5,
+                         GEOMETRY.v0_px, 0.0)
+    two = [int(np.argmin(np.hypot(*(detections[7][:, :2] - uv[b]).T))) for b in (0, 5)]
+    detections[7] = detections[7][two]
+    detections[7][1, :2] += (3.0, 4.0)
+    result = calibrate_balls(detections, GEOMETRY, nominal)
+    assert result.kept, result.reason
