@@ -357,12 +357,16 @@ def _relocate_views(detections, balls, radii_mm, angles, nominal, error_rad, geo
         if not len(found):
             continue
         candidates = nominal[view] + offsets
-        costs = cost(view, candidates)
-        here = float(cost(view, np.array([moved[view]]))[0])
-        best = int(np.argmin(costs))
-        if costs[best] < here - 0.5 * reach2:
+        costs = cost(view, np.append(candidates, moved[view]))     # the grid, then the current angle
+        best = int(np.argmin(costs[:-1]))
+        if costs[best] < costs[-1] - 0.5 * reach2:
             moved[view] = candidates[best]
     return moved
+
+
+def _lower_median(values: np.ndarray) -> float:
+    """The median of ``values``, the lower of the middle two where their number is even."""
+    return float(np.sort(values)[(len(values) - 1) // 2])
 
 
 #: How far off the settled angles may be where dropped balls are looked for again (rad): what a ball's
@@ -725,10 +729,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     nominal_rms = float(np.sqrt(np.mean(nominal_fit.residual ** 2)))
     # A view whose discs mostly miss their balls has them assigned wrongly (its angle settled far off): the
     # residual sum can still be far below the nominal angles', and the F test pass, with that view degrees off.
-    unweighted = fit.residual / weight[:, None]
-    # The lower median: most of the view's discs miss (of two, both), not one garbage disc of two or four.
-    miss_px = np.array([float(np.sort(np.hypot(*unweighted[view_of == v].T))[(np.sum(view_of == v) - 1) // 2])
-                        for v in free_views])
+    # Judged on the last round's unweighted residuals, by the lower median: most of the view's discs miss (of
+    # two, both), not one garbage disc of two or four.
+    miss_px = np.array([_lower_median(np.hypot(*unweighted[view_of == v].T)) for v in free_views])
     lost = np.flatnonzero(miss_px > max(_LOST_VIEW_PX, 20.0 * float(np.median(miss_px)))) if len(miss_px) else []
     if not math.isfinite(p):
         kept, reason = False, "too few balls in too few views to test the correction"
