@@ -23,7 +23,9 @@ class BallCalibrationRefiner(Refiner):
     pairs the matcher and estimator made are not used (:mod:`ctpipe.solve.balls`). Without
     nominal angles it solves the pairs on the view graph, and says so. The corrected
     angles are returned only where they explain the balls better than the nominal angles beyond
-    noise (an F test of the reprojection errors); otherwise the nominal angles, with the reason
+    noise (an F test of the reprojection errors), every view is fixed by two discs or more, no other
+    angle explains a view's discs as well with other balls on them, and every view's standard
+    error is within ``max_angle_se_deg``; otherwise the nominal angles, with the reason
     in ``info["balls"]["reason"]``. The axis column, the principal row and the detector tilt
     fitted are the refined geometry (``geometry_vectors.csv``, the summary).
     """
@@ -33,6 +35,9 @@ class BallCalibrationRefiner(Refiner):
     fit_detector: bool = param(True, doc="fit the axis column, the principal row and the detector tilt with the angles")
     p_value: float = param(1e-3, doc="keep the corrected angles where the F test of the balls' reprojection errors "
                            "against the nominal angles' is below this", gt=0, lt=1)
+    max_angle_se_deg: float = param(0.02, doc="keep the corrected angles only where every view's standard error is "
+                                    "within this (deg): a view whose balls barely pin it is not passed off as "
+                                    "corrected", gt=0, le=30)
 
     reads_descriptors = False   # the discs' centres and sizes only
 
@@ -51,7 +56,8 @@ class BallCalibrationRefiner(Refiner):
             side = np.zeros((len(features.xy), 2)) if features.clipped_side is None else features.clipped_side
             detections.append(np.column_stack([features.xy, 0.5 * np.asarray(features.size), flags, side]))
         found = calibrate_balls(detections, observations.geometry, nominal, max_error_deg=self.max_error_deg,
-                                fit_detector=self.fit_detector, p_value=self.p_value)
+                                fit_detector=self.fit_detector, p_value=self.p_value,
+                                max_angle_se_deg=self.max_angle_se_deg)
         angles = found.angles_deg
         info = {"balls": found.to_dict(), "chosen": "corrected" if found.kept else "nominal"}
         detector = ({"u0_px": found.u0_px, "v0_px": found.v0_px, "tilt_deg": found.tilt_deg}
