@@ -168,6 +168,21 @@ def test_each_kind_of_flagged_disc_weighs_what_its_residuals_show():
     assert np.all(_flag_weights(residual, np.ones(30, dtype=int))[1:] == _FLAGGED_WEIGHT)   # no clean disc to compare
 
 
+def test_one_gross_error_does_not_set_a_kind_of_flagged_discs_weight():
+    """A misdetected disc pixels off is the robust loss's to set aside; counted in its kind's spread it
+    made every disc of that kind weigh a fiftieth (here a tenth of its due), and the views of such
+    discs read as barely pinned."""
+    from ctpipe.solve.balls import _flag_weights
+
+    residual = np.full((60, 2), 0.01)
+    flag = np.zeros(60, dtype=int)
+    flag[10:] = 3
+    residual[10:] = 0.05                          # the kind's discs, five times a clean one's spread
+    residual[59] = 3.6                            # one of them misdetected
+    assert _flag_weights(residual, flag)[3] < 0.03               # a tenth of its due, counted
+    assert _flag_weights(residual, flag, gross_px=1.0)[3] == pytest.approx(0.2)
+
+
 def test_nominal_angles_each_within_the_stated_error_are_corrected():
     """Every view off by up to 2 deg either way: the corrections span nearly 4 deg, and that is allowed."""
     nominal = np.linspace(0.0, 360.0, 24, endpoint=False)
