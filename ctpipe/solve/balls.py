@@ -428,9 +428,11 @@ def _ambiguous_views(detections, assigned, balls, radii_mm, angles, nominal, err
     fits its angle with a disc given to either ball: two angles, both to hundredths of a pixel, one
     of them degrees off (a simulated 17-view scan of seven balls at three heights ended one view
     1.58 deg off so, its reprojection RMS 0.1 px). The balls cannot tell which. Searched as
-    :func:`_relocate_views` does: an angle of the grid is another explanation where at least one
-    ball lands on a disc ``assigned`` to another ball, and it fits within half a ball's worth of the
-    settled angle. Returns ``{view: other angle (rad)}``.
+:func:`_relocate_views` does: an angle of the grid is another explanation where balls land on
+    discs ``assigned`` to other balls and none on its own, and it fits within half a ball's worth
+    of the settled angle. (A step or two off, a ball of a bead cloud lands on a neighbour's disc
+    while the others stay on theirs: that is the settled angle's basin, not another explanation.)
+    Returns ``{view: other angle (rad)}``.
     """
     offsets = np.arange(-error_rad, error_rad + 0.5 * _RELOCATE_STEP_RAD, _RELOCATE_STEP_RAD)
     margin = 0.5 * _RELOCATE_REACH_PX ** 2
@@ -440,8 +442,9 @@ def _ambiguous_views(detections, assigned, balls, radii_mm, angles, nominal, err
             continue
         candidates = np.append(nominal[view] + offsets, angles[view])
         costs, lands = _view_cost(found, balls, radii_mm, candidates, geometry, detector)
-        owner = np.append(labels, -1)      # the ball each disc is assigned to; -1 for a ball landing on none
-        other = np.any((owner[lands] >= 0) & (owner[lands] != np.arange(len(balls))[None, :]), axis=1)[:-1]
+        owner = np.append(labels, -1)[lands]   # whose disc each ball lands on (-1: none, or a disc of no ball)
+        mine = owner == np.arange(len(balls))[None, :]
+        other = (np.any((owner >= 0) & ~mine, axis=1) & ~np.any(mine, axis=1))[:-1]
         close = other & (costs[:-1] <= costs[-1] + margin)
         if close.any():
             ambiguous[view] = float(candidates[np.flatnonzero(close)[np.argmin(costs[:-1][close])]])

@@ -448,7 +448,7 @@ def test_a_view_whose_discs_two_angles_explain_with_other_balls_is_found():
     theta, delta = np.deg2rad(30.0), np.deg2rad(1.2)
     first = np.array([[9.0, -12.0, 5.0], [-3.0, 10.0, 11.0]])      # both crossing the rays fast at theta
 
-    def on_ray(point, depth_scale):
+    def on_ray(point, depth_scale, delta=delta):
         c, s = np.cos(theta), np.sin(theta)           # the camera frame at theta, as ellipse_centres turns
         camera = np.array([c * point[0] - s * point[2], point[1], s * point[0] + c * point[2]])
         camera[2] += GEOMETRY.source_to_object_mm
@@ -470,4 +470,11 @@ def test_a_view_whose_discs_two_angles_explain_with_other_balls_is_found():
     third = ellipse_centres(balls[4:], radii[4:], np.full(1, theta), GEOMETRY, *detector)
     found = np.vstack([found, np.column_stack([third, [80.0], [0.0]])])
     assert not _ambiguous_views([found], [np.array([0, 1, 4])], balls, radii, np.array([theta]),
+                                np.array([theta]), np.deg2rad(2.0), GEOMETRY, detector)
+    # A ball that lands on a neighbour's disc a few steps off, the others still on theirs (beads of a
+    # cloud whose discs nearly meet), is the settled angle's basin, not another explanation.
+    near = np.vstack([first, [on_ray(first[0], 1.04, np.deg2rad(0.1))]])
+    discs = ellipse_centres(near, np.zeros(3), np.full(3, theta), GEOMETRY, *detector)
+    discs = np.column_stack([discs, np.full(3, 80.0), np.zeros(3)])
+    assert not _ambiguous_views([discs], [np.array([0, 1, 2])], near, np.zeros(3), np.array([theta]),
                                 np.array([theta]), np.deg2rad(2.0), GEOMETRY, detector)
