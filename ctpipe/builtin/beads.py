@@ -29,7 +29,8 @@ import numpy as np
 from ctpipe.data import Features
 from ctpipe.errors import ConfigError
 from ctpipe.features import bright_view, edge_centres, find_balls
-from ctpipe.features.balls import _AUTO_MIN_DIAMETER_PX
+from ctpipe.features.ball_edges import rim_seeds
+from ctpipe.features.balls import _AUTO_MIN_DIAMETER_PX, _OVERLAP, _TRUNCATED
 from ctpipe.hookspecs import hookimpl
 from ctpipe.images import block_mean
 from ctpipe.stages import Detector, param
@@ -113,13 +114,19 @@ class BeadDetector(Detector):
             if len(beads):
                 distance = np.hypot(found[:, None, 0] - beads[None, :, 0], found[:, None, 1] - beads[None, :, 1])
                 found = found[np.all(distance > 0.5 * beads[None, :, 2], axis=1)]
-            beads = np.vstack([beads, found])[:self.max_beads]
+            beads = np.vstack([beads, found])
+            if radius_px is not None:
+                seeds = rim_seeds(bright_view(image, self.polarity), radius_px)
+                beads = _with_rim_seeds(beads, seeds, factor, work.shape)
+            beads = beads[:self.max_beads]
         if factor > 1:   # back to the full image's pixels: a block's centre is (index + 0.5) factor - 0.5
             beads[:, :2] = (beads[:, :2] + 0.5) * factor - 0.5
             beads[:, 2] *= factor
         side = None
         if method == "rim":
             beads, side = edge_centres(bright_view(image, self.polarity), beads, clipped_side=True)
+            keep = _distinct(beads)
+            beads, side = beads[keep], side[keep]
         return Features.build(xy=beads[:, :2], size=2.0 * beads[:, 2], angle_deg=np.full(len(beads), np.nan),
                               response=beads[:, 3], class_id=beads[:, 4].astype(np.int32),
                               descriptors=beads[:, 2:4].astype(np.float32), norm="L2", clipped_side=side)
@@ -141,6 +148,49 @@ class BeadDetector(Detector):
             return 1, None, None
         radius_px = float(np.median(look[:, 2])) * coarse
         return max(1, int(radius_px // self.fit_radius_px)), radius_px, float(np.min(look[:, 2])) * coarse
+
+
+def _with_rim_seeds(beads: np.ndarray, seeds: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """``beads`` (binned pixels, ``shape`` the binned image's) with the balls the rims show that they
+    miss, and the blobs of several balls found as one replaced by those balls.
+
+    The top-hat's centroid finds hollow balls that overlap as one blob, its centre between them and
+    its radius larger. A found ball whose disc holds two rim seeds or more
+    (:func:`ctpipe.features.ball_edges.rim_seeds`, full resolution) is such a blob: the seeds
+    replace it. A seed no found ball holds is a ball of its own. Either is flagged overlapping (cut
+    by the border where its circle crosses it). A found ball holding one seed starts the rim fit
+    from the seed's centre and radius: a blob's centroid, a ball half hidden behind another, lies
+    off the ball, its radius larger, and the rim fit settled on a circle through both (a simulated
+    view: 25 px off, 113 px against 78). The rim fit places every one.
+    """
+    if not len(seeds):
+        return beads
+    xy = (seeds[:, :2] + 0.5) / factor - 0.5
+    radius = seeds[:, 2] / factor
+    held = np.zeros((len(beads), len(seeds)), bool)
+    if len(beads):
+        held = np.hypot(beads[:, None, 0] - xy[None, :, 0], beads[:, None, 1] - xy[None, :, 1]) <= beads[:, 2, None]
+    blob = held.sum(axis=1) >= 2
+    beads = np.array(beads, dtype=np.float64, copy=True)
+    one = np.flatnonzero(held.sum(axis=1) == 1)
+    seed_of = np.argmax(held[one], axis=1)
+    beads[one, 0], beads[one, 1], beads[one, 2] = xy[seed_of, 0], xy[seed_of, 1], radius[seed_of]
+    taken = np.any(held[~blob], axis=0)
+    xy, radius = xy[~taken], radius[~taken]
+    cut = (xy[:, 0] < radius) | (xy[:, 1] < radius) | (xy[:, 0] > shape[1] - 1 - radius) | \
+        (xy[:, 1] > shape[0] - 1 - radius)
+    contrast = np.full(len(xy), float(np.median(beads[:, 3])) if len(beads) else 0.0)
+    new = np.column_stack([xy, radius, contrast, np.where(cut, float(_TRUNCATED), float(_OVERLAP))])
+    return np.vstack([beads[~blob], new])
+
+
+def _distinct(beads: np.ndarray) -> np.ndarray:
+    """Which balls to keep where two rims settled on one ball (centres within a quarter radius): the first."""
+    keep = np.ones(len(beads), bool)
+    for k in range(1, len(beads)):
+        distance = np.hypot(beads[:k, 0] - beads[k, 0], beads[:k, 1] - beads[k, 1])
+        keep[k] = not np.any(keep[:k] & (distance < 0.25 * beads[k, 2]))
+    return keep
 
 
 def _rim_binning(factor: int, radius_px: float, smallest_px: float, fit_radius_px: float) -> int:

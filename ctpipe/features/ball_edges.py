@@ -61,7 +61,7 @@ from scipy import ndimage
 
 from ctpipe.features.balls import _OVERLAP, _TRUNCATED
 
-__all__ = ["edge_centres", "bright_view"]
+__all__ = ["edge_centres", "bright_view", "rim_seeds"]
 
 #: Rays per ball: one every half pixel along the rim, and at least this many; the step along them (px).
 #: At 180 rays (2-3 px apart on balls 60-80 px in radius) the rim's centre averaged less of the
@@ -151,6 +151,69 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
             if mixed:
                 out[k, 4] = _ACROSS_CLIP
     return (out, side) if clipped_side else out
+
+
+#: Rim seeds: a circle's votes must reach this fraction of the strongest circle's in the view.
+_SEED_VOTES = 0.3
+#: ... its radius is looked for over this range of the balls' typical one ...
+_SEED_RADII = (0.5, 1.5)
+#: ... and the edges voting are those whose gradient is above this fraction of the view's 99th percentile.
+_SEED_EDGE = 0.3
+
+
+#: ... on the view binned to bring the balls' typical radius near this (px): finer merges no two balls' votes.
+_SEED_RADIUS_PX = 12.0
+
+
+def rim_seeds(g: np.ndarray, radius_px: float) -> np.ndarray:
+    """Centres of the balls' outer rims, balls overlapping or not: a circle Hough transform on the rims.
+
+    A hollow or coated ball is refused by the disc fit, and the top-hat's centroid finds two or three
+    such balls that overlap as one blob, between them (the issue's real scan: seven balls, two or
+    three overlapping in some views; simulated so, half the balls went unfollowed). Each ball's outer
+    rim is a circle of about the balls' radius whose line integrals fall outwards, where it is not
+    covered: every edge pixel of the view (binned to bring ``radius_px`` near ``_SEED_RADIUS_PX``,
+    smoothed by a pixel; gradient above
+    ``_SEED_EDGE`` of the view's 99th percentile) votes for the centres along its gradient at the
+    radii ``_SEED_RADII`` of ``radius_px``, and a ball's visible arcs agree on its centre (an inner
+    ring's edge falls the other way, towards the centre, and votes away from it). The local maxima
+    of the votes (smoothed by a pixel), half a radius apart, above ``_SEED_VOTES`` of the strongest.
+
+    Returns
+    -------
+    ndarray of shape (n, 4)
+        ``(x, y, radius, votes)`` in the full image's pixels (the radius that gathered most votes),
+        strongest first; the rim fit places them.
+    """
+    work = np.asarray(g, dtype=np.float32)
+    factor = max(1, int(round(radius_px / _SEED_RADIUS_PX)))
+    if factor > 1:
+        rows, cols = (work.shape[0] // factor) * factor, (work.shape[1] // factor) * factor
+        work = work[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor).mean(axis=(1, 3))
+    smooth = ndimage.gaussian_filter(work, 1.0, mode="nearest")
+    gy, gx = ndimage.sobel(smooth, 0), ndimage.sobel(smooth, 1)
+    magnitude = np.hypot(gx, gy)
+    strong = magnitude > _SEED_EDGE * float(np.percentile(magnitude, 99))
+    ys, xs = np.nonzero(strong)
+    if not len(xs):
+        return np.zeros((0, 4))
+    ux, uy = gx[ys, xs] / magnitude[ys, xs], gy[ys, xs] / magnitude[ys, xs]
+    radius = radius_px / factor
+    radii = np.arange(_SEED_RADII[0] * radius, _SEED_RADII[1] * radius, 0.5)
+    votes = np.zeros((len(radii),) + smooth.shape)
+    for k, r in enumerate(radii):
+        cx, cy = np.rint(xs + r * ux).astype(np.intp), np.rint(ys + r * uy).astype(np.intp)
+        inside = (cx >= 0) & (cx < smooth.shape[1]) & (cy >= 0) & (cy < smooth.shape[0])
+        np.add.at(votes[k], (cy[inside], cx[inside]), 1.0)
+    votes = ndimage.gaussian_filter(votes, (0.0, 1.0, 1.0))
+    total = votes.sum(axis=0)
+    size = max(3, int(0.5 * radius) | 1)
+    peaks = (total == ndimage.maximum_filter(total, size=size)) & (total > _SEED_VOTES * total.max())
+    py, px = np.nonzero(peaks)
+    order = np.argsort(-total[py, px], kind="stable")
+    py, px = py[order], px[order]
+    best = radii[np.argmax(votes[:, py, px], axis=0)] * factor
+    return np.column_stack([(px + 0.5) * factor - 0.5, (py + 0.5) * factor - 0.5, best, total[py, px]])
 
 
 def _directions(rays: int) -> np.ndarray:

@@ -154,3 +154,34 @@ def test_a_faint_rim_on_a_holders_faint_edge_that_reads_as_the_open_beam_is_flag
     assert np.all(side == 0.0)                                   # every ray's first band reads the plateau
     monkeypatch.setattr(ball_edges, "_REACH_FRACTION", ball_edges._BAND_FRACTION)
     assert list(edge_centres(clipped, start)[:, 4]) == [0, 0]    # the first band alone does not tell
+
+
+def _hollow_crowd():
+    """Three hollow balls (an 8 px shell of 80, as coated balls project) overlapping in a row, one alone."""
+    centres = [(400.0, 500.0), (470.0, 530.0), (545.0, 505.0), (880.0, 760.0)]
+    balls = [(centre, 80.0, 0.05, 72.0) for centre in centres]
+    return centres, _view(balls, seed=3, dust=10)
+
+
+def test_rim_seeds_find_every_ball_of_a_crowd_of_hollow_ones():
+    from ctpipe.features.ball_edges import rim_seeds
+
+    centres, view = _hollow_crowd()
+    seeds = rim_seeds(view, 80.0)
+    assert len(seeds) == len(centres)
+    for centre in centres:
+        distance = np.hypot(*(seeds[:, :2] - centre).T)
+        assert distance.min() < 8.0 and abs(seeds[np.argmin(distance), 2] - 80.0) < 12.0
+
+
+def test_hollow_balls_that_overlap_are_each_found_on_their_rim():
+    """The disc fit refuses hollow balls and the top-hat's centroid finds three that overlap as one
+    blob (two of the four balls found, when written): the rims' seeds split it, and each rim places
+    its ball."""
+    centres, view = _hollow_crowd()
+    found = BeadDetector(centre_method="rim", fit_radius_px=16.0).detect(view)
+    assert len(found.xy) == len(centres)
+    for centre in centres:
+        xy, _ = _nearest(found, centre)
+        assert np.hypot(*(xy - centre)) < 0.2
+    assert np.all(np.abs(found.size / 2.0 - 80.0) < 2.0)
