@@ -49,3 +49,22 @@ def test_a_scan_is_a_ball_phantom_when_most_views_say_so():
     two_of_five = np.stack([_texture(seed=1), ball, _texture(seed=2), ball, _texture(seed=3)])
     yes, why = looks_like_ball_phantom(two_of_five)
     assert not yes and why.startswith("5 views show ") and why.endswith("holding 50% or more in most views")
+
+
+def test_a_view_where_every_ball_overlaps_another_still_shows_balls():
+    """Seven coated balls at three heights: in some views no ball stands alone. With no round blob
+    to set the size, the blobs' own inscribed discs do (0 balls and 0 %, when written)."""
+    pairs = [(100, 100), (130, 112), (380, 120), (408, 100), (120, 400), (150, 385), (175, 405)]
+    share, balls = ball_phantom_share(_balls(pairs))
+    assert balls >= 6 and share > 0.95
+
+
+def test_elongated_blobs_alone_are_not_taken_for_merged_balls():
+    """Where no blob is round, a blob counts as merged balls only where it shows two cores: a
+    sample's ellipses (as Shepp-Logan's) have one along their long axis."""
+    rows, cols = np.mgrid[:512, :512].astype(np.float64)
+    view = np.zeros((512, 512))
+    for x, y, a, b in [(120, 120, 40, 22), (380, 140, 50, 25), (150, 380, 35, 20), (380, 380, 45, 30)]:
+        view += 0.1 * np.sqrt(np.clip(1.0 - ((cols - x) / a) ** 2 - ((rows - y) / b) ** 2, 0.0, None)) * b
+    share, balls = ball_phantom_share(view + np.random.default_rng(1).normal(0.0, 0.005, view.shape))
+    assert balls == 0 and share < 0.5
