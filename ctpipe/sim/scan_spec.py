@@ -2,6 +2,7 @@
 
     geometry: {...}                                  # as in a scan folder (ctpipe.io.scan_folder)
     angles: {n_views: 360, range_deg: 360.0, start_deg: 0.0}   # see ctpipe.sim.jitter.nominal_angles_deg
+                                                     # (closing_view: true, the last view a turn on: AngleSpec)
     jitter: [{gaussian: {sigma_deg: 0.2}}, {jumps: {count: 3, size_deg: 1.0}}]   # ctpipe.sim.jitter
     noise: {photons_per_pixel: 100000, flat_frames: 8, dark_frames: 4, dark_counts: 100}
                                                      # ctpipe.sim.acquisition; null: exact line integrals
@@ -47,18 +48,28 @@ __all__ = ["AngleSpec", "ProjectorSpec", "ScanSpec", "parse_scan_spec", "load_sc
 
 @dataclass(frozen=True)
 class AngleSpec:
-    """Nominal angles: ``n_views`` over ``range_deg`` from ``start_deg``."""
+    """Nominal angles: ``n_views`` over ``range_deg`` from ``start_deg``.
+
+    With ``closing_view`` the last of the ``n_views`` is taken at ``start_deg + range_deg`` even for
+    a full turn, the first view again (steps ``range_deg / (n_views - 1)``), as scanners that record
+    a closing image do: a Nikon scan of ``Projections`` views and its closing image is
+    ``{n_views: Projections + 1, closing_view: true}`` (:mod:`ctpipe.io.nikon`).
+    """
 
     n_views: int
     range_deg: float = 360.0
     start_deg: float = 0.0
+    closing_view: bool = False
 
     def nominal_angles_deg(self) -> np.ndarray:
         """Shape (n_views,), float64; see :func:`ctpipe.sim.jitter.nominal_angles_deg`."""
+        if self.closing_view and self.n_views > 1:
+            return self.start_deg + self.range_deg / (self.n_views - 1) * np.arange(self.n_views, dtype=np.float64)
         return nominal_angles_deg(self.n_views, self.range_deg, self.start_deg)
 
     def to_dict(self) -> dict:
-        return {"n_views": self.n_views, "range_deg": self.range_deg, "start_deg": self.start_deg}
+        return {"n_views": self.n_views, "range_deg": self.range_deg, "start_deg": self.start_deg,
+                **({"closing_view": True} if self.closing_view else {})}
 
 
 @dataclass(frozen=True)
@@ -113,7 +124,8 @@ class ScanSpec:
 
 _ANGLE_FIELDS = {"n_views": ParamSpec("n_views", int, None, "", ge=1, le=100_000),
                  "range_deg": ParamSpec("range_deg", float, 360.0, "", gt=0, le=36_000),
-                 "start_deg": ParamSpec("start_deg", float, 0.0, "", ge=-36_000, le=36_000)}
+                 "start_deg": ParamSpec("start_deg", float, 0.0, "", ge=-36_000, le=36_000),
+                 "closing_view": ParamSpec("closing_view", bool, False, "")}
 _PROJECTOR_FIELDS = {"kind": ParamSpec("kind", Literal["analytic"], "analytic", ""),
                      "supersample": ParamSpec("supersample", int, 1, "", ge=1, le=16),
                      "blur_px": ParamSpec("blur_px", float, 0.0, "", ge=0, le=64)}

@@ -18,6 +18,21 @@ def test_full_scans_exclude_the_endpoint_and_short_scans_include_it():
 NOMINAL = nominal_angles_deg(20000)
 
 
+def test_a_closing_view_is_the_first_again_a_turn_on_and_round_trips():
+    """A Nikon scan of 16 projections and its closing image: 17 views at 22.5 deg steps, 0 through 360."""
+    from ctpipe.sim.scan_spec import parse_scan_spec
+
+    geometry = {"source_to_object_mm": 150.0, "source_to_detector_mm": 870.0, "detector_cols": 64,
+                "detector_rows": 64, "pixel_pitch_u_mm": 0.2, "pixel_pitch_v_mm": 0.2}
+    spec = parse_scan_spec({"geometry": geometry, "angles": {"n_views": 17, "closing_view": True}})
+    np.testing.assert_allclose(spec.nominal_angles_deg(), 22.5 * np.arange(17))
+    np.testing.assert_array_equal(parse_scan_spec(spec.to_dict()).nominal_angles_deg(), spec.nominal_angles_deg())
+    plain = parse_scan_spec({"geometry": geometry, "angles": {"n_views": 17}})
+    assert "closing_view" not in plain.to_dict()["angles"] and plain.nominal_angles_deg()[-1] < 360.0 - 20.0
+    with pytest.raises(ConfigError, match="scan.angles.closing_view: must be true or false"):
+        parse_scan_spec({"geometry": geometry, "angles": {"n_views": 17, "closing_view": "yes"}})
+
+
 def test_gaussian_has_its_standard_deviation():
     offsets = GaussianJitter(0.2).sample(NOMINAL, np.random.default_rng(0))
     assert offsets.std() == pytest.approx(0.2, rel=0.03)
