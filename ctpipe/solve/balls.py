@@ -12,7 +12,10 @@ nothing is decided pair by pair:
    supported candidate is refined on its detections and kept, its detections claimed, and so
    on (sequential RANSAC of 3-D points, as turntable structure from motion does:
    Fitzgibbon, Cross and Zisserman 1998). Dust, a holder's edges and a merged blob follow no
-   3-D point through the scan and are left out.
+   3-D point through the scan and are left out; a holder's end on the axis follows one that does
+   not move, which fixes no angle, and is left out too (:data:`_MIN_ORBIT_RADII`). A ball's discs
+   keep its size at its depth: a disc of another size (two overlapping balls found as one, larger)
+   is not that ball's (:data:`_RADIUS_TOLERANCE`), here and in every assignment.
 2. **One bundle adjustment** of every view's angle, every ball's position and the detector
    (the axis column ``u0``, the principal row ``v0``, the in-plane tilt) on the detections
    assigned to a ball one-to-one in each view; assignment and adjustment alternate. Robust:
@@ -42,8 +45,11 @@ nothing is decided pair by pair:
 3. **A verdict from the balls themselves.** The same fit with the angles held at the nominal
    ones; the corrected angles are kept only where they explain the balls better beyond noise
    (an F test of the residuals, the angles' degrees of freedom against the rest), none moved
-   further than the nominal angles' stated error allows, and no view's discs lie a median of
-   more than a pixel from their balls (:data:`_LOST_VIEW_PX`: its balls are not followed).
+   further than the nominal angles' stated error allows, no view's discs lie a median of
+   more than a pixel from their balls (:data:`_LOST_VIEW_PX`: its balls are not followed), every
+   view shows two discs or more of the followed balls (a view with fewer was never adjusted), no
+   other angle explains a view's discs as well with other balls on them (:func:`_ambiguous_views`),
+   and every view's standard error is within ``max_angle_se_deg``.
 
 Gauges: the first view keeps its nominal angle (a common turn only turns the phantom); the
 magnification stays the nominal one (balls of unknown positions and size fix the geometry
