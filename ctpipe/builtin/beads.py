@@ -28,8 +28,7 @@ import numpy as np
 
 from ctpipe.data import Features
 from ctpipe.errors import ConfigError
-from ctpipe.features import bright_view, edge_centres, find_balls
-from ctpipe.features.ball_edges import rim_seeds
+from ctpipe.features import bright_view, edge_centres, find_balls, rim_seeds
 from ctpipe.features.balls import _AUTO_MIN_DIAMETER_PX, _OVERLAP, _TRUNCATED
 from ctpipe.hookspecs import hookimpl
 from ctpipe.images import block_mean

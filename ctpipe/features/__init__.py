@@ -19,7 +19,8 @@ from ctpipe._shared.lazy import lazy_exports
 _EXPORTS = {
     "compute_surf": "surf", "fast_hessian": "surf", "integral_image": "surf", "surf_descriptors": "surf",
     "find_balls": "balls", "noise_sigma": "balls", "despike": "balls", "render_ball_model": "balls",
-    "edge_centres": "ball_edges", "bright_view": "ball_edges", "looks_like_ball_phantom": "ball_phantom", "ball_phantom_share": "ball_phantom",
+    "edge_centres": "ball_edges", "bright_view": "ball_edges", "rim_seeds": "ball_edges",
+    "looks_like_ball_phantom": "ball_phantom", "ball_phantom_share": "ball_phantom",
     "l2_neighbours": "nearest",
 }
 
