@@ -202,7 +202,8 @@ def _project(points, angles, geometry, u0, v0, tilt, radii=None):
 
 #: A disc is a ball's only where its radius is within this fraction of the ball's own at that depth. A ball's
 #: discs keep their size through the turn (to 2 % in 99 of 100 discs fitted within a pixel, on 19 cached scans of
-#: 16-24 views), while two overlapping balls found as one disc, or a disc merged with a holder, are 6-30 % off.
+#: 16-24 views; 6 of 2193 beyond 10 %), while of the discs 3 px or more off their ball (a merged pair, a disc
+#: merged with a holder) 7 of 17 are beyond 10 %, up to 30 %; merged coated balls found as one, 25-40 %.
 _RADIUS_TOLERANCE = 0.1
 
 
@@ -214,12 +215,20 @@ def _depth_mm(points: np.ndarray, angles: np.ndarray, geometry: Geometry) -> np.
 def _disc_radius_px(points, radii_mm, angles, geometry) -> np.ndarray:
     """The radius (px) the discs of balls of ``radii_mm`` at ``points`` have in views at ``angles`` (all (N,...))."""
     pitch = min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm)
-    return radii_mm * geometry.source_to_detector_mm / (pitch * _depth_mm(points, angles, geometry))
+    depth = _depth_mm(points, angles, geometry)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(depth > 0, radii_mm * geometry.source_to_detector_mm / (pitch * depth), np.nan)
 
 
 def _radius_fits(found_px, expected_px) -> np.ndarray:
-    """Whether discs of radius ``found_px`` can be those of a ball expected at ``expected_px`` (broadcast)."""
-    return np.abs(found_px / expected_px - 1.0) <= _RADIUS_TOLERANCE
+    """Whether discs of radius ``found_px`` can be those of a ball expected at ``expected_px`` (broadcast).
+
+    Sizes that are not positive (a detector that gives none reports 0) or not finite tell nothing: they fit.
+    """
+    found_px, expected_px = np.asarray(found_px, dtype=np.float64), np.asarray(expected_px, dtype=np.float64)
+    known = np.isfinite(found_px) & np.isfinite(expected_px) & (found_px > 0) & (expected_px > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return ~known | (np.abs(found_px / expected_px - 1.0) <= _RADIUS_TOLERANCE)
 
 
 def _ball_radius_mm(point, chosen, detections, angles, geometry) -> float:
@@ -432,9 +441,10 @@ def _ambiguous_views(detections, assigned, balls, radii_mm, angles, nominal, err
 
     A view whose only discs are of balls at one height (the rest hidden behind others, or merged)
     fits its angle with a disc given to either ball: two angles, both to hundredths of a pixel, one
-    of them degrees off (a simulated 17-view scan of seven balls at three heights ended one view
-    1.58 deg off so, its reprojection RMS 0.1 px). The balls cannot tell which. Searched as
-:func:`_relocate_views` does: an angle of the grid is another explanation where balls land on
+    of them degrees off (in a simulated 17-view scan of seven balls at three heights, a view left
+    with one disc fitted as well 1.58 deg off; a view of two or more discs, each of a ball with a
+    twin on its ray a turn away, can do the same). The balls cannot tell which. Searched as
+    :func:`_relocate_views` does: an angle of the grid is another explanation where balls land on
     discs ``assigned`` to other balls and none on its own, and it fits within half a ball's worth
     of the settled angle. (A step or two off, a ball of a bead cloud lands on a neighbour's disc
     while the others stay on theirs: that is the settled angle's basin, not another explanation.)
@@ -502,8 +512,11 @@ def _ball_weights(residual_px: np.ndarray, ball_of: np.ndarray, n_balls: int) ->
     return np.where(np.isfinite(spread), np.minimum(reference / spread, 1.0), 1.0)
 
 
-#: A residual beyond this many of the robust loss's scales is a gross error, left out of the flags' spreads.
-_GROSS_SCALES = 10.0
+#: A disc off its ball by more than this many robust deviations of the discs' (1.4826 times their median
+#: distance, unweighted), and by more than _GROSS_PX, is a gross error (a misdetection), left out of the flags'
+#: spreads: a disc pulled by a clip edge is off by tenths of a pixel (0.46-0.88 px RMS for faint balls' discs
+#: across a clip edge, the discs' median a few hundredths) and still counts.
+_GROSS_SCALES, _GROSS_PX = 10.0, 2.0
 
 
 def _flag_weights(residual_px: np.ndarray, flag: np.ndarray, gross_px: float = np.inf) -> np.ndarray:
@@ -516,8 +529,8 @@ def _flag_weights(residual_px: np.ndarray, flag: np.ndarray, gross_px: float = n
     discs, one of them a ruby pulled 0.55 px by the clipped background, was 0.039 deg off; weighted
     by what they show, 0.015 (``docs/calibration-phantoms.md``). A disc whose rim crosses the edge
     of a clipped background (flag 3) is pulled by tenths of a pixel, an overlapping one is not: each
-    kind gets the weight its own residuals earn. Discs off by more than ``gross_px`` (a misdetection,
-    which the robust loss already sets aside) are not counted: one disc 3.6 px off among fifty whose
+    kind gets the weight its own residuals earn. Discs off by more than ``gross_px`` (a misdetection:
+    :data:`_GROSS_SCALES`, :data:`_GROSS_PX`) are not counted: one disc 3.6 px off among fifty whose
     median is 0.06 px made the kind's spread 0.52 px and its weight a fiftieth (a simulated scan of
     seven coated balls, where every view whose discs were all of that kind then read as barely pinned).
     """
@@ -746,8 +759,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             flagged = np.clip(np.nan_to_num(np.array(flagged), nan=0.0), 0, _FLAG_KINDS - 1).astype(int)
             weight = flag_weight[flagged] * ball_weight[ball_of]
             counts = np.bincount(view_of, minlength=V)
-            # Views with a single clean ball still fix their angle (two residuals, one unknown), if barely.
-            free_views = np.array([v for v in range(V) if counts[v] >= 2])
+            # A view's angle is adjusted on two discs or more (one disc's two residuals pin it too loosely: the
+            # verdict refuses a correction with such a view).
+            free_views = np.flatnonzero(counts >= 2)
             radii_mm = np.array([np.median(np.array(disc_px)[ball_of == b]) * pitch for b in range(len(balls))])
             z = np.array([np.median(np.sin(angles[view_of[ball_of == b]]) * balls[b, 0]
                                     + np.cos(angles[view_of[ball_of == b]]) * balls[b, 2]) for b in range(len(balls))])
@@ -784,7 +798,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             # off by hundredths: the loss's scale at three robust deviations lets it count less than quadratically.
             scale_px = max(3.0 * 1.4826 * float(np.median(np.abs(fit.residual))), 0.1)
             ball_weight = _ball_weights(unweighted, ball_of, len(balls))
-            flag_weight = _flag_weights(unweighted, flagged, _GROSS_SCALES * scale_px)
+            off_px = np.hypot(*unweighted.T)
+            gross_px = max(_GROSS_PX, _GROSS_SCALES * 1.4826 * float(np.median(off_px)))
+            flag_weight = _flag_weights(unweighted, flagged, gross_px)
             loss = _SETTLED_LOSS
         if readmitted or not dropped:
             break
@@ -837,9 +853,6 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     # two, both), not one garbage disc of two or four.
     miss_px = np.array([_lower_median(np.hypot(*unweighted[view_of == v].T)) for v in free_views])
     lost = np.flatnonzero(miss_px > max(_LOST_VIEW_PX, 20.0 * float(np.median(miss_px)))) if len(miss_px) else []
-    ambiguous = _ambiguous_views([detections[v] for v in free_views], [assigned[v] for v in free_views], balls,
-                                 radii_mm, angles[free_views],
-                                 theta0[free_views], error_rad, geometry, detector)
     # A view with fewer than two discs of the followed balls was never adjusted: its angle is where the search or
     # a round with balls since dropped left it, which the balls no longer support (a simulated scan of seven balls
     # at three heights, most views' discs merged, ended two views 1.1 and 1.6 deg off so).
@@ -855,14 +868,17 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         kept, reason = False, (f"view {int(free_views[worst])}'s discs lie a median {miss_px[worst]:.1f} px from their "
                                f"balls, the views' median {typical:.3f} px: the balls are not followed there "
                                f"({len(lost)} view(s) so)")
-    elif np.nanmax(se, initial=0.0) > max_angle_se_deg:
-        view = int(np.nanargmax(se))
+    elif not np.all(np.isfinite(se)):
+        kept, reason = False, "the views' standard errors could not be computed (the adjustment is singular)"
+    elif np.max(se) > max_angle_se_deg:
+        view = int(np.argmax(se))
         kept, reason = False, (f"view {view}'s angle is fixed to {se[view]:.3f} deg (standard error) only, more than "
                                f"the {max_angle_se_deg:g} deg allowed: its balls barely pin it "
                                f"({int(np.sum(se > max_angle_se_deg))} view(s) so)")
-    elif ambiguous:
-        index, other = min(ambiguous.items(), key=lambda item: abs(item[1] - angles[free_views[item[0]]]))
-        view = int(free_views[index])
+    # Every view is free here (the unfixed ones were refused above).
+    elif ambiguous := _ambiguous_views(detections, assigned, balls, radii_mm, angles, theta0, error_rad, geometry,
+                                       detector):
+        view, other = min(ambiguous.items(), key=lambda item: abs(item[1] - angles[item[0]]))
         kept, reason = False, (f"view {view}'s discs fit its balls as well at {math.degrees(other):.2f} deg as at "
                                f"{corrected[view]:.2f} deg, with other balls on them: the balls do not fix its angle "
                                f"({len(ambiguous)} view(s) so)")
