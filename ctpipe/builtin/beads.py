@@ -114,17 +114,20 @@ class BeadDetector(Detector):
                 distance = np.hypot(found[:, None, 0] - beads[None, :, 0], found[:, None, 1] - beads[None, :, 1])
                 found = found[np.all(distance > 0.5 * beads[None, :, 2], axis=1)]
             beads = np.vstack([beads, found])
+            bright = bright_view(image, self.polarity)
+            found_before_seeds = len(beads)
             if radius_px is not None:
-                seeds = rim_seeds(bright_view(image, self.polarity), radius_px)
-                beads = _with_rim_seeds(beads, seeds, factor, work.shape)
+                beads, found_before_seeds = _with_rim_seeds(beads, rim_seeds(bright, radius_px), factor, work.shape)
             beads = beads[:self.max_beads]
         if factor > 1:   # back to the full image's pixels: a block's centre is (index + 0.5) factor - 0.5
             beads[:, :2] = (beads[:, :2] + 0.5) * factor - 0.5
             beads[:, 2] *= factor
         side = None
         if method == "rim":
-            beads, side = edge_centres(bright_view(image, self.polarity), beads, clipped_side=True)
-            keep = _distinct(beads)
+            beads, side, placed = edge_centres(bright, beads, clipped_side=True, fitted=True)
+            # A seed whose rim could not be fitted is no ball found (dust, a holder's edge): only a found ball keeps
+            # its detected centre where its rim does not fit.
+            keep = _distinct(beads) & (placed | (np.arange(len(beads)) < found_before_seeds))
             beads, side = beads[keep], side[keep]
         return Features.build(xy=beads[:, :2], size=2.0 * beads[:, 2], angle_deg=np.full(len(beads), np.nan),
                               response=beads[:, 3], class_id=beads[:, 4].astype(np.int32),
@@ -149,9 +152,11 @@ class BeadDetector(Detector):
         return max(1, int(radius_px // self.fit_radius_px)), radius_px, float(np.min(look[:, 2])) * coarse
 
 
-def _with_rim_seeds(beads: np.ndarray, seeds: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+def _with_rim_seeds(beads: np.ndarray, seeds: np.ndarray, factor: int,
+                    shape: tuple[int, int]) -> tuple[np.ndarray, int]:
     """``beads`` (binned pixels, ``shape`` the binned image's) with the balls the rims show that they
-    miss, and the blobs of several balls found as one replaced by those balls.
+    miss, and the blobs of several balls found as one replaced by those balls; and how many of the
+    rows are found balls (the seeds' follow).
 
     The top-hat's centroid finds hollow balls that overlap as one blob, its centre between them and
     its radius larger. A found ball whose disc holds two rim seeds or more
@@ -163,7 +168,7 @@ def _with_rim_seeds(beads: np.ndarray, seeds: np.ndarray, factor: int, shape: tu
     view: 25 px off, 113 px against 78). The rim fit places every one.
     """
     if not len(seeds):
-        return beads
+        return beads, len(beads)
     xy = (seeds[:, :2] + 0.5) / factor - 0.5
     radius = seeds[:, 2] / factor
     held = np.zeros((len(beads), len(seeds)), bool)
@@ -180,7 +185,7 @@ def _with_rim_seeds(beads: np.ndarray, seeds: np.ndarray, factor: int, shape: tu
         (xy[:, 1] > shape[0] - 1 - radius)
     contrast = np.full(len(xy), float(np.median(beads[:, 3])) if len(beads) else 0.0)
     new = np.column_stack([xy, radius, contrast, np.where(cut, float(_TRUNCATED), float(_OVERLAP))])
-    return np.vstack([beads[~blob], new])
+    return np.vstack([beads[~blob], new]), int(np.sum(~blob))
 
 
 def _distinct(beads: np.ndarray) -> np.ndarray:

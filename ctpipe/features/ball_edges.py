@@ -59,7 +59,9 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from ctpipe.errors import InputError
 from ctpipe.features.balls import _OVERLAP, _TRUNCATED
+from ctpipe.images import block_mean
 
 __all__ = ["edge_centres", "bright_view", "rim_seeds"]
 
@@ -93,7 +95,8 @@ _BAND_FRACTION = 0.15
 _REACH_FRACTION = 0.5
 
 
-def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clipped_side: bool = False):
+def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clipped_side: bool = False,
+                 fitted: bool = False):
     """Refine every ball's centre and radius on its outer rim (the module docstring).
 
     Parameters
@@ -106,6 +109,8 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
         Gaussian smoothing (px) before the derivative along the rays: noise, not the rim.
     clipped_side : bool
         Also return, per disc, the side its rim is cut on (:attr:`ctpipe.data.Features.clipped_side`).
+    fitted : bool
+        Also return, last, whether each ball's rim was fitted (False: its detected centre was kept).
 
     Returns
     -------
@@ -119,16 +124,24 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
         whose outside is the clip's plateau (every pixel from 3 px beyond the rim to 15 % of the
         radius further reads the clip level); 0 where the image is not clipped, the rim was not
         fitted, or no ray or every ray reads it.
+    ndarray of shape (n,), bool
+        With ``fitted``: whether the rim was fitted.
     """
     out = np.array(balls, dtype=np.float64, copy=True)
     side = np.zeros((len(out), 2))
+    placed = np.zeros(len(out), bool)
+
+    def result():
+        extra = ((side,) if clipped_side else ()) + ((placed,) if fitted else ())
+        return (out, *extra) if extra else out
+
     if not len(out):
-        return (out, side) if clipped_side else out
+        return result()
     smooth = ndimage.gaussian_filter(np.asarray(g, dtype=np.float32), blur_px, mode="nearest")
     clip = _clip_level(g)
     for k, (cx0, cy0, r0, *_rest) in enumerate(out):
         direction = _directions(max(_RAYS, int(math.ceil(2.0 * math.pi * r0 / _RAY_SPACING_PX))))
-        cx, cy, r, fitted = cx0, cy0, r0, None
+        cx, cy, r, found_rim = cx0, cy0, r0, None
         for _ in range(_PASSES):
             found = _rim_circle(smooth, cx, cy, r, direction)
             if found is None:
@@ -136,13 +149,14 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
             (x0, y0, radius), _ = found
             if math.hypot(x0 - cx0, y0 - cy0) > 0.5 * r0 or not 0.5 * r0 < radius < 1.5 * r0:
                 break
-            fitted, moved = found, math.hypot(x0 - cx, y0 - cy)
+            found_rim, moved = found, math.hypot(x0 - cx, y0 - cy)
             cx, cy, r = x0, y0, radius
             if moved < _SETTLED_PX:
                 break
-        if fitted is None:
+        if found_rim is None:
             continue
-        (x0, y0, radius), clean = fitted
+        placed[k] = True
+        (x0, y0, radius), clean = found_rim
         out[k, 0], out[k, 1], out[k, 2] = x0, y0, radius
         if clean < _MIN_CLEAN * len(direction):
             out[k, 4] = max(out[k, 4], _OVERLAP)
@@ -150,7 +164,7 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
             mixed, side[k] = _across_clip(g, x0, y0, radius, direction, clip)
             if mixed:
                 out[k, 4] = _ACROSS_CLIP
-    return (out, side) if clipped_side else out
+    return result()
 
 
 #: Rim seeds: a circle's votes must reach this fraction of the strongest circle's in the view.
@@ -185,11 +199,12 @@ def rim_seeds(g: np.ndarray, radius_px: float) -> np.ndarray:
         ``(x, y, radius, votes)`` in the full image's pixels (the radius that gathered most votes),
         strongest first; the rim fit places them.
     """
-    work = np.asarray(g, dtype=np.float32)
+    if not (math.isfinite(radius_px) and radius_px > 0):
+        raise InputError(f"radius_px: the balls' typical radius must be a finite number of pixels > 0, got {radius_px!r}")
     factor = max(1, int(round(radius_px / _SEED_RADIUS_PX)))
-    if factor > 1:
-        rows, cols = (work.shape[0] // factor) * factor, (work.shape[1] // factor) * factor
-        work = work[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor).mean(axis=(1, 3))
+    if min(np.shape(g)) < 3 * factor:
+        return np.zeros((0, 4))
+    work = np.asarray(g, dtype=np.float32) if factor == 1 else block_mean(g, factor).astype(np.float32)
     smooth = ndimage.gaussian_filter(work, 1.0, mode="nearest")
     gy, gx = ndimage.sobel(smooth, 0), ndimage.sobel(smooth, 1)
     magnitude = np.hypot(gx, gy)
@@ -200,19 +215,29 @@ def rim_seeds(g: np.ndarray, radius_px: float) -> np.ndarray:
     ux, uy = gx[ys, xs] / magnitude[ys, xs], gy[ys, xs] / magnitude[ys, xs]
     radius = radius_px / factor
     radii = np.arange(_SEED_RADII[0] * radius, _SEED_RADII[1] * radius, 0.5)
-    votes = np.zeros((len(radii),) + smooth.shape)
-    for k, r in enumerate(radii):
+    rows, cols = smooth.shape
+
+    def landing(r):
         cx, cy = np.rint(xs + r * ux).astype(np.intp), np.rint(ys + r * uy).astype(np.intp)
-        inside = (cx >= 0) & (cx < smooth.shape[1]) & (cy >= 0) & (cy < smooth.shape[0])
-        np.add.at(votes[k], (cy[inside], cx[inside]), 1.0)
-    votes = ndimage.gaussian_filter(votes, (0.0, 1.0, 1.0))
-    total = votes.sum(axis=0)
+        inside = (cx >= 0) & (cx < cols) & (cy >= 0) & (cy < rows)
+        return cx[inside], cy[inside]
+
+    total = np.zeros(rows * cols)
+    for r in radii:          # one image of votes for all radii: a few MB even unbinned
+        cx, cy = landing(r)
+        total += np.bincount(cy * cols + cx, minlength=rows * cols)
+    total = ndimage.gaussian_filter(total.reshape(rows, cols).astype(np.float32), 1.0)
     size = max(3, int(0.5 * radius) | 1)
     peaks = (total == ndimage.maximum_filter(total, size=size)) & (total > _SEED_VOTES * total.max())
     py, px = np.nonzero(peaks)
     order = np.argsort(-total[py, px], kind="stable")
     py, px = py[order], px[order]
-    best = radii[np.argmax(votes[:, py, px], axis=0)] * factor
+    # Each seed's radius: the one whose votes land most often within a pixel of it.
+    near = np.zeros((len(radii), len(px)))
+    for k, r in enumerate(radii):
+        cx, cy = landing(r)
+        near[k] = np.sum((np.abs(cx[:, None] - px[None, :]) <= 1) & (np.abs(cy[:, None] - py[None, :]) <= 1), axis=0)
+    best = radii[np.argmax(near, axis=0)] * factor
     return np.column_stack([(px + 0.5) * factor - 0.5, (py + 0.5) * factor - 0.5, best, total[py, px]])
 
 

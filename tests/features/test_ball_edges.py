@@ -185,3 +185,15 @@ def test_hollow_balls_that_overlap_are_each_found_on_their_rim():
         xy, _ = _nearest(found, centre)
         assert np.hypot(*(xy - centre)) < 0.2
     assert np.all(np.abs(found.size / 2.0 - 80.0) < 2.0)
+
+
+def test_whether_each_rim_was_fitted_is_reported_and_a_bad_radius_refused():
+    from ctpipe.errors import InputError
+    from ctpipe.features.ball_edges import rim_seeds
+
+    view = _view([((400.0, 500.0), 80.0, 0.05, 72.0)])
+    starts = np.array([[402.0, 498.0, 80.0, 1.0, 0.0], [-60.0, -60.0, 80.0, 1.0, 0.0]])   # a ball; a rim off the view
+    refined, placed = edge_centres(view, starts, fitted=True)
+    assert placed.tolist() == [True, False] and np.hypot(refined[0, 0] - 400.0, refined[0, 1] - 500.0) < 0.1
+    with pytest.raises(InputError, match="radius_px: the balls' typical radius must be a finite number"):
+        rim_seeds(view, 0.0)
