@@ -106,12 +106,13 @@ def random_layout(seed: int, balls: int = 9):
     return parse_phantom({"name": f"ball-phantom-mixed-layout-{seed}", "units": "mm", "objects": objects})
 
 
-#: The coated balls' shells and cores: (shell, its density g/cm^3), core (None: hollow).
+#: The coated balls: how many, their shells (material, density g/cm^3) and cores (None: hollow).
+COATED_BALLS = 7
 SHELLS = (("steel", 7.9), ("titanium", 4.5))
 CORES = ("pmma", "aluminium", None)
 
 
-def coated_layout(seed: int, balls: int = 7):
+def coated_layout(seed: int, balls: int = COATED_BALLS):
     """Seven coated balls as the issue's real scan shows them, placed anew from ``seed``.
 
     Every ball a dark ring around a lighter disc in the raw counts: a shell of steel or titanium,
@@ -179,8 +180,9 @@ def main(argv=None) -> int:
     parser.add_argument("--max-error-deg", type=float, default=None,
                         help="instead, every nominal angle off by an error uniform within +-this (deg)")
     parser.add_argument("--bar-deg", type=float, default=0.01, help="the largest view error asked for")
-    parser.add_argument("--random-layout", action="store_true", help="place the balls anew for each seed")
-    parser.add_argument("--coated", action="store_true",
+    layout = parser.add_mutually_exclusive_group()
+    layout.add_argument("--random-layout", action="store_true", help="place the balls anew for each seed")
+    layout.add_argument("--coated", action="store_true",
                         help="seven coated balls at three heights, placed anew for each seed, through a polychromatic "
                              "beam with scatter, and a closing view (the issue's real scan; coated_layout)")
     args = parser.parse_args(argv)
@@ -209,7 +211,7 @@ def main(argv=None) -> int:
               f"{float(np.abs(nominal_errors).max()):.3f} deg at most, {float(np.sqrt(np.mean(nominal_errors ** 2))):.3f} RMS")
         print(f"  ball-phantom check: {'yes' if recognised else 'NO'} ({why}; {checked:.1f} s)")
         print(f"  calibration: {ran:.1f} s (stages: {' '.join(f'{k} {v:.1f}' for k, v in result.timings_s.items())}); "
-              f"{balls.get('balls', 0)} of {7 if args.coated else 9} balls followed, views per ball {balls.get('views_per_ball')}; "
+              f"{balls.get('balls', 0)} of {COATED_BALLS if args.coated else 9} balls followed, views per ball {balls.get('views_per_ball')}; "
               f"{'corrected' if balls.get('kept') else 'NOMINAL'} angles returned: {balls.get('reason', '')}")
         print(f"  per-view error (deg): max {largest:.4f}, RMS {rms:.4f}; "
               f"{np.array2string(errors, precision=4, max_line_width=150, suppress_small=True)}")
