@@ -211,7 +211,8 @@ def main(argv=None) -> int:
               f"{float(np.abs(nominal_errors).max()):.3f} deg at most, {float(np.sqrt(np.mean(nominal_errors ** 2))):.3f} RMS")
         print(f"  ball-phantom check: {'yes' if recognised else 'NO'} ({why}; {checked:.1f} s)")
         print(f"  calibration: {ran:.1f} s (stages: {' '.join(f'{k} {v:.1f}' for k, v in result.timings_s.items())}); "
-              f"{balls.get('balls', 0)} of {COATED_BALLS if args.coated else 9} balls followed, views per ball {balls.get('views_per_ball')}; "
+              f"{balls.get('balls', 0)} of {COATED_BALLS if args.coated else 9} balls followed, "
+              f"views per ball {balls.get('views_per_ball')}; "
               f"{'corrected' if balls.get('kept') else 'NOMINAL'} angles returned: {balls.get('reason', '')}")
         print(f"  per-view error (deg): max {largest:.4f}, RMS {rms:.4f}; "
               f"{np.array2string(errors, precision=4, max_line_width=150, suppress_small=True)}")

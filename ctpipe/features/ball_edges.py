@@ -200,7 +200,8 @@ def rim_seeds(g: np.ndarray, radius_px: float) -> np.ndarray:
         strongest first; the rim fit places them.
     """
     if not (math.isfinite(radius_px) and radius_px > 0):
-        raise InputError(f"radius_px: the balls' typical radius must be a finite number of pixels > 0, got {radius_px!r}")
+        raise InputError(f"radius_px: the balls' typical radius must be a finite number of pixels > 0, "
+                         f"got {radius_px!r}")
     factor = max(1, int(round(radius_px / _SEED_RADIUS_PX)))
     if min(np.shape(g)) < 3 * factor:
         return np.zeros((0, 4))
