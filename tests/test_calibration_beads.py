@@ -97,7 +97,8 @@ def test_the_default_estimate_recognises_a_ball_phantom_and_says_so(ball_bar_sca
     assert "ctpipe: a ball phantom (5 views show 7 (" in said.err and "running the ball calibration" in said.err
     assert "ball calibration, 7 balls followed through the views, the corrected angles kept" in said.out
     # The before/after line names the measure that decided, whatever the conjugate rays make of the scan.
-    verdict = next(line for line in said.out.splitlines() if line.startswith("before/after:"))
+    verdict = next(line for line in said.out.splitlines() if line.startswith("before/after"))
+    assert verdict.startswith("before/after (the conjugate rays, not a ball phantom's measure): ")
     assert verdict.endswith("the balls' reprojection decides a ball phantom's angles")
 
 
