@@ -39,18 +39,21 @@ __all__ = ["nominal_angles_deg", "JitterModel", "GaussianJitter", "RandomWalkJit
            "JumpJitter", "Jitter", "parse_jitter", "JITTER_KINDS"]
 
 
-def nominal_angles_deg(n_views: int, range_deg: float = 360.0, start_deg: float = 0.0) -> np.ndarray:
+def nominal_angles_deg(n_views: int, range_deg: float = 360.0, start_deg: float = 0.0,
+                       closing_view: bool = False) -> np.ndarray:
     """Uniformly spaced commanded angles, shape (n_views,), float64, degrees.
 
     A full scan (``range_deg`` a multiple of 360) excludes the endpoint, which would repeat the
     first view: step ``range_deg / n_views``. A short scan includes it, so that the last view
-    is at ``start_deg + range_deg``: step ``range_deg / (n_views - 1)``.
+    is at ``start_deg + range_deg``: step ``range_deg / (n_views - 1)``; so does a full scan with
+    ``closing_view``, whose last view is the first again a turn on (a scanner's closing image).
     """
     if not (isinstance(n_views, (int, np.integer)) and not isinstance(n_views, bool) and n_views >= 1):
         raise InputError(f"n_views: must be an integer >= 1, got {n_views!r}")
     if not (math.isfinite(range_deg) and range_deg > 0):
         raise InputError(f"range_deg: must be a finite number > 0, got {range_deg!r}")
-    full = math.isclose(range_deg / 360.0, round(range_deg / 360.0), abs_tol=1e-12) and range_deg >= 360.0
+    full = math.isclose(range_deg / 360.0, round(range_deg / 360.0), abs_tol=1e-12) and range_deg >= 360.0 \
+        and not closing_view
     if n_views == 1:
         return np.array([float(start_deg)])
     step = range_deg / n_views if full else range_deg / (n_views - 1)

@@ -63,9 +63,7 @@ class AngleSpec:
 
     def nominal_angles_deg(self) -> np.ndarray:
         """Shape (n_views,), float64; see :func:`ctpipe.sim.jitter.nominal_angles_deg`."""
-        if self.closing_view and self.n_views > 1:
-            return self.start_deg + self.range_deg / (self.n_views - 1) * np.arange(self.n_views, dtype=np.float64)
-        return nominal_angles_deg(self.n_views, self.range_deg, self.start_deg)
+        return nominal_angles_deg(self.n_views, self.range_deg, self.start_deg, self.closing_view)
 
     def to_dict(self) -> dict:
         return {"n_views": self.n_views, "range_deg": self.range_deg, "start_deg": self.start_deg,
