@@ -116,12 +116,12 @@ def _merged_balls(inscribed: np.ndarray, area: np.ndarray, labels: np.ndarray, i
     one_size = np.abs(np.log(np.maximum(inscribed, 1e-9) / typical)) <= math.log(2.5)
     candidates = one_size & (discs >= 1.15) & (discs <= 4.5)
     for k in np.flatnonzero(candidates):
-        rows, cols = np.nonzero(labels == index[k])
+        blob = labels == index[k]
+        rows, cols = np.nonzero(blob)
         corners = np.concatenate([np.column_stack([rows + dr, cols + dc]) for dr in (-0.5, 0.5) for dc in (-0.5, 0.5)])
         if area[k] < 0.8 * ConvexHull(corners).volume:
             continue
         if distance is not None:
-            blob = labels == index[k]
             _, cores = ndimage.label(blob & (distance >= 0.9 * inscribed[k]))
             if cores < 2:
                 continue

@@ -294,6 +294,12 @@ _ANCHOR_VIEWS = 24
 _MIN_ORBIT_RADII = 0.5
 
 
+def _min_orbit_mm(radius_px: float, geometry: Geometry) -> float:
+    """The smallest distance from the axis (mm) of a ball that moves: :data:`_MIN_ORBIT_RADII` of a disc's radius."""
+    return _MIN_ORBIT_RADII * radius_px * min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm) \
+        / geometry.magnification
+
+
 def _find_balls(detections, angles, geometry, error_rad, radius_px, min_views) -> tuple[np.ndarray, np.ndarray]:
     """Balls as 3-D points supported by detections in ``min_views`` views or more (step 1 of the module).
 
@@ -308,7 +314,7 @@ def _find_balls(detections, angles, geometry, error_rad, radius_px, min_views) -
     reach_mm = 0.5 * geometry.detector_cols * geometry.pixel_pitch_u_mm / geometry.magnification
     height_mm = 0.5 * geometry.detector_rows * geometry.pixel_pitch_v_mm / geometry.magnification
     pitch = min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm)
-    orbit_mm = _MIN_ORBIT_RADII * radius_px * pitch / geometry.magnification
+    orbit_mm = _min_orbit_mm(radius_px, geometry)
     candidates = []
     for i, a in enumerate(anchors):
         for b in anchors[i + 1:]:
@@ -410,7 +416,7 @@ def _relocate_views(detections, balls, radii_mm, angles, nominal, error_rad, geo
     A view moves only where the best angle beats its current one by half a ball's worth of that
     sum (a view that fits is at its best already, and stays put).
     """
-    offsets = np.arange(-error_rad, error_rad + 0.5 * _RELOCATE_STEP_RAD, _RELOCATE_STEP_RAD)
+    offsets = _search_offsets(error_rad)
     moved = np.asarray(angles, dtype=np.float64).copy()
     for view, found in enumerate(detections):
         if not len(found):
@@ -421,6 +427,12 @@ def _relocate_views(detections, balls, radii_mm, angles, nominal, error_rad, geo
         if costs[best] < costs[-1] - 0.5 * _RELOCATE_REACH_PX ** 2:
             moved[view] = candidates[best]
     return moved
+
+
+def _search_offsets(error_rad: float) -> np.ndarray:
+    """The offsets (rad) a view's angle is searched over from its nominal one: +-``error_rad``, in steps
+    of :data:`_RELOCATE_STEP_RAD`."""
+    return np.arange(-error_rad, error_rad + 0.5 * _RELOCATE_STEP_RAD, _RELOCATE_STEP_RAD)
 
 
 def _view_cost(found, balls, radii_mm, candidates, geometry, detector) -> tuple[np.ndarray, np.ndarray]:
@@ -450,7 +462,7 @@ def _ambiguous_views(detections, assigned, balls, radii_mm, angles, nominal, err
     while the others stay on theirs: that is the settled angle's basin, not another explanation.)
     Returns ``{view: other angle (rad)}``.
     """
-    offsets = np.arange(-error_rad, error_rad + 0.5 * _RELOCATE_STEP_RAD, _RELOCATE_STEP_RAD)
+    offsets = _search_offsets(error_rad)
     margin = 0.5 * _RELOCATE_REACH_PX ** 2
     ambiguous = {}
     for view, (found, labels) in enumerate(zip(detections, assigned)):
@@ -730,7 +742,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                          f"{max_error_deg:g} deg?)")
     pitch = min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm)
     reach_mm = 0.5 * geometry.detector_cols * geometry.pixel_pitch_u_mm / geometry.magnification
-    orbit_mm = _MIN_ORBIT_RADII * radius_px * pitch / geometry.magnification
+    orbit_mm = _min_orbit_mm(radius_px, geometry)
     detector = np.array([geometry.u0_px, geometry.v0_px, 0.0])
     angles = theta0.copy()
     tol = _tolerance_px(balls, geometry, error_rad, radius_px)
