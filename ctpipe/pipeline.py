@@ -344,7 +344,8 @@ class ScanResult:
         (``estimated_deg``), then as known: the scan, the nominal angles with the estimate's
         difference from them and the :attr:`turn_check`, the :attr:`closing_view`, the
         scanner's logged angles and the difference from them, the :attr:`gate`, the
-        :attr:`before_after` measure, the :attr:`angle_errors`.
+        :attr:`before_after` measure, the :attr:`angle_errors`; the :attr:`refined_geometry` where the
+        refiner estimated any of it (``refined_geometry``: the geometry, the tilt and which were estimated).
         Values are plain Python and numpy arrays (:func:`ctpipe.io.outputs.to_jsonable` makes
         it JSON).
         """
@@ -372,6 +373,11 @@ class ScanResult:
         if recorded is not None:
             report["recorded_deg"] = recorded
             report["against_recorded"] = difference_table(estimated, recorded)
+        refined = self.refined_geometry
+        if refined is not None and refined.refined:
+            # What geometry_vectors.csv holds, for a lab to set beside its scanner's calibration.
+            report["refined_geometry"] = {"geometry": refined.geometry.to_dict(), "tilt_deg": refined.tilt_deg,
+                                          "refined": list(refined.refined)}
         if self.gate is not None:
             report["gate"] = self.gate.to_dict()
         if self.angle_se_deg is not None:
@@ -465,6 +471,8 @@ class ScanResult:
             lines.append(f"refiner: ball calibration, {balls['balls']} balls followed through the views, "
                          f"{'the corrected angles kept' if balls['kept'] else 'the nominal angles returned'}: "
                          f"{balls['reason']}")
+            if not balls["kept"] and balls.get("detector_kept"):
+                lines.append(f"detector: {balls['detector_reason']}")
         gate = self.gate
         if gate is not None:
             lines.append(_gate_line(gate, measured=self.before_after is not None and bool(self.before_after.scores)))
@@ -502,12 +510,21 @@ class ScanResult:
         refined = self.refined_geometry
         if refined is not None and any(k in refined.refined for k in ("u0_px", "tilt_deg")):
             lines.append(f"geometry: u0 {refined.geometry.u0_px:.3f} px (was {g.u0_px:.3f}), v0 "
-                         f"{refined.geometry.v0_px:.3f} px, detector tilt {refined.tilt_deg:.4f} deg")
+                         f"{refined.geometry.v0_px:.3f} px, detector tilt {refined.tilt_deg:.4f} deg"
+                         + _detector_se_text(balls))
         lines.append(f"estimated angles: {estimated[0]:.4f} .. {estimated[-1]:.4f} deg "
                      f"(in the nominal angles' frame{'' if self.nominal_angles_deg is not None else ': relative to view 0'})")
         if written:
             lines.append("written: " + ", ".join(written))
         return "\n".join(lines)
+
+
+def _detector_se_text(balls) -> str:
+    """The ball calibration's standard errors of u0, v0 and the tilt, as the summary's geometry line ends, or ""."""
+    se = balls.get("detector_se") if isinstance(balls, dict) else None
+    if not se or any(e is None for e in se):
+        return ""
+    return f" (standard errors {se[0]:.3f} px, {se[1]:.3f} px, {se[2]:.4f} deg)"
 
 
 def _gate_line(gate: GateDecision, *, measured: bool = False) -> str:

@@ -102,6 +102,27 @@ def test_the_default_estimate_recognises_a_ball_phantom_and_says_so(ball_bar_sca
     assert verdict.endswith("the balls' reprojection decides a ball phantom's angles")
 
 
+def test_a_right_stage_and_an_offset_detector_give_the_nominal_angles_and_the_detector(tmp_path, capsys):
+    """A lab's check of a scanner whose stage is right: the nominal angles, and the axis and tilt the balls show."""
+    spec = parse_scan_spec({**_spec(16, 5).to_dict(), "jitter": [],
+                            "misalignment": {"cor_offset_px": 1.0, "tilt_deg": 0.5}})
+    scan = simulate(load_phantom("ball-bar"), spec, rng=np.random.default_rng(5))
+    folder = write_simulated_scan(tmp_path / "balls", scan, phantom=load_phantom("ball-bar"), spec=spec, seed=5)
+    capsys.readouterr()
+    assert main(["estimate", str(folder), "--out", str(tmp_path / "out"), "--no-slices"]) == 0
+    said = capsys.readouterr().out
+    assert "the nominal angles returned" in said
+    assert "detector: with the nominal angles, the fitted detector explains the balls better" in said
+    report = json.loads((tmp_path / "out" / "result.json").read_text())
+    np.testing.assert_allclose(report["estimated_deg"], scan.nominal_angles_deg, atol=1e-9)
+    refined = report["refined_geometry"]
+    # The simulator's tilt is the ball calibration's with the opposite sign (its camera convention).
+    assert refined["geometry"]["u0_px"] == pytest.approx(scan.geometry.u0_px + 1.0, abs=0.05)
+    assert refined["tilt_deg"] == pytest.approx(-0.5, abs=0.02)
+    vectors = np.loadtxt(tmp_path / "out" / "geometry_vectors.csv", delimiter=",", skiprows=1)
+    assert np.abs(vectors[:, 10]).max() > 1e-4     # the detector's v axis leans: the tilt is in the vectors
+
+
 def test_a_sample_is_not_taken_for_a_ball_phantom():
     from ctpipe.features import looks_like_ball_phantom
     from ctpipe.sim import parse_scan_spec

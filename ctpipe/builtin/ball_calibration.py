@@ -27,7 +27,10 @@ class BallCalibrationRefiner(Refiner):
     angle explains a view's discs as well with other balls on them, and every view's standard
     error is within ``max_angle_se_deg``; otherwise the nominal angles, with the reason
     in ``info["balls"]["reason"]``. The axis column, the principal row and the detector tilt
-    fitted are the refined geometry (``geometry_vectors.csv``, the summary).
+    fitted with the returned angles are the refined geometry (``geometry_vectors.csv``, the
+    summary) where the corrected angles are kept, and with the nominal angles where those explain
+    the balls as well and the fitted detector explains them better than the scan's beyond noise
+    (``info["balls"]["detector_reason"]``).
     """
 
     max_error_deg: float = param(2.0, doc="largest error a nominal angle may have: where balls are looked for, and "
@@ -60,8 +63,10 @@ class BallCalibrationRefiner(Refiner):
                                 max_angle_se_deg=self.max_angle_se_deg)
         angles = found.angles_deg
         info = {"balls": found.to_dict(), "chosen": "corrected" if found.kept else "nominal"}
+        # The detector is given with the nominal angles too, where the balls show it (a stage that is right, a
+        # detector that is not: what a lab checking its scanner asks).
         detector = ({"u0_px": found.u0_px, "v0_px": found.v0_px, "tilt_deg": found.tilt_deg}
-                    if found.kept and self.fit_detector else {})
+                    if found.detector_kept else {})
         return ScanSolution(np.deg2rad(angles - angles[0]), tuple(observations.estimates), info,
                             angle_se_deg=found.angle_se_deg if found.kept else None, **detector)
 

@@ -50,6 +50,13 @@ nothing is decided pair by pair:
    view shows two discs or more of the followed balls (a view with fewer was never adjusted), no
    other angle explains a view's discs as well with other balls on them (:func:`_ambiguous_views`),
    and every view's standard error is within ``max_angle_se_deg``.
+4. **The detector out, whichever angles are returned.** A lab checks its scanner with a ball
+   phantom, and its stage may be right: then the nominal angles come back, but the axis column,
+   the principal row and the tilt the balls show are still what the lab asked. Fitted with the
+   returned angles, the detector is given where the angles are corrected (it is part of the
+   correction the F test accepted), or, with the nominal angles, where they explain the balls as
+   well as the corrected ones (the F test above finds no difference) and the fitted detector
+   explains them better than the scan's own beyond noise (an F test of its three unknowns).
 
 Gauges: the first view keeps its nominal angle (a common turn only turns the phantom); the
 magnification stays the nominal one (balls of unknown positions and size fix the geometry
@@ -91,7 +98,14 @@ class BallCalibration:
     balls_mm : ndarray of shape (B, 3)
         Every ball's fitted centre, object frame.
     u0_px, v0_px, tilt_deg : float
-        The fitted detector: axis column, principal row, in-plane tilt (camera convention).
+        The detector fitted with the returned angles: axis column, principal row, in-plane tilt
+        (camera convention).
+    detector_se : ndarray of shape (3,)
+        Standard errors of ``u0_px`` (px), ``v0_px`` (px) and ``tilt_deg`` (deg); NaN where not computed.
+    detector_kept : bool
+        Whether the fitted detector is the one to use (see the module docstring, step 4).
+    detector_reason : str
+        Why, in words.
     rms_px, nominal_rms_px : float
         Reprojection RMS of the fitted observations with the corrected and with the nominal angles.
     ball_rms_px : ndarray of shape (B,)
@@ -124,11 +138,16 @@ class BallCalibration:
     observations: int
     assigned: list = field(default_factory=list)
     ball_cut_px: np.ndarray | None = None
+    detector_se: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    detector_kept: bool = False
+    detector_reason: str = ""
 
     def to_dict(self) -> dict:
         return {"kept": self.kept, "reason": self.reason, "balls": len(self.balls_mm),
                 "balls_mm": np.round(self.balls_mm, 4).tolist(), "u0_px": self.u0_px, "v0_px": self.v0_px,
-                "tilt_deg": self.tilt_deg, "rms_px": self.rms_px, "nominal_rms_px": self.nominal_rms_px,
+                "tilt_deg": self.tilt_deg, "detector_se": [None if not np.isfinite(e) else float(e)
+                                                           for e in self.detector_se],
+                "detector_kept": self.detector_kept, "detector_reason": self.detector_reason, "rms_px": self.rms_px, "nominal_rms_px": self.nominal_rms_px,
                 "ball_rms_px": np.round(self.ball_rms_px, 4).tolist(), "f_statistic": self.f_statistic,
                 "p_value": self.p_value, "observations": self.observations,
                 **({} if self.ball_cut_px is None else
@@ -905,8 +924,63 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                               f"{nominal_rms:.3f} px with the nominal ones (F test p {p:.2g})")
     ball_rms = np.array([np.sqrt(np.mean(fit.residual[ball_of == b] ** 2)) if np.any(ball_of == b) else np.nan
                          for b in range(len(balls))])
+    returned = fit if kept else nominal_fit
+    detector_kept, detector_reason = _detector_verdict(
+        returned, kept, fit_detector, p_value, nominal_as_good=math.isfinite(p) and p >= p_value and not len(lost),
+        scan_fit=lambda: _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, nominal_fit.balls,
+                                 np.array([geometry.u0_px, geometry.v0_px, 0.0]), geometry, free_views=free_views,
+                                 fit_angles=False, fit_detector=False, scale_px=scale_px, loss=fit_loss, side=side,
+                                 cut_px=nominal_fit.cut_px))
+    detector = returned.detector
     return BallCalibration(angles_deg=corrected if kept else nominal.copy(), corrected_deg=corrected,
                            angle_se_deg=se, kept=kept, reason=reason, balls_mm=balls, u0_px=float(detector[0]),
                            v0_px=float(detector[1]), tilt_deg=math.degrees(detector[2]), rms_px=rms,
                            nominal_rms_px=nominal_rms, ball_rms_px=ball_rms, f_statistic=float(f_stat), p_value=p,
-                           observations=int(len(observed)), assigned=assigned, ball_cut_px=cut_px)
+                           observations=int(len(observed)), assigned=assigned, ball_cut_px=cut_px,
+                           detector_se=_detector_se(returned) if fit_detector else np.full(3, np.nan),
+                           detector_kept=detector_kept, detector_reason=detector_reason)
+
+
+def _chi_dof(fit: _Fit) -> tuple[float, int]:
+    """A fit's residual sum of squares and its degrees of freedom (the gauge row gives one unknown back)."""
+    gauge = 1 if fit.jac is not None and fit.jac.shape[0] > fit.residual.size else 0
+    return float(np.sum(fit.residual ** 2)), int(fit.residual.size - (fit.n_params - gauge))
+
+
+def _detector_se(fit: _Fit) -> np.ndarray:
+    """Standard errors of a fit's detector (u0 px, v0 px, tilt deg): its last three unknowns."""
+    chi, dof = _chi_dof(fit)
+    if fit.jac is None or dof <= 0:
+        return np.full(3, np.nan)
+    variance = np.diag(np.linalg.pinv(fit.jac.T @ fit.jac))[-3:] * (chi / dof)
+    return np.sqrt(np.clip(variance, 0.0, None)) * np.array([1.0, 1.0, math.degrees(1.0)])
+
+
+def _detector_verdict(returned: _Fit, kept: bool, fit_detector: bool, p_value: float, *, nominal_as_good: bool,
+                      scan_fit) -> tuple[bool, str]:
+    """Whether the detector fitted with the returned angles is the one to use, and why (module docstring, step 4).
+
+    ``scan_fit`` makes the fit with the scan's own detector and the nominal angles, only when it is needed.
+    """
+    from scipy import stats
+
+    if not fit_detector:
+        return False, "the detector was not fitted"
+    if kept:
+        return True, "fitted with the corrected angles"
+    if not nominal_as_good:
+        return False, ("not given: the nominal angles are returned without explaining the balls as well as the "
+                       "corrected ones, so no detector is fitted to the angles returned")
+    chi, dof = _chi_dof(returned)
+    scan = scan_fit()
+    chi_scan = float(np.sum(scan.residual ** 2))
+    rms = math.sqrt(chi / returned.residual.size)
+    rms_scan = math.sqrt(chi_scan / scan.residual.size)
+    if dof <= 0 or chi <= 0:
+        return False, "not given: too few discs to test the fitted detector"
+    p = float(stats.f.sf(((chi_scan - chi) / 3.0) / (chi / dof), 3, dof))
+    if p < p_value:
+        return True, (f"with the nominal angles, the fitted detector explains the balls better than the scan's: "
+                      f"reprojection RMS {rms:.3f} px against {rms_scan:.3f} px (F test p {p:.2g})")
+    return False, (f"the scan's detector: the fitted one explains the balls no better beyond noise (reprojection RMS "
+                   f"{rms:.3f} px against {rms_scan:.3f} px; F test p {p:.2g})")

@@ -61,6 +61,36 @@ def test_right_nominal_angles_are_kept_and_the_reason_given():
     np.testing.assert_array_equal(found.angles_deg, nominal)
 
 
+def test_right_nominal_angles_still_give_the_detector_the_balls_show():
+    """A stage that is right and a detector that is not: the nominal angles come back, and the detector with them."""
+    nominal = np.linspace(0.0, 360.0, 17)
+    found = calibrate_balls(_detections(nominal, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, noise_px=0.05), GEOMETRY,
+                            nominal)
+    assert not found.kept and "no better than the nominal ones" in found.reason
+    np.testing.assert_array_equal(found.angles_deg, nominal)
+    assert found.detector_kept and "better than the scan's" in found.detector_reason
+    assert found.u0_px == pytest.approx(1001.0, abs=0.02) and found.tilt_deg == pytest.approx(0.3, abs=0.002)
+    se = found.detector_se
+    assert np.all(np.isfinite(se)) and np.all(se > 0)
+    assert abs(found.u0_px - 1001.0) < 4 * se[0] + 1e-3 and abs(found.tilt_deg - 0.3) < 4 * se[2] + 1e-4
+    assert found.to_dict()["detector_kept"] is True
+
+
+def test_right_nominal_angles_and_a_right_detector_keep_the_scans_detector():
+    nominal = np.linspace(0.0, 360.0, 20, endpoint=False)
+    found = calibrate_balls(_detections(nominal, BALLS, 2.5, noise_px=0.05), GEOMETRY, nominal)
+    assert not found.kept and not found.detector_kept
+    assert found.detector_reason.startswith("the scan's detector: the fitted one explains the balls no better")
+
+
+def test_corrected_angles_come_with_their_detector_and_its_standard_errors():
+    nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
+    truth = nominal + np.random.default_rng(1).uniform(-1.0, 1.0, 16)
+    found = calibrate_balls(_detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3), GEOMETRY, nominal)
+    assert found.kept and found.detector_kept and found.detector_reason == "fitted with the corrected angles"
+    assert np.all(np.isfinite(found.detector_se)) and found.detector_se[0] < 0.05
+
+
 def test_a_ball_off_the_model_makes_no_view_move_past_what_the_nominal_angles_allow():
     """Detections that no set of angles within the stated error explains are not passed off as a correction."""
     nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
