@@ -147,7 +147,8 @@ class BallCalibration:
                 "balls_mm": np.round(self.balls_mm, 4).tolist(), "u0_px": self.u0_px, "v0_px": self.v0_px,
                 "tilt_deg": self.tilt_deg, "detector_se": [None if not np.isfinite(e) else float(e)
                                                            for e in self.detector_se],
-                "detector_kept": self.detector_kept, "detector_reason": self.detector_reason, "rms_px": self.rms_px, "nominal_rms_px": self.nominal_rms_px,
+                "detector_kept": self.detector_kept, "detector_reason": self.detector_reason, "rms_px": self.rms_px,
+                "nominal_rms_px": self.nominal_rms_px,
                 "ball_rms_px": np.round(self.ball_rms_px, 4).tolist(), "f_statistic": self.f_statistic,
                 "p_value": self.p_value, "observations": self.observations,
                 **({} if self.ball_cut_px is None else

@@ -91,6 +91,25 @@ def test_conjugate_rays_that_cross_nothing_that_turns_do_not_judge(scan):
     assert comparison.u0_px == {"nominal": scan.geometry.u0_px, "corrected": scan.geometry.u0_px}
 
 
+def test_too_few_views_paired_half_a_turn_apart_do_not_judge(scan):
+    """23 views of the same scan (every eighth): the true angles, yet too few terms for the measure's standard error to
+    be checked. The scores are kept for result.json; the verdict does not judge by them."""
+    from ctpipe.evaluate.preview import MIN_PAIRED_VIEWS
+
+    views = np.asarray(scan.projections)[::8][:23]
+    nominal, truth = scan.nominal_angles_deg[::8][:23], scan.true_angles_deg[::8][:23]
+    comparison = before_after(views, scan.geometry, nominal, truth)
+    assert comparison.scores and 0 < comparison.paired_views < MIN_PAIRED_VIEWS and not comparison.judges
+    verdict = comparison.verdict()
+    assert verdict.startswith(f"before/after: the projections' conjugate rays cannot judge the angles "
+                              f"({comparison.paired_views} views have a view half a turn apart to compare with, "
+                              "too few")
+    assert "helped" not in verdict and "worse" not in verdict
+    assert comparison.to_dict()["judges"] is False
+    # The full scan judges, as before.
+    assert before_after(scan.projections, scan.geometry, scan.nominal_angles_deg, scan.true_angles_deg).judges
+
+
 def test_bad_angles_are_one_line(scan):
     with pytest.raises(InputError, match="corrected_deg: must be 180 finite angles"):
         before_after(scan.projections, scan.geometry, scan.nominal_angles_deg, scan.nominal_angles_deg[:-1])
