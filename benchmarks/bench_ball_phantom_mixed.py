@@ -158,9 +158,13 @@ def coated_spec(views: int, jitter_deg: float, seed: int) -> dict:
 
 
 def simulate_scan(views: int, jitter_deg: float, max_error_deg: float | None, seed: int, random: bool = False,
-                  coated: bool = False):
-    """The simulated scan and the nominal angles given to the pipeline."""
-    spec = parse_scan_spec(coated_spec(views, jitter_deg, seed) if coated else scan_spec(views, jitter_deg, seed))
+                  coated: bool = False, saturation: float | None = None):
+    """The simulated scan and the nominal angles given to the pipeline (``saturation``: the clip's level, as a
+    share of the open beam, in place of the spec's 95 %)."""
+    spec = coated_spec(views, jitter_deg, seed) if coated else scan_spec(views, jitter_deg, seed)
+    if saturation is not None:
+        spec["detector"] = {**spec["detector"], "saturation_fraction": saturation}
+    spec = parse_scan_spec(spec)
     rng = np.random.default_rng(seed)
     phantom = coated_layout(seed) if coated else random_layout(seed) if random else load_phantom(str(PHANTOM))
     scan = simulate(phantom, spec, rng=rng, jitter=not max_error_deg)
@@ -180,6 +184,9 @@ def main(argv=None) -> int:
     parser.add_argument("--max-error-deg", type=float, default=None,
                         help="instead, every nominal angle off by an error uniform within +-this (deg)")
     parser.add_argument("--bar-deg", type=float, default=0.01, help="the largest view error asked for")
+    parser.add_argument("--saturation", type=float, default=None,
+                        help="the detector clips at this share of the open beam (default 0.95; 0.8 is harsh: "
+                             "docs/calibration-phantoms.md, 'A harsh clip')")
     layout = parser.add_mutually_exclusive_group()
     layout.add_argument("--random-layout", action="store_true", help="place the balls anew for each seed")
     layout.add_argument("--coated", action="store_true",
@@ -191,7 +198,7 @@ def main(argv=None) -> int:
     for seed in args.seeds:
         start = time.perf_counter()
         scan, nominal, truth = simulate_scan(args.views, args.jitter_deg, args.max_error_deg, seed, args.random_layout,
-                                             args.coated)
+                                             args.coated, args.saturation)
         simulated = time.perf_counter() - start
         start = time.perf_counter()
         recognised, why = looks_like_ball_phantom(scan.projections)

@@ -24,8 +24,9 @@ class BallCalibrationRefiner(Refiner):
     nominal angles it solves the pairs on the view graph, and says so. The corrected
     angles are returned only where they explain the balls better than the nominal angles beyond
     noise (an F test of the reprojection errors), every view is fixed by two discs or more, no other
-    angle explains a view's discs as well with other balls on them, and every view's standard
-    error is within ``max_angle_se_deg``; otherwise the nominal angles, with the reason
+    angle explains a view's discs as well with other balls on them, every view's standard
+    error is within ``max_angle_se_deg``, and the balls agree on every view's angle (a jackknife
+    over them); otherwise the nominal angles, with the reason
     in ``info["balls"]["reason"]``. The axis column, the principal row and the detector tilt
     fitted with the returned angles are the refined geometry (``geometry_vectors.csv``, the
     summary) where the corrected angles are kept, and with the nominal angles where those explain
