@@ -910,10 +910,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
                           free_views=free_views, fit_angles=False, fit_detector=fit_detector, scale_px=scale_px,
                           loss=fit_loss, side=side, cut_px=cut_px)
-    chi_corrected = float(np.sum(fit.residual ** 2))
-    chi_nominal = float(np.sum(nominal_fit.residual ** 2))
     # The gauge row takes one unknown back: the angles add len(free_views) - 1 over the nominal fit.
-    dof = fit.residual.size - (fit.n_params - 1)
+    chi_corrected, dof = _chi_dof(fit)
+    chi_nominal = float(np.sum(nominal_fit.residual ** 2))
     extra = len(free_views) - 1
     if dof > 0 and extra > 0 and chi_corrected > 0:
         f_stat = ((chi_nominal - chi_corrected) / extra) / (chi_corrected / dof)
@@ -922,13 +921,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         f_stat, p = math.nan, math.nan
     # Standard errors: the Gauss-Newton covariance of the angles, scaled by the residual variance.
     se = np.full(V, np.nan)
-    if dof > 0 and extra > 0:
-        jtj = fit.jac.T @ fit.jac
-        try:
-            cov = np.linalg.pinv(jtj) * (chi_corrected / dof)
-            se[free_views] = np.rad2deg(np.sqrt(np.clip(np.diag(cov)[:len(free_views)], 0, None)))
-        except np.linalg.LinAlgError:
-            pass
+    cov = _covariance(fit) if extra > 0 else None
+    if cov is not None:
+        se[free_views] = np.rad2deg(np.sqrt(np.clip(np.diag(cov)[:len(free_views)], 0, None)))
     # The balls must agree on each view's angle: the Gauss-Newton errors take the residuals as independent, and a
     # bias a ball's discs share (a rim the clip cuts less where something below the clip lies behind it) is not.
     jack_se, jack_n = np.full(V, np.nan), np.zeros(V, dtype=int)
@@ -1000,7 +995,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                               f"{nominal_rms:.3f} px with the nominal ones (F test p {p:.2g})")
     ball_rms = np.array([np.sqrt(np.mean(fit.residual[ball_of == b] ** 2)) if np.any(ball_of == b) else np.nan
                          for b in range(len(balls))])
-    returned = fit if kept else nominal_fit
+    returned, returned_cov = (fit, cov) if kept else (nominal_fit, _covariance(nominal_fit) if fit_detector else None)
     detector_kept, detector_reason = _detector_verdict(
         returned, kept, fit_detector, p_value, nominal_as_good=math.isfinite(p) and p >= p_value and not len(lost),
         scan_fit=lambda: _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, nominal_fit.balls,
@@ -1013,7 +1008,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                            v0_px=float(detector[1]), tilt_deg=math.degrees(detector[2]), rms_px=rms,
                            nominal_rms_px=nominal_rms, ball_rms_px=ball_rms, f_statistic=float(f_stat), p_value=p,
                            observations=int(len(observed)), assigned=assigned, ball_cut_px=cut_px,
-                           detector_se=_detector_se(returned) if fit_detector else np.full(3, np.nan),
+                           detector_se=_detector_se(returned_cov if fit_detector else None),
                            angle_jackknife_se_deg=jack_se, detector_kept=detector_kept,
                            detector_reason=detector_reason)
 
@@ -1024,13 +1019,24 @@ def _chi_dof(fit: _Fit) -> tuple[float, int]:
     return float(np.sum(fit.residual ** 2)), int(fit.residual.size - (fit.n_params - gauge))
 
 
-def _detector_se(fit: _Fit) -> np.ndarray:
-    """Standard errors of a fit's detector (u0 px, v0 px, tilt deg): its last three unknowns."""
+def _covariance(fit: _Fit) -> np.ndarray | None:
+    """The Gauss-Newton covariance of a fit's unknowns, scaled by its residual variance; None without degrees of
+    freedom or where it cannot be computed."""
     chi, dof = _chi_dof(fit)
     if fit.jac is None or dof <= 0:
+        return None
+    try:
+        return np.linalg.pinv(fit.jac.T @ fit.jac) * (chi / dof)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _detector_se(cov: np.ndarray | None) -> np.ndarray:
+    """Standard errors of the detector (u0 px, v0 px, tilt deg), a fitted detector being the last three unknowns of
+    ``cov`` (:func:`_covariance`); NaN without one."""
+    if cov is None:
         return np.full(3, np.nan)
-    variance = np.diag(np.linalg.pinv(fit.jac.T @ fit.jac))[-3:] * (chi / dof)
-    return np.sqrt(np.clip(variance, 0.0, None)) * np.array([1.0, 1.0, math.degrees(1.0)])
+    return np.sqrt(np.clip(np.diag(cov)[-3:], 0.0, None)) * np.array([1.0, 1.0, math.degrees(1.0)])
 
 
 def _detector_verdict(returned: _Fit, kept: bool, fit_detector: bool, p_value: float, *, nominal_as_good: bool,
@@ -1049,12 +1055,12 @@ def _detector_verdict(returned: _Fit, kept: bool, fit_detector: bool, p_value: f
         return False, ("not given: the nominal angles are returned without explaining the balls as well as the "
                        "corrected ones, so no detector is fitted to the angles returned")
     chi, dof = _chi_dof(returned)
+    if dof <= 0 or chi <= 0:
+        return False, "not given: too few discs to test the fitted detector"
     scan = scan_fit()
     chi_scan = float(np.sum(scan.residual ** 2))
     rms = math.sqrt(chi / returned.residual.size)
     rms_scan = math.sqrt(chi_scan / scan.residual.size)
-    if dof <= 0 or chi <= 0:
-        return False, "not given: too few discs to test the fitted detector"
     p = float(stats.f.sf(((chi_scan - chi) / 3.0) / (chi / dof), 3, dof))
     if p < p_value:
         return True, (f"with the nominal angles, the fitted detector explains the balls better than the scan's: "
