@@ -481,7 +481,7 @@ class ScanResult:
             # rays of a ball phantom say little: on simulated coated-ball scans of 16 and 17 views, corrected to
             # 0.003 deg, they read 5300 % and 12565 % "more" disagreement (docs/calibration-phantoms.md).
             verdict = self.before_after.verdict()
-            if isinstance(balls, dict) and self.before_after.max_change_deg >= 1e-9:
+            if isinstance(balls, dict) and not self.before_after.unchanged:
                 # The balls' measure first: it is the one that decides, and the one issue 34 asks to see.
                 verdict = (f"before/after: the balls' reprojection RMS {balls['nominal_rms_px']:.3f} px with the "
                            f"nominal angles, {balls['rms_px']:.3f} px with the corrected ones (a ball phantom's "

@@ -30,8 +30,7 @@ from ctpipe.geometry import Geometry, check_geometry
 from ctpipe.model import wrap_deg
 from ctpipe.recon.feldkamp import bin_detector, binned_geometry, fdk
 from ctpipe.recon.volume import VolumeGrid
-from ctpipe.solve.conjugate import (ConjugateRayScore, conjugate_pairs, conjugate_ray_costs, midplane_row,
-                                    turning_part)
+from ctpipe.solve.conjugate import ConjugateRayScore, conjugate_ray_costs, midplane_row, turning_part
 from ctpipe.solve.reprojection import as_line_integrals
 
 __all__ = ["BeforeAfter", "before_after", "before_after_png"]
@@ -91,6 +90,11 @@ class BeforeAfter:
     paired_views: int = 0
 
     @property
+    def unchanged(self) -> bool:
+        """Whether the two angle sets are the same but for rounding (and a common offset)."""
+        return self.max_change_deg < 1e-9
+
+    @property
     def judges(self) -> bool:
         """Whether the conjugate rays can judge the correction: scores, over enough views paired."""
         return bool(self.scores) and self.paired_views >= MIN_PAIRED_VIEWS
@@ -106,7 +110,7 @@ class BeforeAfter:
     def verdict(self, picture: str | None = "before_after.png") -> str:
         """One line: did the correction help, by how much, by the projections alone (naming ``picture``)."""
         where = "" if picture is None else f"; slices in {picture}"
-        if self.max_change_deg < 1e-9:   # the same angles, but for rounding
+        if self.unchanged:
             return "before/after: the returned angles are the nominal ones; nothing changed"
         if not self.scores:
             return f"before/after: the projections' conjugate rays cannot judge the angles ({self.note}){where}"
@@ -187,8 +191,7 @@ def before_after(projections, geometry: Geometry, nominal_deg, corrected_deg, *,
         # What does not turn out, as the gate takes it (:func:`~ctpipe.solve.conjugate.turning_part`).
         turning, _ = turning_part(midplane, sets["nominal"])
         scores = dict(conjugate_ray_costs(None, g, sets, reference="nominal", fit_u0_px=search, rows=turning))
-        # The views the measure groups its pairs by (their first view), as conjugate_ray_costs pairs them.
-        paired = len(np.unique(conjugate_pairs(sets["nominal"], g, margin_px=1.0 + search)[0]))
+        paired = scores["nominal"].paired_views
         if scores["nominal"].cost < _NOTHING_TO_COMPARE:
             scores, note = {}, ("the conjugate rays read the same to rounding at the nominal angles: where they "
                                 "cross the midplane the views show nothing that turns (a flat or clipped background)")

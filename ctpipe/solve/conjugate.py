@@ -296,6 +296,9 @@ class ConjugateRayScore:
         an estimate, so ``z`` is Student-t distributed with ``dof`` degrees of freedom, not normal.
     tilt_deg : float
         The detector's in-plane tilt used (fitted when asked, else 0).
+    paired_views : int
+        Views the pairs are grouped by (their first view): the terms ``delta_se`` is taken over,
+        before any blocking.
     """
 
     cost: float
@@ -306,6 +309,7 @@ class ConjugateRayScore:
     delta_se: float = 0.0
     dof: int = 0
     tilt_deg: float = 0.0
+    paired_views: int = 0
 
     @property
     def z(self) -> float:
@@ -314,7 +318,8 @@ class ConjugateRayScore:
 
     def to_dict(self) -> dict:
         return {"cost": self.cost, "u0_px": self.u0_px, "n_pairs": self.n_pairs, "versus": self.versus,
-                "delta": self.delta, "delta_se": self.delta_se, "dof": self.dof, "tilt_deg": self.tilt_deg, "z": self.z}
+                "delta": self.delta, "delta_se": self.delta_se, "dof": self.dof, "tilt_deg": self.tilt_deg, "z": self.z,
+                "paired_views": self.paired_views}
 
 
 def _grid_then_golden(cost, grid: np.ndarray, cell: float, iterations: int) -> float:
@@ -493,11 +498,12 @@ def conjugate_ray_costs(projections, geometry: Geometry, candidates: dict[str, n
     scores = {}
     for name, sq in squared.items():
         if name == reference:
-            scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq), tilt_deg=tilts[name])
+            scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq), tilt_deg=tilts[name],
+                                             paired_views=n_groups)
             continue
         diff = sq - squared[reference]
         per_view = np.bincount(groups, weights=diff, minlength=n_views)[np.unique(groups)]
         se, blocks = _blocked_se(per_view) if n_groups > 1 else (math.inf, 1)
         scores[name] = ConjugateRayScore(float(np.mean(sq)), u0s[name], len(sq), reference, float(np.mean(diff)),
-                                         se / len(diff), blocks - 1, tilts[name])
+                                         se / len(diff), blocks - 1, tilts[name], n_groups)
     return scores
