@@ -55,6 +55,11 @@ class Features:
         outside is the clip's plateau; 0 where none or all are. The fitted centre of a rim cut
         ``d`` px deep there is pulled by about ``-2 d`` times it
         (:func:`ctpipe.solve.balls.calibrate_balls` fits ``d`` per ball). None for other detectors.
+    centre_edge_px : ndarray of shape (N,), float32, or None
+        For discs (the ``beads`` detector's rim method): the radius (px) of the circle whose centre ``xy`` is, the
+        outer rim's (``size / 2``) or, for a hollow or coated ball, its shell's inner edge, which a clip, a holder
+        or a neighbour beyond the rim does not move (:mod:`ctpipe.features.ball_edges`). The calibration models the
+        projected centre of a sphere of that radius. None for other detectors.
     """
 
     xy: np.ndarray
@@ -66,6 +71,7 @@ class Features:
     descriptors: np.ndarray
     norm: str
     clipped_side: np.ndarray | None = None
+    centre_edge_px: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.xy)
@@ -86,8 +92,10 @@ class Features:
                              f"got {self.descriptors.dtype}")
         if self.clipped_side is not None and self.clipped_side.shape != (n, 2):
             raise InputError(f"Features.clipped_side must have shape ({n}, 2), got {self.clipped_side.shape}")
+        if self.centre_edge_px is not None and self.centre_edge_px.shape != (n,):
+            raise InputError(f"Features.centre_edge_px must have shape ({n},), got {self.centre_edge_px.shape}")
         for array in (self.xy, self.size, self.angle_deg, self.response, self.octave, self.class_id, self.descriptors,
-                      self.clipped_side):
+                      self.clipped_side, self.centre_edge_px):
             if array is not None:
                 array.flags.writeable = False
 
@@ -109,7 +117,7 @@ class Features:
 
     @classmethod
     def build(cls, *, xy, size, angle_deg, response, octave=None, class_id=None, descriptors, norm,
-              clipped_side=None) -> "Features":
+              clipped_side=None, centre_edge_px=None) -> "Features":
         """Normalise dtypes and apply the ordering rule; detectors construct through this."""
         xy = np.asarray(xy, dtype=np.float32).reshape(-1, 2)
         n = len(xy)
@@ -130,6 +138,8 @@ class Features:
             norm=norm,
             clipped_side=(None if clipped_side is None else
                           np.ascontiguousarray(np.asarray(clipped_side, dtype=np.float32).reshape(n, 2)[order])),
+            centre_edge_px=(None if centre_edge_px is None else
+                            np.asarray(centre_edge_px, dtype=np.float32).reshape(n)[order]),
         )
 
 

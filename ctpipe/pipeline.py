@@ -468,7 +468,10 @@ class ScanResult:
                             f"z {evidence:+.1f} against the nominal ones)"))
         balls = self.refiner_info.get("balls")
         if isinstance(balls, dict):
-            lines.append(f"refiner: ball calibration, {balls['balls']} balls followed through the views, "
+            shells = balls.get("shell_observations", 0)
+            placed = (f" ({shells} of its {balls['observations']} discs placed on a hollow or coated ball's inner "
+                      f"edge, which no clip or neighbour beyond the rim moves)" if shells else "")
+            lines.append(f"refiner: ball calibration, {balls['balls']} balls followed through the views{placed}, "
                          f"{'the corrected angles kept' if balls['kept'] else 'the nominal angles returned'}: "
                          f"{balls['reason']}")
             if not balls["kept"] and balls.get("detector_kept"):

@@ -122,16 +122,17 @@ class BeadDetector(Detector):
         if factor > 1:   # back to the full image's pixels: a block's centre is (index + 0.5) factor - 0.5
             beads[:, :2] = (beads[:, :2] + 0.5) * factor - 0.5
             beads[:, 2] *= factor
-        side = None
+        side = edge = None
         if method == "rim":
-            beads, side, placed = edge_centres(bright, beads, clipped_side=True, fitted=True)
+            beads, side, placed, edge = edge_centres(bright, beads, clipped_side=True, fitted=True, edge_radius=True)
             # A seed whose rim could not be fitted is no ball found (dust, a holder's edge): only a found ball keeps
             # its detected centre where its rim does not fit.
             keep = _distinct(beads) & (placed | (np.arange(len(beads)) < found_before_seeds))
-            beads, side = beads[keep], side[keep]
+            beads, side, edge = beads[keep], side[keep], edge[keep]
         return Features.build(xy=beads[:, :2], size=2.0 * beads[:, 2], angle_deg=np.full(len(beads), np.nan),
                               response=beads[:, 3], class_id=beads[:, 4].astype(np.int32),
-                              descriptors=beads[:, 2:4].astype(np.float32), norm="L2", clipped_side=side)
+                              descriptors=beads[:, 2:4].astype(np.float32), norm="L2", clipped_side=side,
+                              centre_edge_px=edge)
 
     def _binning(self, image: np.ndarray) -> tuple[int, float | None, float | None]:
         """The binning the balls are fitted at (1, or what brings their radius near ``fit_radius_px``),

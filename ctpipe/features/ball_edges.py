@@ -1,4 +1,4 @@
-"""A ball's centre from its outer edge: for hollow and coated balls, overlaps and dust.
+"""A ball's centre from its outer edge, or a hollow or coated ball's inner one: for overlaps, dust and clips.
 
 The disc-model fit (:mod:`ctpipe.features._disc_model`) assumes a solid ball: a hollow or coated
 one, which projects as a dark ring around a lighter disc in the raw counts, is fitted a pixel
@@ -50,6 +50,18 @@ radius, those rays reach the holder's body above the clip level, so a disc is al
 5-95 % of its rays read the plateau that far. On the cached detections of 11 scans (seeds 54,
 90-92, 120-122, 215, 221, 180, 170), the worst view 0.0217-0.0326 -> 0.0058-0.0125 deg on the
 three 17-view ones, the others within 0.0007 (``docs/calibration-phantoms.md``, with scans drawn after).
+
+A hollow or coated ball has a second edge, its shell's inside: going outwards the line integrals
+rise to it, steepest there (the lighter core's chord ends), and it lies far above any clip, inside
+the ball, where neither the clip nor what lies behind or beyond the rim reaches. Where a ball shows
+one (the steepest rise between 55 % and 95 % of the rim's radius on 70 % of the rays or more, a
+circle concentric with the rim within 2 px, whose centre is pinned about as well as the rim's), it
+places the centre, and the disc reports that circle's radius (:attr:`ctpipe.data.Features.centre_edge_px`)
+so that the calibration models the projected centre of a sphere that size. With the background
+clipped at 80 % of the open beam, rims cut unevenly move coated balls' discs 0.14-0.22 px (touching
+another ball, over the holder) and left views 0.02-0.07 deg off (``docs/calibration-phantoms.md``,
+"A harsh clip"); placed on the shell's inside, the six scans measured came within 0.005 deg.
+A solid ball, whose line integrals fall everywhere inside its rim, keeps its rim's centre.
 """
 
 from __future__ import annotations
@@ -78,6 +90,15 @@ _WINDOW = 0.25
 _MIN_CLEAN = 0.7
 #: The rays are cast again from the rim's centre until it moves less than _SETTLED_PX, at most _PASSES times.
 _PASSES, _SETTLED_PX = 3, 0.02
+#: A hollow or coated ball's inner edge is looked for between these fractions of its rim's radius ...
+_INNER_WINDOW = (0.55, 0.95)
+#: ... and places its centre where concentric with the rim within this (px) ...
+_CONCENTRIC_PX = 2.0
+#: ... and its centre's standard error is within this many times the rim's, or within _INNER_SE_PX, and never beyond
+#: _INNER_MAX_SE_PX. A shell's inside pinned the centre to 0.006-0.016 px on coated and hollow balls of the benchmark
+#: (``benchmarks/bench_ball_phantom_mixed.py``), about as well as their rims; the steepest "rise" inside a faint solid
+#: ball (noise on a profile that falls everywhere) to 0.29-0.55 px, where its rim's was 0.02-0.68 px.
+_INNER_SE_RATIO, _INNER_SE_PX, _INNER_MAX_SE_PX = 2.0, 0.02, 0.05
 #: A flag beyond :func:`ctpipe.features.find_balls`' 0, 1, 2: a disc whose rim crosses a clip edge.
 _ACROSS_CLIP = 3
 #: A clipped image: this fraction of its pixels or more read its lowest line integral exactly.
@@ -96,7 +117,7 @@ _REACH_FRACTION = 0.5
 
 
 def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clipped_side: bool = False,
-                 fitted: bool = False):
+                 fitted: bool = False, edge_radius: bool = False):
     """Refine every ball's centre and radius on its outer rim (the module docstring).
 
     Parameters
@@ -110,7 +131,9 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
     clipped_side : bool
         Also return, per disc, the side its rim is cut on (:attr:`ctpipe.data.Features.clipped_side`).
     fitted : bool
-        Also return, last, whether each ball's rim was fitted (False: its detected centre was kept).
+        Also return whether each ball's rim was fitted (False: its detected centre was kept).
+    edge_radius : bool
+        Also return, last, the radius (px) of the edge each centre was placed on.
 
     Returns
     -------
@@ -126,13 +149,17 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
         fitted, or no ray or every ray reads it.
     ndarray of shape (n,), bool
         With ``fitted``: whether the rim was fitted.
+    ndarray of shape (n,)
+        With ``edge_radius``: the radius (px) of the circle the centre is that of: the shell's inner edge where it
+        placed the centre, else the rim (the returned radius).
     """
     out = np.array(balls, dtype=np.float64, copy=True)
     side = np.zeros((len(out), 2))
+    edge = out[:, 2].copy() if len(out) else np.zeros(0)
     placed = np.zeros(len(out), bool)
 
     def result():
-        extra = ((side,) if clipped_side else ()) + ((placed,) if fitted else ())
+        extra = ((side,) if clipped_side else ()) + ((placed,) if fitted else ()) + ((edge,) if edge_radius else ())
         return (out, *extra) if extra else out
 
     if not len(out):
@@ -146,7 +173,7 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
             found = _rim_circle(smooth, cx, cy, r, direction)
             if found is None:
                 break
-            (x0, y0, radius), _ = found
+            (x0, y0, radius), _, _ = found
             if math.hypot(x0 - cx0, y0 - cy0) > 0.5 * r0 or not 0.5 * r0 < radius < 1.5 * r0:
                 break
             found_rim, moved = found, math.hypot(x0 - cx, y0 - cy)
@@ -156,8 +183,17 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
         if found_rim is None:
             continue
         placed[k] = True
-        (x0, y0, radius), clean = found_rim
+        (x0, y0, radius), clean, rim_se = found_rim
         out[k, 0], out[k, 1], out[k, 2] = x0, y0, radius
+        edge[k] = radius
+        inner = _inner_edge(smooth, x0, y0, radius, direction, rim_se)
+        if inner is not None:
+            # The shell's inside places the centre: a clip's cut is the rim's alone; a ball covering the rim may
+            # reach the inner edge too, so the disc stays flagged as overlapping.
+            out[k, 0], out[k, 1], edge[k] = inner
+            if out[k, 4] != _TRUNCATED:
+                out[k, 4] = _OVERLAP if clean < _MIN_CLEAN * len(direction) or out[k, 4] == _OVERLAP else 0
+            continue
         if clean < _MIN_CLEAN * len(direction):
             out[k, 4] = max(out[k, 4], _OVERLAP)
         if clip is not None and out[k, 4] != _TRUNCATED:
@@ -165,6 +201,31 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
             if mixed:
                 out[k, 4] = _ACROSS_CLIP
     return result()
+
+
+def _inner_edge(smooth: np.ndarray, x0: float, y0: float, radius: float, direction: np.ndarray, rim_se: float):
+    """``(x, y, radius)`` of a hollow or coated ball's inner edge where it places the centre, else None.
+
+    Cast from the rim's centre, then from its own until it moves less than ``_SETTLED_PX``; it places the centre where
+    it fits on ``_MIN_CLEAN`` of the rays, concentric with the rim within ``_CONCENTRIC_PX`` and pinned as well as
+    the rim (its centre's standard error within ``_INNER_SE_RATIO`` of the rim's, or ``_INNER_SE_PX``, and at most
+    ``_INNER_MAX_SE_PX``).
+    """
+    cx, cy, found = x0, y0, None
+    for _ in range(_PASSES):
+        trial = _inner_circle(smooth, cx, cy, radius, direction)
+        if trial is None:
+            return None
+        (xi, yi, ri), clean, se = trial
+        if math.hypot(xi - x0, yi - y0) > _CONCENTRIC_PX or not _INNER_WINDOW[0] * radius < ri < radius:
+            return None
+        found, moved, cx, cy = trial, math.hypot(xi - cx, yi - cy), xi, yi
+        if moved < _SETTLED_PX:
+            break
+    (xi, yi, ri), clean, se = found
+    if clean < _MIN_CLEAN * len(direction) or se > min(max(_INNER_SE_RATIO * rim_se, _INNER_SE_PX), _INNER_MAX_SE_PX):
+        return None
+    return xi, yi, ri
 
 
 #: Rim seeds: a circle's votes must reach this fraction of the strongest circle's in the view.
@@ -249,25 +310,72 @@ def _directions(rays: int) -> np.ndarray:
 
 
 def _rim_circle(smooth: np.ndarray, cx: float, cy: float, r: float, direction: np.ndarray):
-    """``((x0, y0, radius), rays that fit)`` of the rim seen along rays from ``(cx, cy)``, or None (too few rays)."""
+    """``((x0, y0, radius), rays that fit, centre's standard error)`` of the rim seen along rays from ``(cx, cy)``, or
+    None (too few rays)."""
     radii = np.arange((1.0 - _WINDOW) * r, (1.0 + _WINDOW) * r + _STEP_PX, _STEP_PX)
+    rim, usable, _ = _steepest(smooth, cx, cy, radii, direction, rising=False)
+    if usable.sum() < 12:
+        return None
+    return _circle(np.column_stack([cx + direction[:, 0] * rim, cy + direction[:, 1] * rim])[usable])
+
+
+def _inner_circle(smooth: np.ndarray, cx: float, cy: float, r: float, direction: np.ndarray):
+    """``((x0, y0, radius), rays that fit, centre's standard error)`` of a hollow or coated ball's inner edge seen
+    along rays from ``(cx, cy)`` (the outer rim's radius ``r``), or None (too few rays rise).
+
+    Inside a shell the line integrals rise outwards to the shell's inner surface, steepest at it (the core's chord
+    ends there: ``d/dr sqrt(r_i^2 - r^2)`` is singular), whatever lies behind or beyond the ball; a solid ball's
+    fall everywhere inside its rim, so few or none of its rays rise. A steepest rise at either end of the window is
+    no edge inside it (a thick shell's, or the rim's fall beginning): such points would lie on the window's circle,
+    centred wherever the rays were cast from.
+    """
+    radii = np.arange(_INNER_WINDOW[0] * r, _INNER_WINDOW[1] * r + _STEP_PX, _STEP_PX)
+    edge, usable, within = _steepest(smooth, cx, cy, radii, direction, rising=True)
+    usable &= within
+    if usable.sum() < _MIN_CLEAN * len(direction):
+        return None
+    return _circle(np.column_stack([cx + direction[:, 0] * edge, cy + direction[:, 1] * edge])[usable])
+
+
+def _steepest(smooth: np.ndarray, cx: float, cy: float, radii: np.ndarray, direction: np.ndarray, *, rising: bool):
+    """Along each ray from ``(cx, cy)`` over ``radii``, where the line integrals fall (or rise) outwards the steepest,
+    to a fraction of a step (a parabola through the three slopes around it).
+
+    Returns that radius per ray, whether the ray lies in the image and falls (rises) there, and whether the steepest
+    slope lies inside the window rather than at either end of it.
+    """
     xs = cx + direction[:, 0, None] * radii[None, :]
     ys = cy + direction[:, 1, None] * radii[None, :]
     inside = (xs >= 0) & (ys >= 0) & (xs <= smooth.shape[1] - 1) & (ys <= smooth.shape[0] - 1)
     values = ndimage.map_coordinates(smooth, [ys.ravel(), xs.ravel()], order=1, mode="nearest").reshape(xs.shape)
-    slope = np.diff(values, axis=1)                  # falling outwards: most negative at the rim
-    j = np.argmin(slope, axis=1)
-    j = np.clip(j, 1, slope.shape[1] - 2)
+    slope = np.diff(values, axis=1)                  # a rim falls outwards, a shell's inside rises
+    peak = np.argmax(slope, axis=1) if rising else np.argmin(slope, axis=1)
+    j = np.clip(peak, 1, slope.shape[1] - 2)
     rows = np.arange(len(direction))
     a, b, c = slope[rows, j - 1], slope[rows, j], slope[rows, j + 1]
     denom = a - 2.0 * b + c
     offset = np.where(np.abs(denom) > 1e-12, 0.5 * (a - c) / np.where(denom == 0, 1.0, denom), 0.0)
-    rim = radii[0] + (j + 0.5 + np.clip(offset, -0.5, 0.5)) * _STEP_PX
-    usable = inside.all(axis=1) & (b < 0.0)
-    if usable.sum() < 12:
+    edge = radii[0] + (j + 0.5 + np.clip(offset, -0.5, 0.5)) * _STEP_PX
+    changes = (b > 0.0) if rising else (b < 0.0)
+    return edge, inside.all(axis=1) & changes, (peak > 0) & (peak < slope.shape[1] - 1)
+
+
+def _circle(points: np.ndarray):
+    """``((x0, y0, radius), points that fit, centre's standard error)`` of a robust circle through ``points``, or None."""
+    found = _robust_circle(points)
+    if found is None:
         return None
-    points = np.column_stack([cx + direction[:, 0] * rim, cy + direction[:, 1] * rim])[usable]
-    return _robust_circle(points)
+    (x0, y0, radius), clean = found
+    return (x0, y0, radius), clean, _centre_se(points, x0, y0, radius)
+
+
+def _centre_se(points: np.ndarray, x0: float, y0: float, radius: float) -> float:
+    """A circle's centre's standard error (px) from the points it was fitted to: their radial residuals' robust
+    spread (1.4826 MAD), over the ``sqrt(n / 2)`` of points spread evenly round it, only the fitting ones counted."""
+    residual = np.hypot(points[:, 0] - x0, points[:, 1] - y0) - radius
+    spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+    fitting = np.count_nonzero(np.abs(residual - np.median(residual)) < 4.685 * max(spread, 0.05))
+    return spread * math.sqrt(2.0 / max(fitting, 1))
 
 
 def _clip_level(g: np.ndarray) -> float | None:

@@ -29,7 +29,9 @@ nothing is decided pair by pair:
    border, its rim across the edge of a clipped background) by its residuals' against the clean
    discs' (a quarter of a clean disc's weight in the first round). A ball's projected disc is an
    ellipse whose centre is not the projection of the ball's centre (Clackdoyle and Mennessier 2011):
-   the model predicts the ellipse's centre (:func:`ellipse_centres`). Where a clipped background
+   the model predicts the ellipse's centre (:func:`ellipse_centres`), of the sphere whose edge placed the disc (a
+   hollow or coated ball's shell's inside, where the detector placed it there: a sphere that much smaller, whose
+   ellipse centre lies nearer the principal point). Where a clipped background
    cuts a faint ball's rim on one side (the open beam beyond it, a holder not), its circle is
    pulled away from that side by twice the cut's depth times the side the detector reports
    (:attr:`ctpipe.data.Features.clipped_side`); the depth is one more unknown per ball, fitted
@@ -123,6 +125,9 @@ class BallCalibration:
         The F test of the corrected against the nominal angles.
     observations : int
         Detections fitted (assigned to a ball, flagged or not).
+    shell_observations : int
+        Of those, the ones whose centre the detector placed on a hollow or coated ball's shell's inside (a seventh
+        column below the disc's radius).
     assigned : list of ndarray
         Per view, the ball of each detection (-1: none).
     ball_cut_px : ndarray of shape (B,)
@@ -151,6 +156,7 @@ class BallCalibration:
     angle_jackknife_se_deg: np.ndarray | None = None
     detector_kept: bool = False
     detector_reason: str = ""
+    shell_observations: int = 0
 
     def to_dict(self) -> dict:
         return {"kept": self.kept, "reason": self.reason, "balls": len(self.balls_mm),
@@ -164,6 +170,7 @@ class BallCalibration:
                 "nominal_rms_px": self.nominal_rms_px,
                 "ball_rms_px": np.round(self.ball_rms_px, 4).tolist(), "f_statistic": self.f_statistic,
                 "p_value": self.p_value, "observations": self.observations,
+                "shell_observations": self.shell_observations,
                 **({} if self.ball_cut_px is None else
                    {"ball_cut_px": [None if not np.isfinite(c) else round(float(c), 4) for c in self.ball_cut_px]}),
                 "views_per_ball": [int(sum(int(np.sum(a == b)) for a in self.assigned))
@@ -632,7 +639,7 @@ _MAX_CUT_FRACTION = 0.25
 
 
 def _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry, *, free_views, fit_angles=True,
-            fit_detector=True, scale_px: float = 1.0, loss: str = "huber", side=None, cut_px=None) -> _Fit:
+            fit_detector=True, scale_px: float = 1.0, loss: str = "huber", side=None, cut_px=None, edge=None) -> _Fit:
     """Bundle adjustment of the free views' angles, the balls and the detector on the observations.
 
     The gauge (a common turn of every view turns only the phantom) is one more residual: the free
@@ -650,6 +657,7 @@ def _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detecto
     n_free = len(free_views) if fit_angles else 0
     n_det = 3 if fit_detector else 0
     side = np.zeros((len(observed), 2)) if side is None else np.asarray(side, dtype=np.float64)
+    edge = np.ones(len(observed)) if edge is None else np.asarray(edge, dtype=np.float64)
     one_sided = np.any(side != 0.0, axis=1)
     cut_balls = np.flatnonzero(np.bincount(ball_of[one_sided], minlength=B) > 0) if B else np.zeros(0, int)
     cut_start = np.zeros(B) if cut_px is None else np.nan_to_num(np.asarray(cut_px, dtype=np.float64), nan=0.0)
@@ -671,7 +679,7 @@ def _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detecto
 
     def residuals(x, gauge=True):
         a, p, c, d = unpack(x)
-        uv = ellipse_centres(p[ball_of], radii_mm[ball_of], a[view_of], geometry, d[0], d[1], d[2])
+        uv = ellipse_centres(p[ball_of], radii_mm[ball_of] * edge, a[view_of], geometry, d[0], d[1], d[2])
         seen = observed + _CUT_PULL * c[ball_of, None] * side     # where the disc's centre would be, uncut
         r = ((uv - seen) * weight[:, None]).reshape(-1)
         return np.append(r, _GAUGE_PX_PER_RAD * (float(np.mean(x[:n_free])) - start_mean)) if n_free and gauge else r
@@ -719,7 +727,7 @@ _JACKKNIFE_GROUPS = 10
 
 
 def _jackknife_se(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry, *, free_views,
-                  fit_detector, scale_px, loss, side, cut_px) -> tuple[np.ndarray, np.ndarray]:
+                  fit_detector, scale_px, loss, side, cut_px, edge) -> tuple[np.ndarray, np.ndarray]:
     """Each view's angle's standard error by the delete-a-group jackknife over the balls (deg; NaN where not free),
     and how many refits adjusted it.
 
@@ -746,7 +754,8 @@ def _jackknife_se(observed, weight, view_of, ball_of, radii_mm, angles, balls, d
             continue
         refit = _adjust(observed[keep], weight[keep], view_of[keep], renumber[ball_of[keep]], radii_mm[keep_ball],
                         angles, balls[keep_ball], detector, geometry, free_views=free, fit_detector=fit_detector,
-                        scale_px=scale_px, loss=loss, side=side[keep], cut_px=np.asarray(cut_px)[keep_ball])
+                        scale_px=scale_px, loss=loss, side=side[keep], cut_px=np.asarray(cut_px)[keep_ball],
+                        edge=edge[keep])
         moved = refit.angles[free] - angles[free]
         refits[k, free] = refit.angles[free] - np.mean(moved)
     se, n = np.full(V, np.nan), np.zeros(V, dtype=int)
@@ -758,14 +767,24 @@ def _jackknife_se(observed, weight, view_of, ball_of, radii_mm, angles, balls, d
     return se, n
 
 
+def _edge_ratio(row: np.ndarray) -> float:
+    """The radius of the edge a disc's centre was placed on over the disc's own (1 where either is not known)."""
+    if row[6] > 0 and row[2] > 0 and math.isfinite(row[6]) and math.isfinite(row[2]):
+        return float(row[6] / row[2])
+    return 1.0
+
+
 def _columns(found) -> np.ndarray:
-    """One view's detections as (N, 6): centre x, y, radius, flag and the clipped side (zeros where not given)."""
+    """One view's detections as (N, 7): centre x, y, radius, flag, the clipped side (zeros where not given) and the
+    radius of the edge the centre was placed on (the disc's radius where not given)."""
     found = np.asarray(found, dtype=np.float64)
     if found.size == 0:
-        return np.zeros((0, 6))
-    if found.ndim != 2 or found.shape[1] not in (4, 6):
-        raise InputError(f"detections: each view's an array of shape (N, 4) or (N, 6), got {found.shape}")
-    return found if found.shape[1] == 6 else np.column_stack([found, np.zeros((len(found), 2))])
+        return np.zeros((0, 7))
+    if found.ndim != 2 or found.shape[1] not in (4, 6, 7):
+        raise InputError(f"detections: each view's an array of shape (N, 4), (N, 6) or (N, 7), got {found.shape}")
+    if found.shape[1] == 4:
+        found = np.column_stack([found, np.zeros((len(found), 2))])
+    return found if found.shape[1] == 7 else np.column_stack([found, found[:, 2]])
 
 
 def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_error_deg: float = 2.0,
@@ -775,13 +794,16 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
 
     Parameters
     ----------
-    detections : sequence of ndarray of shape (N_k, 4) or (N_k, 6)
+    detections : sequence of ndarray of shape (N_k, 4), (N_k, 6) or (N_k, 7)
         Per view, every disc found: ``x=col, y=row`` of its centre (px), its radius (px) and a flag
         (0 clean, 1 overlapping another disc, 2 cut by the border, 3 its rim across the edge of a
         clipped background), as the ``beads`` detector reports them; any other flag (-1, the
         ``class_id`` of keypoints without one) counts as clean. Two more columns, where given:
         the side a clipped background cuts the disc's rim on (:attr:`ctpipe.data.Features.clipped_side`),
-        from which the pull of each ball's cut rim is fitted with the rest.
+        from which the pull of each ball's cut rim is fitted with the rest. A seventh, where given: the
+        radius (px) of the circle the centre is that of (:attr:`ctpipe.data.Features.centre_edge_px`: a
+        hollow or coated ball's shell's inside); its centre is modelled as the ellipse centre of a sphere
+        that much smaller than the ball (:func:`ellipse_centres`).
     geometry : Geometry
         The scanner's nominal geometry.
     nominal_angles_deg : array_like of shape (V,)
@@ -838,13 +860,15 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             if fit is not None:
                 angles = _relocate_views(detections, balls, radii_mm, angles, theta0, error_rad, geometry, detector)
             assigned = _assign(detections, balls, radii_mm, angles, geometry, *detector, tol)
-            view_of, ball_of, observed, disc_px, flagged, side = [], [], [], [], [], []
+            view_of, ball_of, observed, disc_px, flagged, side, edge = [], [], [], [], [], [], []
             for view, (found, labels) in enumerate(zip(detections, assigned)):
                 for k in np.flatnonzero(labels >= 0):
                     view_of.append(view), ball_of.append(labels[k]), observed.append(found[k, :2])
                     disc_px.append(found[k, 2]), flagged.append(found[k, 3]), side.append(found[k, 4:6])
+                    edge.append(_edge_ratio(found[k]))
             view_of, ball_of = np.array(view_of, dtype=int), np.array(ball_of, dtype=int)
             observed, side = np.array(observed).reshape(-1, 2), np.array(side).reshape(-1, 2)
+            edge = np.array(edge, dtype=np.float64)
             # Flags beyond the beads detector's (another detector's -1, a NaN) count as clean; above 3 as 3.
             flagged = np.clip(np.nan_to_num(np.array(flagged), nan=0.0), 0, _FLAG_KINDS - 1).astype(int)
             weight = flag_weight[flagged] * ball_weight[ball_of]
@@ -858,7 +882,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             radii_mm = radii_mm * (z + geometry.source_to_object_mm) / geometry.source_to_detector_mm
             fit = _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry,
                           free_views=free_views, fit_detector=fit_detector, scale_px=scale_px, loss=loss,
-                          side=side, cut_px=cut_px)
+                          side=side, cut_px=cut_px, edge=edge)
             fit_loss = loss   # the nominal fit below is made with the loss of the fit it is tested against
             angles, balls, detector, cut_px = fit.angles, fit.balls, fit.detector, fit.cut_px
             rms = float(np.sqrt(np.mean(fit.residual ** 2)))
@@ -909,7 +933,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         loss = "huber"
     nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
                           free_views=free_views, fit_angles=False, fit_detector=fit_detector, scale_px=scale_px,
-                          loss=fit_loss, side=side, cut_px=cut_px)
+                          loss=fit_loss, side=side, cut_px=cut_px, edge=edge)
     # The gauge row takes one unknown back: the angles add len(free_views) - 1 over the nominal fit.
     chi_corrected, dof = _chi_dof(fit)
     chi_nominal = float(np.sum(nominal_fit.residual ** 2))
@@ -930,7 +954,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     if len(free_views) and extra > 0:
         jack_se, jack_n = _jackknife_se(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector,
                                         geometry, free_views=free_views, fit_detector=fit_detector, scale_px=scale_px,
-                                        loss=fit_loss, side=side, cut_px=cut_px)
+                                        loss=fit_loss, side=side, cut_px=cut_px, edge=edge)
     # Beyond the allowed standard error by more than the jackknife's own spread: its variance is about chi-square
     # with one fewer degrees of freedom than the refits, so it exceeds the bar where that chi-square does at p_value.
     with np.errstate(invalid="ignore"):
@@ -1001,13 +1025,14 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         scan_fit=lambda: _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, nominal_fit.balls,
                                  np.array([geometry.u0_px, geometry.v0_px, 0.0]), geometry, free_views=free_views,
                                  fit_angles=False, fit_detector=False, scale_px=scale_px, loss=fit_loss, side=side,
-                                 cut_px=nominal_fit.cut_px))
+                                 cut_px=nominal_fit.cut_px, edge=edge))
     detector = returned.detector
     return BallCalibration(angles_deg=corrected if kept else nominal.copy(), corrected_deg=corrected,
                            angle_se_deg=se, kept=kept, reason=reason, balls_mm=balls, u0_px=float(detector[0]),
                            v0_px=float(detector[1]), tilt_deg=math.degrees(detector[2]), rms_px=rms,
                            nominal_rms_px=nominal_rms, ball_rms_px=ball_rms, f_statistic=float(f_stat), p_value=p,
-                           observations=int(len(observed)), assigned=assigned, ball_cut_px=cut_px,
+                           observations=int(len(observed)), shell_observations=int(np.sum(edge < 1.0)),
+                           assigned=assigned, ball_cut_px=cut_px,
                            detector_se=_detector_se(returned_cov if fit_detector else None),
                            angle_jackknife_se_deg=jack_se, detector_kept=detector_kept,
                            detector_reason=detector_reason)

@@ -197,3 +197,47 @@ def test_whether_each_rim_was_fitted_is_reported_and_a_bad_radius_refused():
     assert placed.tolist() == [True, False] and np.hypot(refined[0, 0] - 400.0, refined[0, 1] - 500.0) < 0.1
     with pytest.raises(InputError, match="radius_px: the balls' typical radius must be a finite number"):
         rim_seeds(view, 0.0)
+
+
+def _coated_over_holder(clip):
+    """A coated ball (a 10 px shell of steel-like density round a lighter core, 80 px across) whose left rim lies over
+    a holder's faint edge (line integrals under ``clip``), and a second one over the open beam; clipped at ``clip``."""
+    shape = (700, 1000)
+    rng = np.random.default_rng(5)
+    rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    holder = np.clip(0.9 * clip * (1.0 - np.abs(cols - 420.0) / 60.0), 0.0, None)   # a rod's faint ridge at col 420
+    centres = [(500.3, 350.6), (800.2, 340.4)]
+    image = holder + sum(_ball(shape, c, 80.0, 0.02) - _ball(shape, c, 70.0, 0.015) for c in centres)
+    image = ndimage.gaussian_filter(image, 0.8) + rng.normal(0.0, 0.004, shape)
+    return centres, _clipped(image, clip)
+
+
+def test_a_coated_balls_centre_comes_from_its_shells_inside_where_a_clip_cuts_its_rim_unevenly(monkeypatch):
+    """A clip cuts a coated ball's faint rim deeper over the open beam than over a holder's faint edge, so the rim's
+    circle is pulled towards the holder (the issue's harsh clip: views 0.02-0.07 deg off). The shell's inside, far
+    above the clip, is not: the centre from it is within a few hundredths of a pixel, its radius the shell's."""
+    from ctpipe.features import ball_edges
+
+    centres, view = _coated_over_holder(0.15)
+    start = np.array([[c[0] + 1.0, c[1] - 0.7, 80.0, 1.0, 0.0] for c in centres])
+    refined, edge = edge_centres(view, start, edge_radius=True)
+    for k, centre in enumerate(centres):
+        assert np.hypot(refined[k, 0] - centre[0], refined[k, 1] - centre[1]) < 0.03
+        assert abs(edge[k] - 70.0) < 2.0 and abs(refined[k, 2] - 80.0) < 3.0   # the blurred edge: a px inside
+    assert list(refined[:, 4]) == [0, 0]          # the clip's cut is the rim's: no flag for the inner edge
+    # The rim alone: the ball over the holder's edge pulled a tenth of a pixel or more towards it.
+    monkeypatch.setattr(ball_edges, "_inner_edge", lambda *args: None)
+    rim, edge = edge_centres(view, start, edge_radius=True)
+    assert refined[0, 0] - rim[0, 0] > 0.1 and np.allclose(edge, rim[:, 2])
+
+
+def test_a_solid_ball_and_a_shell_too_thick_for_the_window_keep_their_rim():
+    """No inner edge to place a solid ball by; a shell whose inside lies below the window (a third of the radius)
+    is not placed by the window's end either: both keep the rim's centre and radius."""
+    centres = [(400.3, 500.7), (820.6, 610.2)]
+    view = _view([(centres[0], 80.0, 0.05), (centres[1], 80.0, 0.05, 26.0)])
+    start = np.array([[c[0] + 0.5, c[1] - 0.5, 80.0, 1.0, 0.0] for c in centres])
+    refined, edge = edge_centres(view, start, edge_radius=True)
+    assert np.allclose(edge, refined[:, 2])
+    for k, centre in enumerate(centres):
+        assert np.hypot(refined[k, 0] - centre[0], refined[k, 1] - centre[1]) < 0.05

@@ -400,7 +400,12 @@ def test_discs_cut_on_no_side_fit_as_they_did():
     six = calibrate_balls([np.column_stack([d, np.zeros((len(d), 2))]) for d in detections], GEOMETRY, nominal)
     np.testing.assert_array_equal(six.corrected_deg, four.corrected_deg)
     assert np.all(np.isnan(six.ball_cut_px))
-    with pytest.raises(InputError, match=r"\(N, 4\) or \(N, 6\)"):
+    # A seventh column equal to the radius (centres on the rim) changes nothing either.
+    seven = calibrate_balls([np.column_stack([d, np.zeros((len(d), 2)), d[:, 2]]) for d in detections], GEOMETRY,
+                            nominal)
+    np.testing.assert_array_equal(seven.corrected_deg, four.corrected_deg)
+    assert seven.shell_observations == 0
+    with pytest.raises(InputError, match=r"\(N, 4\), \(N, 6\) or \(N, 7\)"):
         calibrate_balls([d[:, :3] for d in detections], GEOMETRY, nominal)
 
 
@@ -610,3 +615,29 @@ def test_discs_without_a_size_are_followed_as_before():
     result = calibrate_balls(detections, GEOMETRY, nominal)
     error = (result.angles_deg - truth) - np.median(result.angles_deg - truth)
     assert result.kept and len(result.balls_mm) == len(BALLS) and np.abs(error).max() < 0.01
+
+
+def test_centres_placed_on_a_shells_inside_are_modelled_as_that_spheres_ellipse_centres():
+    """A coated ball's centre placed on its shell's inside is the ellipse centre of the inner sphere, tenths of a pixel
+    nearer the principal point than the outer one's at the detector's edge (Clackdoyle and Mennessier 2011): given the
+    edge's radius (a seventh column), the balls fit to their noise; taken for the rim's, they do not."""
+    rng = np.random.default_rng(21)
+    nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
+    truth = nominal + np.clip(rng.normal(0.0, 0.5, 16), -2.0, 2.0)
+    inner_mm, outer = 1.0, _detections(truth, BALLS * 2.2, 2.5, noise_px=0.0)
+    detections = []
+    for angle, found in zip(np.deg2rad(truth), outer):
+        index = [int(np.argmin(np.hypot(*(found[:, :2] - uv).T))) for uv in ellipse_centres(
+            BALLS * 2.2, np.full(len(BALLS), 2.5), np.full(len(BALLS), angle), GEOMETRY, 999.5, GEOMETRY.v0_px, 0.0)]
+        uv = ellipse_centres(BALLS * 2.2, np.full(len(BALLS), inner_mm), np.full(len(BALLS), angle), GEOMETRY, 999.5,
+                             GEOMETRY.v0_px, 0.0) + rng.normal(0.0, 0.003, (len(BALLS), 2))
+        rows = found[index]
+        detections.append(np.column_stack([uv, rows[:, 2], rows[:, 3], np.zeros((len(rows), 2)),
+                                           rows[:, 2] * inner_mm / 2.5]))
+    modelled = calibrate_balls(detections, GEOMETRY, nominal)
+    as_rims = calibrate_balls([d[:, :4] for d in detections], GEOMETRY, nominal)
+    assert modelled.kept and modelled.rms_px < 0.006
+    assert modelled.shell_observations == modelled.observations > 0
+    assert as_rims.rms_px > 2.0 * modelled.rms_px
+    error = view_errors_deg(modelled.angles_deg, truth)
+    assert np.abs(error).max() < 0.002
