@@ -641,3 +641,20 @@ def test_centres_placed_on_a_shells_inside_are_modelled_as_that_spheres_ellipse_
     assert as_rims.rms_px > 2.0 * modelled.rms_px
     error = view_errors_deg(modelled.angles_deg, truth)
     assert np.abs(error).max() < 0.002
+
+
+def test_a_ball_given_a_wrong_disc_where_it_crosses_another_is_still_followed():
+    """Where two balls at one height cross, the detector may find one disc between them (12 px off the ball here, in
+    two views). Judged by its root mean square, such a ball fitted 2-3 px and was dropped as no ball (coated seed
+    260 of the benchmark: 3 of 7 balls); by its residuals' median, as its other views show it, it is followed."""
+    nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
+    truth = nominal + np.linspace(-0.4, 0.4, 16)
+    detections = _detections(truth, BALLS, 2.5, seed=13)
+    for view in (3, 9):
+        uv = ellipse_centres(BALLS[2:3], np.array([2.5]), np.deg2rad(truth[view:view + 1]), GEOMETRY, 999.5,
+                             GEOMETRY.v0_px, 0.0)[0]
+        k = int(np.argmin(np.hypot(*(detections[view][:, :2] - uv).T)))
+        detections[view][k, :2] = uv + np.array([5.0, -11.0])
+    found = calibrate_balls(detections, GEOMETRY, nominal)
+    assert len(found.balls_mm) == len(BALLS) and found.kept
+    assert np.abs(view_errors_deg(found.angles_deg, truth)).max() < 0.01
