@@ -469,8 +469,8 @@ class ScanResult:
         balls = self.refiner_info.get("balls")
         if isinstance(balls, dict):
             shells = balls.get("shell_observations", 0)
-            placed = (f" ({shells} of its {balls['observations']} discs placed on a hollow or coated ball's inner "
-                      f"edge, which no clip or neighbour beyond the rim moves)" if shells else "")
+            placed = (f" ({shells} of the {balls['observations']} discs fitted placed on a hollow or coated ball's "
+                      f"inner edge, which no clip or neighbour beyond the rim moves)" if shells else "")
             lines.append(f"refiner: ball calibration, {balls['balls']} balls followed through the views{placed}, "
                          f"{'the corrected angles kept' if balls['kept'] else 'the nominal angles returned'}: "
                          f"{balls['reason']}")

@@ -49,6 +49,12 @@ def test_every_view_of_a_16_view_ball_bar_scan_within_two_hundredths_of_a_degree
     balls = result.refiner_info["balls"]
     assert balls["kept"] and balls["balls"] == 7 and balls["rms_px"] < 0.1 < balls["nominal_rms_px"]
     assert "ball calibration, 7 balls followed through the views, the corrected angles kept" in result.summary()
+    # Solid balls: no disc placed on a shell's inside, and the line does not speak of one; where some were, it says so.
+    assert balls["shell_observations"] == 0 and "inner edge" not in result.summary()
+    balls["shell_observations"] = 40
+    assert (f"7 balls followed through the views (40 of the {balls['observations']} discs fitted placed on a hollow "
+            f"or coated ball's inner edge, which no clip or neighbour beyond the rim moves), the corrected angles "
+            f"kept" in result.summary())
 
 
 def test_estimate_on_a_ball_scan_folder_needs_only_the_pipeline(ball_bar_scan, tmp_path, capsys, monkeypatch):
