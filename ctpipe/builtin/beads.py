@@ -16,7 +16,10 @@ explain, 2 the disc is cut by the image border (before 1), 3 (the rim method onl
 rim crosses the edge of a clipped background, which pulls its circle
 (:mod:`ctpipe.features.ball_edges`); with the rim method, ``clipped_side`` the side a clipped
 background cuts the rim on, from which the calibration models that pull
-(:attr:`ctpipe.data.Features.clipped_side`). A ball whose centre is off the image is not reported.
+(:attr:`ctpipe.data.Features.clipped_side`), and ``centre_edge_px`` the radius of the circle whose
+centre ``xy`` is: the rim's, or a hollow or coated ball's shell's inside where it shows one, which
+no clip reaches (:attr:`ctpipe.data.Features.centre_edge_px`). A ball whose centre is off the image
+is not reported.
 """
 
 from __future__ import annotations
