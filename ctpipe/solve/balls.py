@@ -649,26 +649,46 @@ _CUT_PULL = 2.0
 _MAX_CUT_FRACTION = 0.25
 
 
-def _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry, *, free_views, fit_angles=True,
-            fit_detector=True, scale_px: float = 1.0, loss: str = "huber", side=None, cut_px=None, edge=None) -> _Fit:
-    """Bundle adjustment of the free views' angles, the balls and the detector on the observations.
+@dataclass(frozen=True, eq=False)
+class _Discs:
+    """The discs assigned to balls, a row each: the centre found (M, 2), its weight, its view and its ball, the side
+    a clip cuts its rim on (M, 2: :attr:`~ctpipe.data.Features.clipped_side`) and the radius of the edge that
+    placed it over its disc's (1 for the rim, less for a shell's inside)."""
+
+    xy: np.ndarray
+    weight: np.ndarray
+    view_of: np.ndarray
+    ball_of: np.ndarray
+    side: np.ndarray
+    edge: np.ndarray
+
+    def of_balls(self, keep_ball: np.ndarray) -> "_Discs":
+        """The discs of the balls where ``keep_ball`` (bool, per ball) holds, those balls numbered anew."""
+        keep = keep_ball[self.ball_of]
+        renumber = np.cumsum(keep_ball) - 1
+        return _Discs(self.xy[keep], self.weight[keep], self.view_of[keep], renumber[self.ball_of[keep]],
+                      self.side[keep], self.edge[keep])
+
+
+def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_views, fit_angles=True,
+            fit_detector=True, scale_px: float = 1.0, loss: str = "huber", cut_px=None) -> _Fit:
+    """Bundle adjustment of the free views' angles, the balls and the detector on the discs.
 
     The gauge (a common turn of every view turns only the phantom) is one more residual: the free
     views' mean angle held where it starts. No view is held: with one view held and a robust
     loss, the others turned away from it by 0.16 deg and its discs counted as outliers.
 
-    ``side`` (M, 2): each disc's :attr:`~ctpipe.data.Features.clipped_side`; each ball with a disc
-    cut on one side gets one more unknown, how deep the clip cuts its rim (``cut_px``, its
-    start; NaN for the others; within 0 and :data:`_MAX_CUT_FRACTION` of its radius), and a
+    Each ball with a disc cut on one side (``discs.side``) gets one more unknown, how deep the clip cuts its rim
+    (``cut_px``, its start; NaN for the others; within 0 and :data:`_MAX_CUT_FRACTION` of its radius), and a
     disc's fitted centre is taken as pulled by ``-2 cut side`` (:data:`_CUT_PULL`).
     """
     from scipy.optimize import least_squares
 
+    observed, weight, view_of, ball_of = discs.xy, discs.weight, discs.view_of, discs.ball_of
+    side, edge = discs.side, discs.edge
     B = len(balls)
     n_free = len(free_views) if fit_angles else 0
     n_det = 3 if fit_detector else 0
-    side = np.zeros((len(observed), 2)) if side is None else np.asarray(side, dtype=np.float64)
-    edge = np.ones(len(observed)) if edge is None else np.asarray(edge, dtype=np.float64)
     one_sided = np.any(side != 0.0, axis=1)
     cut_balls = np.flatnonzero(np.bincount(ball_of[one_sided], minlength=B) > 0) if B else np.zeros(0, int)
     cut_start = np.zeros(B) if cut_px is None else np.nan_to_num(np.asarray(cut_px, dtype=np.float64), nan=0.0)
@@ -737,8 +757,8 @@ def _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detecto
 _JACKKNIFE_GROUPS = 10
 
 
-def _jackknife_se(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry, *, free_views,
-                  fit_detector, scale_px, loss, side, cut_px, edge) -> tuple[np.ndarray, np.ndarray]:
+def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_views, fit_detector, scale_px,
+                  loss, cut_px) -> tuple[np.ndarray, np.ndarray]:
     """Each view's angle's standard error by the delete-a-group jackknife over the balls (deg; NaN where not free),
     and how many refits adjusted it.
 
@@ -755,18 +775,15 @@ def _jackknife_se(observed, weight, view_of, ball_of, radii_mm, angles, balls, d
     refits = np.full((G, V), np.nan)
     for k in range(G):
         keep_ball = groups != k
-        keep = keep_ball[ball_of]
-        if keep_ball.sum() < 2 or not keep.any():
+        left = discs.of_balls(keep_ball)
+        if keep_ball.sum() < 2 or not len(left.xy):
             continue
-        renumber = np.cumsum(keep_ball) - 1
-        counts = np.bincount(view_of[keep], minlength=V)
+        counts = np.bincount(left.view_of, minlength=V)
         free = np.intersect1d(free_views, np.flatnonzero(counts >= 1))
         if len(free) < 2:
             continue
-        refit = _adjust(observed[keep], weight[keep], view_of[keep], renumber[ball_of[keep]], radii_mm[keep_ball],
-                        angles, balls[keep_ball], detector, geometry, free_views=free, fit_detector=fit_detector,
-                        scale_px=scale_px, loss=loss, side=side[keep], cut_px=np.asarray(cut_px)[keep_ball],
-                        edge=edge[keep])
+        refit = _adjust(left, radii_mm[keep_ball], angles, balls[keep_ball], detector, geometry, free_views=free,
+                        fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=np.asarray(cut_px)[keep_ball])
         moved = refit.angles[free] - angles[free]
         refits[k, free] = refit.angles[free] - np.mean(moved)
     se, n = np.full(V, np.nan), np.zeros(V, dtype=int)
@@ -891,9 +908,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             z = np.array([np.median(np.sin(angles[view_of[ball_of == b]]) * balls[b, 0]
                                     + np.cos(angles[view_of[ball_of == b]]) * balls[b, 2]) for b in range(len(balls))])
             radii_mm = radii_mm * (z + geometry.source_to_object_mm) / geometry.source_to_detector_mm
-            fit = _adjust(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector, geometry,
-                          free_views=free_views, fit_detector=fit_detector, scale_px=scale_px, loss=loss,
-                          side=side, cut_px=cut_px, edge=edge)
+            discs = _Discs(observed, weight, view_of, ball_of, side, edge)
+            fit = _adjust(discs, radii_mm, angles, balls, detector, geometry, free_views=free_views,
+                          fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=cut_px)
             fit_loss = loss   # the nominal fit below is made with the loss of the fit it is tested against
             angles, balls, detector, cut_px = fit.angles, fit.balls, fit.detector, fit.cut_px
             rms = float(np.sqrt(np.mean(fit.residual ** 2)))
@@ -943,9 +960,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         ball_weight, cut_px = np.append(ball_weight, np.ones(len(more))), np.append(cut_px, np.zeros(len(more)))
         start_angles, start_detector = angles.copy(), detector.copy()
         loss = "huber"
-    nominal_fit = _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, balls, detector, geometry,
-                          free_views=free_views, fit_angles=False, fit_detector=fit_detector, scale_px=scale_px,
-                          loss=fit_loss, side=side, cut_px=cut_px, edge=edge)
+    nominal_fit = _adjust(discs, radii_mm, theta0, balls, detector, geometry, free_views=free_views, fit_angles=False,
+                          fit_detector=fit_detector, scale_px=scale_px, loss=fit_loss, cut_px=cut_px)
     # The gauge row takes one unknown back: the angles add len(free_views) - 1 over the nominal fit.
     chi_corrected, dof = _chi_dof(fit)
     chi_nominal = float(np.sum(nominal_fit.residual ** 2))
@@ -964,9 +980,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     # bias a ball's discs share (a rim the clip cuts less where something below the clip lies behind it) is not.
     jack_se, jack_n = np.full(V, np.nan), np.zeros(V, dtype=int)
     if len(free_views) and extra > 0:
-        jack_se, jack_n = _jackknife_se(observed, weight, view_of, ball_of, radii_mm, angles, balls, detector,
-                                        geometry, free_views=free_views, fit_detector=fit_detector, scale_px=scale_px,
-                                        loss=fit_loss, side=side, cut_px=cut_px, edge=edge)
+        jack_se, jack_n = _jackknife_se(discs, radii_mm, angles, balls, detector, geometry, free_views=free_views,
+                                        fit_detector=fit_detector, scale_px=scale_px, loss=fit_loss, cut_px=cut_px)
     # Beyond the allowed standard error by more than the jackknife's own spread: its variance is about chi-square
     # with one fewer degrees of freedom than the refits, so it exceeds the bar where that chi-square does at p_value.
     with np.errstate(invalid="ignore"):
@@ -1034,10 +1049,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     returned, returned_cov = (fit, cov) if kept else (nominal_fit, _covariance(nominal_fit) if fit_detector else None)
     detector_kept, detector_reason = _detector_verdict(
         returned, kept, fit_detector, p_value, nominal_as_good=math.isfinite(p) and p >= p_value and not len(lost),
-        scan_fit=lambda: _adjust(observed, weight, view_of, ball_of, radii_mm, theta0, nominal_fit.balls,
+        scan_fit=lambda: _adjust(discs, radii_mm, theta0, nominal_fit.balls,
                                  np.array([geometry.u0_px, geometry.v0_px, 0.0]), geometry, free_views=free_views,
-                                 fit_angles=False, fit_detector=False, scale_px=scale_px, loss=fit_loss, side=side,
-                                 cut_px=nominal_fit.cut_px, edge=edge))
+                                 fit_angles=False, fit_detector=False, scale_px=scale_px, loss=fit_loss,
+                                 cut_px=nominal_fit.cut_px))
     detector = returned.detector
     return BallCalibration(angles_deg=corrected if kept else nominal.copy(), corrected_deg=corrected,
                            angle_se_deg=se, kept=kept, reason=reason, balls_mm=balls, u0_px=float(detector[0]),
