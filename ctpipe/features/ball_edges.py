@@ -373,9 +373,16 @@ def _centre_se(points: np.ndarray, x0: float, y0: float, radius: float) -> float
     """A circle's centre's standard error (px) from the points it was fitted to: their radial residuals' robust
     spread (1.4826 MAD), over the ``sqrt(n / 2)`` of points spread evenly round it, only the fitting ones counted."""
     residual = np.hypot(points[:, 0] - x0, points[:, 1] - y0) - radius
-    spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
-    fitting = np.count_nonzero(np.abs(residual - np.median(residual)) < 4.685 * max(spread, 0.05))
+    spread, cut = _biweight_scale(residual)
+    fitting = np.count_nonzero(np.abs(residual - np.median(residual)) < cut)
     return spread * math.sqrt(2.0 / max(fitting, 1))
+
+
+def _biweight_scale(residual: np.ndarray) -> tuple[float, float]:
+    """The residuals' robust spread (1.4826 times their median absolute deviation) and Tukey's biweight cut-off at
+    4.685 of it (0.05 px at least: rim points on a clean circle agree to a few hundredths of a pixel)."""
+    spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+    return spread, 4.685 * max(spread, 0.05)
 
 
 def _clip_level(g: np.ndarray) -> float | None:
@@ -462,8 +469,7 @@ def _robust_circle(points: np.ndarray, iterations: int = 10):
             return None
         radius = math.sqrt(squared)
         residual = np.hypot(points[:, 0] - x0, points[:, 1] - y0) - radius
-        scale = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
-        cut = 4.685 * max(scale, 0.05)
+        _, cut = _biweight_scale(residual)
         weights = np.where(np.abs(residual) < cut, (1.0 - (residual / cut) ** 2) ** 2, 0.0)
         if weights.sum() < 6:
             return None

@@ -916,9 +916,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             rms = float(np.sqrt(np.mean(fit.residual ** 2)))
             # A "ball" that fits far worse than the others in most of its views (its residuals' robust spread), or is
             # seen in too few views, is not one (dust that lined up by chance, a merged pair): it is dropped and the
-            # adjustment made again. Judged
-            # without the weights, which would otherwise hide how badly it fits: a faint ball whose discs
-            # are mostly flagged across a clip edge is judged by how far they are off, not by their weight.
+            # adjustment made again. Judged without the weights, which would otherwise hide how badly it fits: a faint
+            # ball whose discs are mostly flagged across a clip edge is judged by how far they are off, not by their
+            # weight.
             unweighted = fit.residual / weight[:, None]   # also what the next round's weights are set from
             per_ball = np.array([_robust_spread_px(unweighted[ball_of == b]) if np.any(ball_of == b) else np.inf
                                  for b in range(len(balls))])
