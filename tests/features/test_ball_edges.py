@@ -107,12 +107,16 @@ def test_a_start_pixels_off_is_cast_again_until_the_rim_settles():
         assert np.hypot(refined[0, 0] - centre[0], refined[0, 1] - centre[1]) < 0.04
 
 
-def test_a_faint_rim_running_onto_a_holders_faint_edge_is_flagged():
+def test_a_faint_rim_running_onto_a_holders_faint_edge_is_flagged(monkeypatch):
     """The clip cuts a faint rim deeper over the open beam than where a holder lifts what lies beyond it;
     a holder's faint edge, its line integrals under the clip level, reads clipped like the open beam, so
     one ring 3 px out reads all of such a disc's outside clipped. Its rays tell: those whose every pixel
     out to 15 % of the radius further reads the clip level (the open beam) against those that reach the
-    holder. A disc wholly over the open beam, specks of dust beside its rim, is not flagged."""
+    holder. A disc wholly over the open beam, specks of dust beside its rim, is not flagged. (Such a rim, cut near
+    the rim, is placed by its profile instead, below; the flag is for the rims that profile does not place.)"""
+    from ctpipe.features import ball_edges
+
+    monkeypatch.setattr(ball_edges, "_uncut_rim", lambda *args: None)
     shape = (700, 1000)
     rng = np.random.default_rng(3)
     rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
@@ -135,9 +139,11 @@ def test_a_faint_rim_on_a_holders_faint_edge_that_reads_as_the_open_beam_is_flag
     radius beyond the rim) looks like the open beam there, yet lifts the rim the clip would cut: rubies
     whose rims lie on the rod's faint edge were 0.16-0.22 px off, unflagged, and set the worst view of
     every 17-view scan of the mixed ball phantom (issue 34). Read out to half the radius, those rays
-    reach the holder's body above the clip level: flagged 3. The side is still the first band's."""
+    reach the holder's body above the clip level: flagged 3. The side is still the first band's. (For the rims the
+    profile inside the cut does not place.)"""
     from ctpipe.features import ball_edges
 
+    monkeypatch.setattr(ball_edges, "_uncut_rim", lambda *args: None)
     shape = (700, 1000)
     rng = np.random.default_rng(4)
     rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
@@ -154,6 +160,35 @@ def test_a_faint_rim_on_a_holders_faint_edge_that_reads_as_the_open_beam_is_flag
     assert np.all(side == 0.0)                                   # every ray's first band reads the plateau
     monkeypatch.setattr(ball_edges, "_REACH_FRACTION", ball_edges._BAND_FRACTION)
     assert list(edge_centres(clipped, start)[:, 4]) == [0, 0]    # the first band alone does not tell
+
+
+def test_a_solid_balls_rim_cut_unevenly_by_a_clip_is_placed_by_its_profile_inside_the_cut(monkeypatch):
+    """A clip cuts a steel-like ball's rim a third of a pixel deep over the open beam and less over a holder under the
+    clip level, which reads as the open beam beside it: the rim's circle is pulled a fifth of a pixel towards the
+    holder, and nothing flags it (the harsh clip's solid balls: views refused). The profile inside the cut, a sphere's
+    chord over a background per ray, places it within a few hundredths of a pixel and its radius near the uncut one.
+    A faint ball, which the clip cuts deep, is not placed so: its rim and flag are what they were."""
+    from ctpipe.features import ball_edges
+
+    shape = (600, 900)
+    rng = np.random.default_rng(6)
+    rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    holder = 2 * 0.0004 * np.sqrt(np.clip(150.0 ** 2 - (cols - 300.0) ** 2, 0.0, None))   # a rod under the clip
+    centres = [(450.3, 300.6), (700.2, 290.4), (180.6, 120.2)]     # across the rod's edge (450); open beam; faint
+    image = holder + sum(_ball(shape, c, 60.0, 0.017) for c in centres[:2]) + _ball(shape, centres[2], 60.0, 0.003)
+    image = ndimage.gaussian_filter(image, 0.7) + rng.normal(0.0, 0.005, shape)
+    clipped = _clipped(image, 0.2)
+    assert np.all(clipped[420:440, 300:460] == 0.0) and holder.max() < 0.2   # the holder reads as the open beam
+    start = np.array([[c[0] + 0.5, c[1] - 0.5, 60.0, 1.0, 0.0] for c in centres])
+    placed, edge = edge_centres(clipped, start, edge_radius=True)
+    monkeypatch.setattr(ball_edges, "_uncut_rim", lambda *args: None)
+    rim = edge_centres(clipped, start)
+    assert rim[0, 0] - centres[0][0] < -0.15 and rim[0, 4] == 0             # pulled towards the holder, unflagged
+    for k in range(2):
+        assert np.hypot(placed[k, 0] - centres[k][0], placed[k, 1] - centres[k][1]) < 0.05
+        assert abs(placed[k, 2] - 60.0) < 0.5 < abs(rim[k, 2] - 60.0)        # the rim's circle: 1.5 px inside
+    assert np.allclose(edge[:2], placed[:2, 2]) and list(placed[:2, 4]) == [0, 0]
+    assert np.array_equal(placed[2], rim[2])
 
 
 def _hollow_crowd():
