@@ -115,6 +115,8 @@ _INNER_SE_RATIO, _INNER_SE_PX, _INNER_MAX_SE_PX = 2.0, 0.02, 0.05
 #: A solid ball's rim where a clip cut it (:func:`_uncut_rim`): the profile is read from this fraction of the radius
 #: inside the rim, and this far beyond it (px) to find the cut ...
 _PROFILE_DEPTH, _PROFILE_BEYOND_PX = 0.1, 4.0
+#: ... the ball's profile shape (``a``, ``q``) from every _SHAPE_EVERY-th ray ...
+_SHAPE_EVERY = 4
 #: ... where the line integrals first read within _CLIP_MARGIN of the clip level (5 % of the counts at the clip) ...
 _CLIP_MARGIN = 0.05
 #: ... the clip's plateau starts within this of it (px) ...
@@ -274,8 +276,9 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     Along each ray from the rim's centre, the raw line integrals from ``_PROFILE_DEPTH`` of the radius inside the rim
     out to where they first read within ``_CLIP_MARGIN`` of the clip level (the cut; less ``_PROFILE_GAP_PX``, where
     the blur mixes in the clip) are fitted by a sphere's chord over the ball's own background,
-    ``a sqrt(R^2 - r^2) + b``: ``a`` one for the ball (the median of a first fit with it free on every ray), ``R``
-    (the rim, uncut) and ``b`` (what lies behind, the clip's offset included) per ray. The clip cuts the rim where
+    ``f(sqrt(R^2 - r^2)) + b`` with ``f(c) = a c + q c^2`` (a polychromatic beam hardens through a dense ball, which
+    bends its profile): ``a`` and ``q`` one for the ball (the medians of a first fit with them free on every ray),
+    ``R`` (the rim, uncut) and ``b`` (what lies behind, the clip's offset included) per ray. The clip cuts the rim where
     the chord reads the clip less ``b``: deeper where nothing lies behind (the open beam) than over a holder the clip
     hides, which ``b`` per ray takes out. Each ray's ``R`` is searched over ``_UNCUT_SEARCH_PX`` beyond its cut; a ray
     that fits the sphere ``_MISFIT_RATIO`` times worse than the median ray meets something else (a neighbour's edge,
@@ -313,17 +316,19 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     if (reaches[:half] & reaches[half:]).sum() < _MIN_REACH * half:
         return None
     rim = np.full(len(rays), np.nan)
-    slope, _, _, _ = _profile_fit(values[reaches], use[reaches], radii, cut[reaches], None)
-    a = float(np.median(slope))
+    some = reaches & (np.arange(len(rays)) % _SHAPE_EVERY == 0)      # the medians need no more
+    shapes, _, _, _ = _profile_fit(values[some], use[some], radii, cut[some])
+    a, q = np.median(shapes, axis=0)
     if not a > 0:
         return None
-    _, background, fitted_rim, misfit = _profile_fit(values[reaches], use[reaches], radii, cut[reaches], a)
+    _, background, fitted_rim, misfit = _profile_fit(values[reaches], use[reaches], radii, cut[reaches], (a, q))
     fitted = np.isfinite(fitted_rim)
     if not fitted.any():
         return None
     fitted &= misfit <= _MISFIT_RATIO * float(np.median(misfit[fitted]))
     rim[np.flatnonzero(reaches)[fitted]] = fitted_rim[fitted]
-    chord = (clip + _CLIP_MARGIN - background[fitted]) / a
+    level = clip + _CLIP_MARGIN - background[fitted]       # what f(chord) reads at the cut: its smaller root
+    chord = (np.sqrt(np.maximum(a * a + 4.0 * q * level, 0.0)) - a) / (2.0 * q) if abs(q) > 1e-12 else level / a
     implied = fitted_rim[fitted] - np.sqrt(np.maximum(fitted_rim[fitted] ** 2 - chord ** 2, 0.0))
     if abs(float(np.median(fitted_rim[fitted] - cut[reaches][fitted])) - float(np.median(implied))) > \
             _CUT_AGREEMENT_PX:
@@ -363,31 +368,35 @@ def _robust_offset(along: np.ndarray, offset: np.ndarray, iterations: int = 10):
     return (float(shift[0]), float(shift[1])), spread / math.sqrt(max(moments[0], 1e-12))
 
 
-def _profile_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, cut: np.ndarray, a: float | None):
-    """Per ray, ``(a, b, R, misfit)`` of ``a sqrt(R^2 - r^2) + b`` fitted to ``values`` where ``use`` (least squares;
-    ``a`` held where given): ``R`` searched over ``_UNCUT_SEARCH_PX`` beyond each ray's ``cut``, on a coarse grid then
-    a fine one around its least, then to a fraction of a step (a parabola through the sums of squares around the
-    least); NaN where the least lies at either end of the search. The misfit is the residuals' root mean square."""
+def _profile_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, cut: np.ndarray, shape=None):
+    """Per ray, ``(shape, b, R, misfit)`` of ``f(sqrt(R^2 - r^2)) + b``, ``f(c) = a c + q c^2`` (beam hardening bends a
+    dense ball's profile: ``q`` < 0), fitted to ``values`` where ``use`` (least squares; ``shape``, ``(a, q)``, held
+    where given, else fitted per ray and returned as (rays, 2)): ``R`` searched over ``_UNCUT_SEARCH_PX`` beyond each
+    ray's ``cut``, on a coarse grid then a fine one around its least, then to a fraction of a step (a parabola through
+    the sums of squares around the least); NaN where the least lies at either end of the search. The misfit is the
+    residuals' root mean square."""
     weight = use.astype(np.float64)
     count = weight.sum(axis=1)
-    mean_value = (values * weight).sum(axis=1) / count
 
     def sums(rims: np.ndarray):
-        """Sums of squares, slopes and backgrounds (rays, candidates) of the candidate rims (rays, candidates)."""
-        sse, slope, level = np.empty(rims.shape), np.empty(rims.shape), np.empty(rims.shape)
+        """Sums of squares, shapes and backgrounds of the candidate rims (rays, candidates)."""
+        sse, level = np.empty(rims.shape), np.empty(rims.shape)
+        fitted = np.empty(rims.shape + (2,))
         for j in range(rims.shape[1]):
             chord = np.sqrt(np.maximum(rims[:, j, None] ** 2 - radii[None, :] ** 2, 0.0))
-            if a is None:
-                centred = (chord - ((chord * weight).sum(axis=1) / count)[:, None]) * weight
-                s = (centred * (values - mean_value[:, None])).sum(axis=1) / np.maximum((centred ** 2).sum(axis=1),
-                                                                                         1e-12)
+            if shape is None:
+                basis = np.stack([chord, chord ** 2, np.ones_like(chord)], axis=-1)
+                normal = np.einsum("rsi,rsj,rs->rij", basis, basis, weight) + 1e-12 * np.eye(3)
+                coef = np.linalg.solve(normal, np.einsum("rsi,rs,rs->ri", basis, values, weight)[..., None])[..., 0]
+                model = np.einsum("rsi,ri->rs", basis, coef)
+                fitted[:, j], level[:, j] = coef[:, :2], coef[:, 2]
             else:
-                s = np.full(len(values), a)
-            rest = values - s[:, None] * chord
-            b = (rest * weight).sum(axis=1) / count
-            sse[:, j] = (((rest - b[:, None]) * weight) ** 2).sum(axis=1)
-            slope[:, j], level[:, j] = s, b
-        return sse, slope, level
+                rest = values - shape[0] * chord - shape[1] * chord ** 2
+                b = (rest * weight).sum(axis=1) / count
+                model = values - rest + b[:, None]
+                fitted[:, j], level[:, j] = shape, b
+            sse[:, j] = (((values - model) * weight) ** 2).sum(axis=1)
+        return sse, fitted, level
 
     lo, hi, step = _UNCUT_SEARCH_PX
     coarse = np.arange(lo, hi + 0.5 * step, _COARSE_STEPS * step)
@@ -395,7 +404,7 @@ def _profile_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, cut: np
     centre = cut + np.clip(coarse[np.argmin(sse, axis=1)], lo + _COARSE_STEPS * step, hi - _COARSE_STEPS * step)
     fine = np.arange(-_COARSE_STEPS, _COARSE_STEPS + 1) * step
     rims = centre[:, None] + fine[None, :]
-    sse, slope, level = sums(rims)
+    sse, fitted, level = sums(rims)
     rows = np.arange(len(values))
     least = np.argmin(sse, axis=1)
     j = np.clip(least, 1, len(fine) - 2)
@@ -405,7 +414,7 @@ def _profile_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, cut: np
     rim = rims[rows, j] + np.clip(offset, -1.0, 1.0) * step
     inside = (least > 0) & (least < len(fine) - 1) & (rim - cut > lo) & (rim - cut < hi)
     misfit = np.sqrt(sse[rows, least] / count)
-    return slope[rows, least], level[rows, least], np.where(inside, rim, np.nan), misfit
+    return fitted[rows, least], level[rows, least], np.where(inside, rim, np.nan), misfit
 
 
 #: Rim seeds: a circle's votes must reach this fraction of the strongest circle's in the view.

@@ -162,12 +162,14 @@ def test_a_faint_rim_on_a_holders_faint_edge_that_reads_as_the_open_beam_is_flag
     assert list(edge_centres(clipped, start)[:, 4]) == [0, 0]    # the first band alone does not tell
 
 
-def test_a_solid_balls_rim_cut_unevenly_by_a_clip_is_placed_by_its_profile_inside_the_cut(monkeypatch):
+@pytest.mark.parametrize("hardening", [0.0, 0.2])
+def test_a_solid_balls_rim_cut_unevenly_by_a_clip_is_placed_by_its_profile_inside_the_cut(monkeypatch, hardening):
     """A clip cuts a steel-like ball's rim a third of a pixel deep over the open beam and less over a holder under the
     clip level, which reads as the open beam beside it: the rim's circle is pulled a fifth of a pixel towards the
     holder, and nothing flags it (the harsh clip's solid balls: views refused). The profile inside the cut, a sphere's
-    chord over a background per ray, places it within a few hundredths of a pixel and its radius near the uncut one.
-    A faint ball, which the clip cuts deep, is not placed so: its rim and flag are what they were."""
+    chord over a background per ray, places it within a few hundredths of a pixel and its radius near the uncut one,
+    also where a hardened beam bends the profile (``p - 0.2 p^2``: 2.0 reads 1.2). A faint ball, which the clip cuts
+    deep, is not placed so: its rim and flag are what they were."""
     from ctpipe.features import ball_edges
 
     shape = (600, 900)
@@ -175,7 +177,8 @@ def test_a_solid_balls_rim_cut_unevenly_by_a_clip_is_placed_by_its_profile_insid
     rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
     holder = 2 * 0.0004 * np.sqrt(np.clip(150.0 ** 2 - (cols - 300.0) ** 2, 0.0, None))   # a rod under the clip
     centres = [(450.3, 300.6), (700.2, 290.4), (180.6, 120.2)]     # across the rod's edge (450); open beam; faint
-    image = holder + sum(_ball(shape, c, 60.0, 0.017) for c in centres[:2]) + _ball(shape, centres[2], 60.0, 0.003)
+    balls = sum(_ball(shape, c, 60.0, 0.017) for c in centres[:2]) + _ball(shape, centres[2], 60.0, 0.003)
+    image = holder + balls - hardening * balls ** 2
     image = ndimage.gaussian_filter(image, 0.7) + rng.normal(0.0, 0.005, shape)
     clipped = _clipped(image, 0.2)
     assert np.all(clipped[420:440, 300:460] == 0.0) and holder.max() < 0.2   # the holder reads as the open beam
@@ -262,6 +265,7 @@ def test_a_coated_balls_centre_comes_from_its_shells_inside_where_a_clip_cuts_it
     assert list(refined[:, 4]) == [0, 0]          # the clip's cut is the rim's: no flag for the inner edge
     # The rim alone: the ball over the holder's edge pulled a tenth of a pixel or more towards it.
     monkeypatch.setattr(ball_edges, "_inner_edge", lambda *args: None)
+    monkeypatch.setattr(ball_edges, "_uncut_rim", lambda *args: None)
     rim, edge = edge_centres(view, start, edge_radius=True)
     assert refined[0, 0] - rim[0, 0] > 0.1 and np.allclose(edge, rim[:, 2])
 
