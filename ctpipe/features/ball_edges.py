@@ -317,6 +317,8 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
         return None
     rim = np.full(len(rays), np.nan)
     some = reaches & (np.arange(len(rays)) % _SHAPE_EVERY == 0)      # the medians need no more
+    if not some.any():
+        return None
     shapes, _, _, _ = _profile_fit(values[some], use[some], radii, cut[some])
     a, q = np.median(shapes, axis=0)
     if not a > 0:
