@@ -226,21 +226,19 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
             if out[k, 4] != _TRUNCATED:
                 out[k, 4] = _OVERLAP if clean < _MIN_CLEAN * len(direction) or out[k, 4] == _OVERLAP else 0
             continue
-        if clip is not None and out[k, 4] != _TRUNCATED:
-            uncut = _uncut_rim(g, x0, y0, radius, direction, clip, rim_se)
-            if uncut is not None:
-                # The rim the clip cut, placed where the ball's own profile ends: the cut no longer pulls the centre.
-                out[k, 0], out[k, 1], out[k, 2] = uncut
-                edge[k] = uncut[2]
-                if clean < _MIN_CLEAN * len(direction):
-                    out[k, 4] = max(out[k, 4], _OVERLAP)
-                continue
         if clean < _MIN_CLEAN * len(direction):
             out[k, 4] = max(out[k, 4], _OVERLAP)
-        if clip is not None and out[k, 4] != _TRUNCATED:
-            mixed, side[k] = _across_clip(g, x0, y0, radius, direction, clip)
-            if mixed:
-                out[k, 4] = _ACROSS_CLIP
+        if clip is None or out[k, 4] == _TRUNCATED:
+            continue
+        uncut = _uncut_rim(g, x0, y0, radius, direction, clip, rim_se)
+        if uncut is not None:
+            # The rim the clip cut, placed where the ball's own profile ends: the cut no longer pulls the centre.
+            out[k, 0], out[k, 1], out[k, 2] = uncut
+            edge[k] = uncut[2]
+            continue
+        mixed, side[k] = _across_clip(g, x0, y0, radius, direction, clip)
+        if mixed:
+            out[k, 4] = _ACROSS_CLIP
     return result()
 
 
@@ -299,11 +297,10 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     half = (len(direction) + 1) // 2
     rays = _directions(2 * half)
     radii = np.arange((1.0 - _PROFILE_DEPTH) * radius, radius + _PROFILE_BEYOND_PX, _STEP_PX)
-    xs = x0 + rays[:, 0, None] * radii[None, :]
-    ys = y0 + rays[:, 1, None] * radii[None, :]
-    if xs.min() < 0 or ys.min() < 0 or xs.max() > g.shape[1] - 1 or ys.max() > g.shape[0] - 1:
+    values, inside = _along_rays(g, x0, y0, radii, rays)
+    if not inside.all():
         return None
-    values = ndimage.map_coordinates(g, [ys.ravel(), xs.ravel()], order=1).reshape(xs.shape).astype(np.float64)
+    values = values.astype(np.float64)
     above = values > clip + _CLIP_MARGIN
     reaches = ~above.all(axis=1)
     cut = radii[np.where(reaches, np.argmin(above, axis=1), len(radii) - 1)]
@@ -360,8 +357,7 @@ def _robust_offset(along: np.ndarray, offset: np.ndarray, iterations: int = 10):
         w = np.sqrt(weights)
         shift, *_ = np.linalg.lstsq(along * w[:, None], offset * w, rcond=None)
         residual = offset - along @ shift
-        _, cut = _biweight_scale(residual)
-        weights = np.where(np.abs(residual) < cut, (1.0 - (residual / cut) ** 2) ** 2, 0.0)
+        weights = _biweight_weights(residual)
         if np.count_nonzero(weights) < 6:
             return None
     spread, _ = _biweight_scale(residual)
@@ -535,10 +531,7 @@ def _steepest(smooth: np.ndarray, cx: float, cy: float, radii: np.ndarray, direc
     Returns that radius per ray, whether the ray lies in the image and falls (rises) there, and whether the steepest
     slope lies inside the window rather than at either end of it.
     """
-    xs = cx + direction[:, 0, None] * radii[None, :]
-    ys = cy + direction[:, 1, None] * radii[None, :]
-    inside = (xs >= 0) & (ys >= 0) & (xs <= smooth.shape[1] - 1) & (ys <= smooth.shape[0] - 1)
-    values = ndimage.map_coordinates(smooth, [ys.ravel(), xs.ravel()], order=1, mode="nearest").reshape(xs.shape)
+    values, inside = _along_rays(smooth, cx, cy, radii, direction)
     slope = np.diff(values, axis=1)                  # a rim falls outwards, a shell's inside rises
     peak = np.argmax(slope, axis=1) if rising else np.argmin(slope, axis=1)
     j = np.clip(peak, 1, slope.shape[1] - 2)
@@ -549,6 +542,16 @@ def _steepest(smooth: np.ndarray, cx: float, cy: float, radii: np.ndarray, direc
     edge = radii[0] + (j + 0.5 + np.clip(offset, -0.5, 0.5)) * _STEP_PX
     changes = (b > 0.0) if rising else (b < 0.0)
     return edge, inside.all(axis=1) & changes, (peak > 0) & (peak < slope.shape[1] - 1)
+
+
+def _along_rays(image: np.ndarray, cx: float, cy: float, radii: np.ndarray, direction: np.ndarray):
+    """``image`` sampled (bilinear) along each ray from ``(cx, cy)`` at ``radii``, shape (rays, radii), and whether
+    each sample lies in the image."""
+    xs = cx + direction[:, 0, None] * radii[None, :]
+    ys = cy + direction[:, 1, None] * radii[None, :]
+    inside = (xs >= 0) & (ys >= 0) & (xs <= image.shape[1] - 1) & (ys <= image.shape[0] - 1)
+    values = ndimage.map_coordinates(image, [ys.ravel(), xs.ravel()], order=1, mode="nearest").reshape(xs.shape)
+    return values, inside
 
 
 def _circle(points: np.ndarray):
@@ -574,6 +577,12 @@ def _biweight_scale(residual: np.ndarray) -> tuple[float, float]:
     4.685 of it (0.05 px at least: rim points on a clean circle agree to a few hundredths of a pixel)."""
     spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
     return spread, 4.685 * max(spread, 0.05)
+
+
+def _biweight_weights(residual: np.ndarray) -> np.ndarray:
+    """Tukey's biweight of each residual, at the cut-off :func:`_biweight_scale` sets (0 beyond it)."""
+    _, cut = _biweight_scale(residual)
+    return np.where(np.abs(residual) < cut, (1.0 - (residual / cut) ** 2) ** 2, 0.0)
 
 
 def _clip_level(g: np.ndarray) -> float | None:
@@ -660,8 +669,7 @@ def _robust_circle(points: np.ndarray, iterations: int = 10):
             return None
         radius = math.sqrt(squared)
         residual = np.hypot(points[:, 0] - x0, points[:, 1] - y0) - radius
-        _, cut = _biweight_scale(residual)
-        weights = np.where(np.abs(residual) < cut, (1.0 - (residual / cut) ** 2) ** 2, 0.0)
+        weights = _biweight_weights(residual)
         if weights.sum() < 6:
             return None
     # The final geometric refinement: Gauss-Newton on the distances, the biweights held.
