@@ -468,9 +468,12 @@ class ScanResult:
                             f"z {evidence:+.1f} against the nominal ones)"))
         balls = self.refiner_info.get("balls")
         if isinstance(balls, dict):
-            shells = balls.get("shell_observations", 0)
-            placed = (f" ({shells} of the {balls['observations']} discs fitted placed on a hollow or coated ball's "
-                      f"inner edge, which no clip or neighbour beyond the rim moves)" if shells else "")
+            shells, left_out = balls.get("shell_observations", 0), balls.get("left_out", 0)
+            notes = ([f"{shells} of the {balls['observations']} discs fitted placed on a hollow or coated ball's "
+                      f"inner edge, which no clip or neighbour beyond the rim moves"] if shells else []) + \
+                ([f"{left_out} disc(s) left out as gross errors, pixels off their ball where the rest of their view "
+                  f"and ball fit (balls merged into one disc)"] if left_out else [])
+            placed = f" ({'; '.join(notes)})" if notes else ""
             lines.append(f"refiner: ball calibration, {balls['balls']} balls followed through the views{placed}, "
                          f"{'the corrected angles kept' if balls['kept'] else 'the nominal angles returned'}: "
                          f"{balls['reason']}")

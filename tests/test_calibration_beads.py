@@ -55,6 +55,10 @@ def test_every_view_of_a_16_view_ball_bar_scan_within_two_hundredths_of_a_degree
     assert (f"7 balls followed through the views (40 of the {balls['observations']} discs fitted placed on a hollow "
             f"or coated ball's inner edge, which no clip or neighbour beyond the rim moves), the corrected angles "
             f"kept" in result.summary())
+    # No disc left out as a gross error, and the line does not speak of one; where some were, it says how many.
+    assert balls["left_out"] == 0 and "left out" not in result.summary()
+    balls["left_out"] = 3
+    assert "moves; 3 disc(s) left out as gross errors, pixels off their ball" in result.summary()
 
 
 def test_estimate_on_a_ball_scan_folder_needs_only_the_pipeline(ball_bar_scan, tmp_path, capsys, monkeypatch):

@@ -658,3 +658,28 @@ def test_a_ball_given_a_wrong_disc_where_it_crosses_another_is_still_followed():
     found = calibrate_balls(detections, GEOMETRY, nominal)
     assert len(found.balls_mm) == len(BALLS) and found.kept
     assert np.abs(view_errors_deg(found.angles_deg, truth)).max() < 0.01
+
+
+def test_discs_pixels_off_where_balls_merge_are_left_out_and_the_correction_stands():
+    """Two or three balls at one height a few tens of pixels apart are found as one disc, 10-13 px from each and
+    about their size: within the assignment's reach and its size check. Held in the adjustment, even at a robust
+    loss's weight, they swell the residuals and every view's standard error, and a scan whose other discs all fit
+    to hundredths was refused (seven coated balls at one height, when written). Left out where the rest of their
+    view and ball fit, the correction stands, and the result says how many."""
+    rng = np.random.default_rng(23)
+    nominal = np.linspace(0.0, 360.0, 17)
+    truth = nominal + np.clip(rng.normal(0.0, 0.5, 17), -1.5, 1.5)
+    detections = _detections(truth, BALLS, 2.5, u0_px=1001.0, seed=23)
+    merged = [(1, 0), (3, 2), (5, 4), (8, 1), (10, 3), (12, 5), (14, 0), (15, 2)]    # (view, ball) pairs
+    for view, ball in merged:
+        uv = ellipse_centres(BALLS[ball:ball + 1], np.full(1, 2.5), np.full(1, np.deg2rad(truth[view])), GEOMETRY,
+                             1001.0, GEOMETRY.v0_px, 0.0)[0]
+        k = int(np.argmin(np.hypot(*(detections[view][:, :2] - uv).T)))
+        direction = rng.uniform(0.0, 2.0 * np.pi)
+        detections[view][k, :2] += rng.uniform(10.0, 13.0) * np.array([np.cos(direction), np.sin(direction)])
+        detections[view][k, 2] *= 1.05
+    result = calibrate_balls(detections, GEOMETRY, nominal)
+    error = (result.angles_deg - truth) - np.median(result.angles_deg - truth)
+    assert result.kept, result.reason
+    assert np.abs(error).max() < 0.01 and result.rms_px < 0.05
+    assert result.left_out == len(merged) and result.to_dict()["left_out"] == len(merged)
