@@ -615,11 +615,12 @@ def _flag_weights(residual_px: np.ndarray, flag: np.ndarray, gross_px: float = n
 
 
 def _leave_out_gross(gross: list, off_px: np.ndarray, gross_px: float, view_of: np.ndarray, ball_of: np.ndarray,
-                     index_of: np.ndarray, min_views: int) -> None:
+                     index_of: np.ndarray, min_views: int) -> int:
     """Mark in ``gross`` (per view, per disc index) the discs off their ball by more than ``gross_px`` (a settled
     round's unweighted distances ``off_px``), where their view's and their ball's discs otherwise fit (their lower
     medians within :data:`_LOST_VIEW_PX`), the grossest first, as long as the view keeps two discs and the ball
-    ``min_views`` (what the adjustment needs of them): the rounds after leave them out.
+    ``min_views`` (what the adjustment needs of them): the rounds after leave them out. Returns how many it marked
+    (where the last round marked some, one more is made without them).
 
     Two or three balls at one height, their projections a few tens of pixels apart, are found as one disc, 10-13 px
     from each, within the assignment's reach (a quarter of a radius) and its size check (the merged disc 5 % larger).
@@ -634,6 +635,7 @@ def _leave_out_gross(gross: list, off_px: np.ndarray, gross_px: float, view_of: 
     ball_typical = {b: _lower_median(off_px[ball_of == b]) for b in np.unique(ball_of)}
     view_left = dict(zip(*np.unique(view_of, return_counts=True)))
     ball_left = dict(zip(*np.unique(ball_of, return_counts=True)))
+    marked = 0
     for j in sorted(np.flatnonzero(off_px > gross_px), key=lambda j: -off_px[j]):
         v, b = view_of[j], ball_of[j]
         if view_typical[v] <= _LOST_VIEW_PX and ball_typical[b] <= _LOST_VIEW_PX and view_left[v] > 2 and \
@@ -641,6 +643,8 @@ def _leave_out_gross(gross: list, off_px: np.ndarray, gross_px: float, view_of: 
             gross[v][index_of[j]] = True
             view_left[v] -= 1
             ball_left[b] -= 1
+            marked += 1
+    return marked
 
 
 def _first_flag_weights() -> np.ndarray:
@@ -919,7 +923,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     dropped = False
     gross = [np.zeros(len(found), bool) for found in detections]   # discs left out as gross errors
     for readmitted in (False, True):
-        done = 0
+        done = again = 0
         while done < rounds:   # a round that drops a ball does not count (at most all but two are dropped)
             if fit is not None:
                 angles = _relocate_views(detections, balls, radii_mm, angles, theta0, error_rad, geometry, detector)
@@ -983,7 +987,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             off_px = np.hypot(*unweighted.T)
             gross_px = max(_GROSS_PX, _GROSS_SCALES * 1.4826 * float(np.median(off_px)))
             flag_weight = _flag_weights(unweighted, flagged, gross_px)
-            _leave_out_gross(gross, off_px, gross_px, view_of, ball_of, np.array(index_of, dtype=int), min_views)
+            if _leave_out_gross(gross, off_px, gross_px, view_of, ball_of, np.array(index_of, dtype=int),
+                                min_views) and done == rounds and again < rounds:
+                done, again = done - 1, again + 1   # the adjustment is made again without the discs just left out
             loss = _SETTLED_LOSS
         if readmitted or not dropped:
             break
