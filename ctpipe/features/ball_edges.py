@@ -10,10 +10,11 @@ hollow balls 110-190 px across (``docs/calibration-phantoms.md``).
 Along rays from the detected centre, each rim point is the steepest fall of the line integrals
 within a quarter of the radius of the detected rim, to a fraction of a pixel (a parabola through
 the three samples around it), the rays sampling the view through a cubic spline: a bilinear
-sample's slope jumps at pixel edges and locks the steepest fall onto them (:func:`_smoothed_spline`). A circle is fitted to the rim points with iteratively reweighted
-least squares (Tukey's biweight on the points' distances from it), so an arc covered by another
-ball or a speck of dust drops out, and the rays are cast again from its centre until it moves less
-than 0.02 px (at most three times): rays from a start a pixel or more off cross the rim obliquely.
+sample's slope jumps at pixel edges and locks the steepest fall onto them (:func:`_smoothed_spline`).
+A circle is fitted to the rim points with iteratively reweighted least squares (Tukey's biweight on
+the points' distances from it), so an arc covered by another ball or a speck of dust drops out, and
+the rays are cast again from its centre until it moves less than 0.02 px (at most three times): rays
+from a start a pixel or more off cross the rim obliquely.
 On the mixed ball phantom found at half the radius it had been (balls 5-10 px on the binned view,
 starts up to a few pixels off), one pass gave views off by 0.025 and 0.035 deg (seeds 40 and 41 of
 ``benchmarks/bench_ball_phantom_mixed.py``), passes until it settles 0.0095 and 0.0106. The
