@@ -99,7 +99,7 @@ __all__ = ["edge_centres", "bright_view", "rim_seeds"]
 #: at 180 rays, 0.0033-0.0110 at 720 (0.5-0.7 px apart), no better at 1440
 #: (docs/calibration-phantoms.md); detection 10-20 % slower.
 _RAYS, _RAY_SPACING_PX, _STEP_PX = 180, 0.5, 0.25
-#: The step (px) along the rays where the steepest fall or rise is looked for. The spline's slope is smooth: on 20
+#: The step (px) along the rays where the steepest fall or rise is looked for. The spline's slope is smooth: on 22
 #: cached scans half-pixel steps placed the discs as quarter-pixel ones did (the same reprojection RMS), and detection
 #: took 5 % longer than bilinear sampling at quarter-pixel steps where quarter-pixel steps took 30 % longer.
 _EDGE_STEP_PX = 0.5
