@@ -92,7 +92,8 @@ from ctpipe.images import block_mean
 
 __all__ = ["edge_centres", "bright_view", "rim_seeds"]
 
-#: Rays per ball: one every half pixel along the rim, and at least this many; the step along them (px).
+#: Rays per ball: one every half pixel along the rim, and at least this many; the step (px) along them where a solid
+#: ball's profile inside a clip's cut is read (:func:`_uncut_rim`; edges are looked for in _EDGE_STEP_PX).
 #: At 180 rays (2-3 px apart on balls 60-80 px in radius) the rim's centre averaged less of the
 #: noise and of the steepest fall's sub-pixel bias, which differs from ray to ray: on seven
 #: cached 2000^2 scans of the mixed ball phantom (16-24 views), the worst view 0.0053-0.0192 deg
@@ -100,8 +101,9 @@ __all__ = ["edge_centres", "bright_view", "rim_seeds"]
 #: (docs/calibration-phantoms.md); detection 10-20 % slower.
 _RAYS, _RAY_SPACING_PX, _STEP_PX = 180, 0.5, 0.25
 #: The step (px) along the rays where the steepest fall or rise is looked for. The spline's slope is smooth: on 22
-#: cached scans half-pixel steps placed the discs as quarter-pixel ones did (the same reprojection RMS), and detection
-#: took 5 % longer than bilinear sampling at quarter-pixel steps where quarter-pixel steps took 30 % longer.
+#: cached scans half-pixel steps placed the discs as quarter-pixel ones did (the same reprojection RMS), and made
+#: detection 5 % slower than the bilinear quarter-pixel sampling before the spline, where quarter-pixel steps made it
+#: 30 % slower.
 _EDGE_STEP_PX = 0.5
 #: Where the rim is looked for: this fraction of the radius either side of the detected one.
 _WINDOW = 0.25
