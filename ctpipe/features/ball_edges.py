@@ -70,13 +70,13 @@ clip hides alike: nothing shows it beside the ball), the clip cuts a steel ball'
 the open beam and less over the holder, and the circle is pulled towards the holder unflagged: with the background
 clipped at 80 % of the open beam, steel balls of the mixed phantom were 0.1-0.27 px off in a third of the views and
 the calibration refused the scans (the balls disagreed by 0.02-0.06 deg). The profile inside the cut still shows
-where the ball ends: a sphere's chord over what lies behind it, fitted ray by ray (:func:`_uncut_rim`), the centre
-from opposite rays so that what the model gets wrong alike on every ray cancels. It places a solid ball whose rim
-falls onto the clip's plateau, all round (a rim that falls onto a holder above the clip is not cut), and whose
-profile the sphere explains (a faint ball cut deep is not). On those scans (seeds 8 and 9 of
-``benchmarks/bench_ball_phantom_mixed.py --saturation 0.8``) the discs it placed came within 0.05 px (from up
-to 0.24), and the worst views within 0.005 deg; on eight scans drawn after, within 0.006
-(``docs/calibration-phantoms.md``).
+where the ball ends: a sphere's chord over what lies behind it, seen through the detector's blur (which acts on the
+counts), fitted ray by ray (:func:`_uncut_rim`), the centre from opposite rays so that what the model gets wrong
+alike on every ray cancels. It places a solid ball whose rim falls onto the clip's plateau, all round (a rim that
+falls onto a holder above the clip is not cut), and whose profile the sphere explains (a faint ball cut deep is
+not). On those scans (seeds 8 and 9 of ``benchmarks/bench_ball_phantom_mixed.py --saturation 0.8``) the discs it
+placed came within 0.05 px (from up to 0.24), and the worst views within 0.005 deg; on eight scans drawn after,
+within 0.006 (``docs/calibration-phantoms.md``).
 """
 
 from __future__ import annotations
@@ -123,18 +123,36 @@ _INNER_SE_RATIO, _INNER_SE_PX, _INNER_MAX_SE_PX = 2.0, 0.02, 0.05
 #: A solid ball's rim where a clip cut it (:func:`_uncut_rim`): the profile is read from this fraction of the radius
 #: inside the rim, and this far beyond it (px) to find the cut ...
 _PROFILE_DEPTH, _PROFILE_BEYOND_PX = 0.1, 4.0
-#: ... the ball's profile shape (``a``, ``q``) from every _SHAPE_EVERY-th ray ...
-_SHAPE_EVERY = 4
+#: ... the ball's profile shape (``a``, ``q``, the blur) from every _SHAPE_EVERY-th ray (on the simulated hardened
+#: scans, every 4th placed the discs as every 8th did) ...
+_SHAPE_EVERY = 8
 #: ... where the line integrals first read within _CLIP_MARGIN of the clip level (5 % of the counts at the clip) ...
 _CLIP_MARGIN = 0.05
 #: ... the clip's plateau starts within this of it (px) ...
 _FLOOR_WITHIN_PX = 2.0
 #: ... the samples used end this far inside the cut (px), and a ray needs this many ...
 _PROFILE_GAP_PX, _MIN_PROFILE_SAMPLES = 0.5, 8
-#: ... its rim is searched from ``lo`` to ``hi`` px beyond its cut, in ``step``s (first _COARSE_STEPS at a time) ...
+#: ... a sharp chord's rim is searched from ``lo`` to ``hi`` px beyond its cut, in ``step``s (first _COARSE_STEPS at a
+#: time): the blurred profile's fit starts from it ...
 _UNCUT_SEARCH_PX, _COARSE_STEPS = (-0.5, 6.0, 0.05), 5
-#: ... half the rays or more must reach the clip, and the cut the fitted sphere implies agree with the seen one (px).
-_MIN_REACH, _CUT_AGREEMENT_PX = 0.5, 0.5
+#: ... which places the rim within this of the cut (px; over a holder the clip hides, the blur's tail beyond the rim
+#: reads above the clip, so the cut lies beyond the rim) ...
+_UNCUT_RANGE_PX = (-3.0, 6.0)
+#: ... half the rays or more must reach the clip ...
+_MIN_REACH = 0.5
+#: ... and the blurred sphere, one shape for the ball, fit them (their median misfit) within this many times as well as a
+#: sharp chord with each ray's own shape: the sphere must explain the profile. On simulated hardened scans of steel and
+#: titanium balls (``docs/calibration-phantoms.md``) the ratio was 0.35-1.32; on a coated ball cut by the clip, 1.83.
+_SPHERE_MISFIT_RATIO = 1.5
+#: The blurred profile (:func:`_blurred_profile`): its grid's step along the ray (px; at 0.125 the discs came the same)
+#: and the least blur (px) ...
+_FINE_PX, _MIN_BLUR_PX = 0.25, 0.05
+#: ... and its fit (:func:`_blurred_fit`): from a blur of _START_BLUR_PX, at most _FIT_ROUNDS rounds, until no rim moves
+#: by _FIT_SETTLED_PX; the shape ``(a, q, sigma)``'s derivatives from steps of _SHAPE_STEPS times the larger of each
+#: and _SHAPE_SCALES.
+_START_BLUR_PX = 1.0
+_FIT_ROUNDS, _FIT_SETTLED_PX = 30, 1e-3
+_SHAPE_STEPS, _SHAPE_SCALES = (1e-4, 1e-4, 1e-4), (1e-3, 1e-5, 0.1)
 #: A ray whose profile fits the sphere this many times worse than the median ray's meets something else.
 _MISFIT_RATIO = 2.0
 #: The opposite rays' pairs must spread round the turn: their directions' second moments' smaller eigenvalue (0.5 even).
@@ -281,26 +299,33 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
 
     Along each ray from the rim's centre, the raw line integrals from ``_PROFILE_DEPTH`` of the radius inside the rim
     out to where they first read within ``_CLIP_MARGIN`` of the clip level (the cut; less ``_PROFILE_GAP_PX``, where
-    the blur mixes in the clip) are fitted by a sphere's chord over the ball's own background,
-    ``f(sqrt(R^2 - r^2)) + b`` with ``f(c) = a c + q c^2`` (a polychromatic beam hardens through a dense ball, which
-    bends its profile): ``a`` and ``q`` one for the ball (the medians of a first fit with them free on every ray),
-    ``R`` (the rim, uncut) and ``b`` (what lies behind, the clip's offset included) per ray. The clip cuts the rim where
-    the chord reads the clip less ``b``: deeper where nothing lies behind (the open beam) than over a holder the clip
-    hides, which ``b`` per ray takes out. Each ray's ``R`` is searched over ``_UNCUT_SEARCH_PX`` beyond its cut; a ray
-    that fits the sphere ``_MISFIT_RATIO`` times worse than the median ray meets something else (a neighbour's edge,
-    a holder's ramp) and is left out.
+    the clip is mixed into the samples) are fitted by a sphere's chord seen through the detector's blur over the
+    ball's own background, ``b - log(G_sigma * exp(-f(sqrt(R^2 - r^2))))`` with ``f(c) = a c + q c^2`` (a
+    polychromatic beam hardens through a dense ball, which bends its profile; :func:`_blurred_profile`): ``a``,
+    ``q`` and the blur ``sigma`` one for the ball (fitted on every ``_SHAPE_EVERY``-th ray, from the medians of a
+    sharp chord's fit, ``sigma = 0``, with them free per ray), ``R`` (the rim, uncut) and ``b`` (what lies behind,
+    the clip's offset included) per ray. The clip cuts the rim where the profile reads the clip less ``b``: deeper
+    where nothing lies behind (the open beam) than over a holder the clip hides, which ``b`` per ray takes out. A ray
+    whose ``R`` ends outside ``_UNCUT_RANGE_PX`` of its cut, or that fits ``_MISFIT_RATIO`` times worse than the
+    median ray, meets something else (a neighbour's edge, a holder's ramp) and is left out.
 
-    The blur and the model's shape bias every ray's ``R`` alike (by tenths of a pixel), which moves a circle fitted to
-    an arc: rays over a holder above the clip never reach it, and a ball straddling the holder's edge is fitted on
-    half its rim. So the centre is taken from diametrically opposite rays that both fitted: half the difference of
-    their ``R`` is the centre's offset along them, whatever they share (a robust line fit, Tukey's biweight).
+    The blur is modelled because a sharp chord cannot follow the last pixel before the rim, and that pixel is what
+    the clip leaves of the rim over a holder it hides (the blur's tail there reads above the clip, beyond the rim):
+    fitted with a sharp chord, steel balls' rims came 0.7 px out over the open beam and 0.95 px over the rod of a
+    simulated hardened scan, and the discs across the rod's edge 0.10-0.15 px towards it; through the blur, 0.0-0.06
+    px and 0.04 px (titanium, cut a pixel deeper: 0.15 and 0.09 px; ``docs/calibration-phantoms.md``).
+
+    What the model still gets wrong biases every ray's ``R`` alike (by up to tenths of a pixel), which moves a circle
+    fitted to an arc: rays over a holder above the clip never reach it, and a ball straddling the holder's edge is
+    fitted on half its rim. So the centre is taken from diametrically opposite rays that both fitted: half the
+    difference of their ``R`` is the centre's offset along them, whatever they share (a robust line fit, Tukey's
+    biweight).
 
     It places the centre where half the pairs or more fitted, spread round the turn (the smaller eigenvalue of their
-    directions' second moments at least ``_PAIR_SPREAD``; a half-turn evenly covered gives 0.5), where the fitted
-    sphere, cut at the level its own backgrounds imply, ends its profile where the rays saw it end (within
-    ``_CUT_AGREEMENT_PX``, their medians: a faint ball cut deep is fitted on a profile too flat to extrapolate, and
-    misses), concentric with the rim within ``_CONCENTRIC_PX`` and pinned about as well (as the shell's inside,
-    :func:`_inner_edge`).
+    directions' second moments at least ``_PAIR_SPREAD``; a half-turn evenly covered gives 0.5), where the blurred
+    sphere explains the profile (its median misfit within ``_SPHERE_MISFIT_RATIO`` of a sharp chord's with a shape of
+    each ray's own: a coated ball, or a faint one cut deep, does not), concentric with the rim within
+    ``_CONCENTRIC_PX`` and pinned about as well (as the shell's inside, :func:`_inner_edge`).
     """
     half = (len(direction) + 1) // 2
     rays = _directions(2 * half)
@@ -324,22 +349,25 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     some = reaches & (np.arange(len(rays)) % _SHAPE_EVERY == 0)      # the medians need no more
     if not some.any():
         return None
-    shapes, _, _, _ = _profile_fit(values[some], use[some], radii, cut[some])
+    shapes, _, start, sharp_misfit = _profile_fit(values[some], use[some], radii, cut[some])
     a, q = np.median(shapes, axis=0)
     if not a > 0:
         return None
-    _, background, fitted_rim, misfit = _profile_fit(values[reaches], use[reaches], radii, cut[reaches], (a, q))
-    fitted = np.isfinite(fitted_rim)
+    start = np.where(np.isfinite(start), start, cut[some])
+    shape, _, start, _ = _blurred_fit(values[some], use[some], radii, start, (a, q, _START_BLUR_PX), free_shape=True)
+    if not (np.all(np.isfinite(shape)) and shape[0] > 0 and np.isfinite(start).any()):
+        return None
+    beyond = float(np.nanmedian(start - cut[some]))          # every ray starts as far beyond its cut
+    shape, background, fitted_rim, misfit = _blurred_fit(values[reaches], use[reaches], radii, cut[reaches] + beyond,
+                                                         shape, free_shape=False)
+    lo, hi = _UNCUT_RANGE_PX
+    fitted = np.isfinite(fitted_rim) & (fitted_rim - cut[reaches] > lo) & (fitted_rim - cut[reaches] < hi)
     if not fitted.any():
         return None
     fitted &= misfit <= _MISFIT_RATIO * float(np.median(misfit[fitted]))
     rim[np.flatnonzero(reaches)[fitted]] = fitted_rim[fitted]
-    level = clip + _CLIP_MARGIN - background[fitted]       # what f(chord) reads at the cut: its smaller root
-    chord = (np.sqrt(np.maximum(a * a + 4.0 * q * level, 0.0)) - a) / (2.0 * q) if abs(q) > 1e-12 else level / a
-    implied = fitted_rim[fitted] - np.sqrt(np.maximum(fitted_rim[fitted] ** 2 - chord ** 2, 0.0))
-    if abs(float(np.median(fitted_rim[fitted] - cut[reaches][fitted])) - float(np.median(implied))) > \
-            _CUT_AGREEMENT_PX:
-        return None
+    if np.median(misfit[fitted]) > _SPHERE_MISFIT_RATIO * np.nanmedian(sharp_misfit):
+        return None                 # one blurred sphere explains the rays worse than a sharp chord of their own shape
     paired = np.isfinite(rim[:half]) & np.isfinite(rim[half:])
     if paired.sum() < _MIN_REACH * half:
         return None
@@ -374,13 +402,13 @@ def _robust_offset(along: np.ndarray, offset: np.ndarray, iterations: int = 10):
     return (float(shift[0]), float(shift[1])), spread / math.sqrt(max(moments[0], 1e-12))
 
 
-def _profile_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, cut: np.ndarray, shape=None):
-    """Per ray, ``(shape, b, R, misfit)`` of ``f(sqrt(R^2 - r^2)) + b``, ``f(c) = a c + q c^2`` (beam hardening bends a
-    dense ball's profile: ``q`` < 0), fitted to ``values`` where ``use`` (least squares; ``shape``, ``(a, q)``, held
-    where given, else fitted per ray and returned as (rays, 2)): ``R`` searched over ``_UNCUT_SEARCH_PX`` beyond each
-    ray's ``cut``, on a coarse grid then a fine one around its least, then to a fraction of a step (a parabola through
-    the sums of squares around the least); NaN where the least lies at either end of the search. The misfit is the
-    residuals' root mean square."""
+def _profile_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, cut: np.ndarray):
+    """Per ray, ``(shape, b, R, misfit)`` of a sharp chord ``f(sqrt(R^2 - r^2)) + b``, ``f(c) = a c + q c^2`` (beam
+    hardening bends a dense ball's profile: ``q`` < 0), fitted to ``values`` where ``use`` (least squares; the shape
+    ``(a, q)`` per ray, as (rays, 2)): ``R`` searched over ``_UNCUT_SEARCH_PX`` beyond each ray's ``cut``, on a coarse
+    grid then a fine one around its least, then to a fraction of a step (a parabola through the sums of squares around
+    the least); NaN where the least lies at either end of the search. The misfit is the residuals' root mean square.
+    The blurred profile's fit starts from it (:func:`_uncut_rim`)."""
     weight = use.astype(np.float64)
     count = weight.sum(axis=1)
 
@@ -390,17 +418,11 @@ def _profile_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, cut: np
         fitted = np.empty(rims.shape + (2,))
         for j in range(rims.shape[1]):
             chord = np.sqrt(np.maximum(rims[:, j, None] ** 2 - radii[None, :] ** 2, 0.0))
-            if shape is None:
-                basis = np.stack([chord, chord ** 2, np.ones_like(chord)], axis=-1)
-                normal = np.einsum("rsi,rsj,rs->rij", basis, basis, weight) + 1e-12 * np.eye(3)
-                coef = np.linalg.solve(normal, np.einsum("rsi,rs,rs->ri", basis, values, weight)[..., None])[..., 0]
-                model = np.einsum("rsi,ri->rs", basis, coef)
-                fitted[:, j], level[:, j] = coef[:, :2], coef[:, 2]
-            else:
-                rest = values - shape[0] * chord - shape[1] * chord ** 2
-                b = (rest * weight).sum(axis=1) / count
-                model = values - rest + b[:, None]
-                fitted[:, j], level[:, j] = shape, b
+            basis = np.stack([chord, chord ** 2, np.ones_like(chord)], axis=-1)
+            normal = np.einsum("rsi,rsj,rs->rij", basis, basis, weight) + 1e-12 * np.eye(3)
+            coef = np.linalg.solve(normal, np.einsum("rsi,rs,rs->ri", basis, values, weight)[..., None])[..., 0]
+            model = np.einsum("rsi,ri->rs", basis, coef)
+            fitted[:, j], level[:, j] = coef[:, :2], coef[:, 2]
             sse[:, j] = (((values - model) * weight) ** 2).sum(axis=1)
         return sse, fitted, level
 
@@ -421,6 +443,115 @@ def _profile_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, cut: np
     inside = (least > 0) & (least < len(fine) - 1) & (rim - cut > lo) & (rim - cut < hi)
     misfit = np.sqrt(sse[rows, least] / count)
     return fitted[rows, least], level[rows, least], np.where(inside, rim, np.nan), misfit
+
+
+def _blurred_profile(rims: np.ndarray, shape, radii: np.ndarray):
+    """A sphere's line integrals seen through the detector's blur at ``radii``, ``-log(G_sigma * exp(-f(c)))`` with
+    ``c = sqrt(R^2 - r^2)`` and ``f(c) = a c + q c^2``, per ray of rim ``R`` (``rims``), shape (rays, radii); and
+    its slope along the ray with ``R`` (a shift of the rim, the chord's change with ``R`` at a fixed depth being a
+    tenth of it within the profile's depth).
+
+    The blur acts on the transmitted counts, as a scintillator's does, not on their logarithm: a rim's counts fall
+    from the background's to a few per cent within a pixel, so blurring the line integrals would soften the wrong
+    side of the edge. Each ray's transmission is laid on a grid of ``_FINE_PX`` steps aligned on its own rim, so the
+    kink at the rim falls on a grid point whatever ``R``, blurred along the ray (the rim's curvature over the blur is
+    a ten-thousandth of a pixel) and read back linearly.
+    """
+    a, q, sigma = shape
+    sigma = max(float(sigma), _MIN_BLUR_PX)
+    step = _FINE_PX
+    outside = int(math.ceil(4.0 * sigma / step)) + 1
+    inside = int(math.ceil((float(np.max(rims)) - radii[0] + 4.0 * sigma) / step)) + 1
+    depth = np.arange(-outside, inside) * step                      # R - r at the fine points
+    chord = np.sqrt(np.maximum(depth[None, :] * (2.0 * rims[:, None] - depth[None, :]), 0.0))
+    counts = np.exp(-np.clip(a * chord + q * chord * chord, -50.0, 50.0))
+    counts = ndimage.gaussian_filter1d(counts, sigma / step, axis=1, mode="nearest", truncate=4.0)
+    at = (rims[:, None] - radii[None, :]) / step + outside
+    i = np.clip(np.floor(at).astype(np.intp), 0, len(depth) - 2)
+    frac = np.clip(at - i, 0.0, 1.0)
+    rows = np.arange(len(rims))[:, None]
+    lo, hi = counts[rows, i], counts[rows, i + 1]
+    value = np.maximum(lo + (hi - lo) * frac, 1e-300)
+    return -np.log(value), -(hi - lo) / (step * value)
+
+
+def _blurred_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, rims: np.ndarray, shape, *,
+                 free_shape: bool):
+    """Per ray, ``(b, R, misfit)`` of :func:`_blurred_profile` plus a background ``b`` fitted to ``values`` where
+    ``use`` (least squares), and the shape ``(a, q, sigma)``: held, or with ``free_shape`` one for all the rays.
+
+    Gauss-Newton from ``rims`` and ``shape``: each ray's ``b`` is its residuals' mean (projected out), its ``R`` and,
+    where free, the shape's three found together, the rays' normal equations reduced onto the shape's (a Schur
+    complement) and damped (Levenberg-Marquardt) until the sum of squares stops falling. Each ray's step in ``R`` is
+    at most a pixel. ``R`` is NaN where a round left it non-finite.
+    """
+    weight = use.astype(np.float64)
+    count = np.maximum(weight.sum(axis=1), 1.0)
+    shape = np.array(shape, dtype=np.float64)
+    rims = np.array(rims, dtype=np.float64)
+
+    def residual(rims_, shape_):
+        model, slope = _blurred_profile(rims_, shape_, radii)
+        rest = (values - model) * weight
+        background = rest.sum(axis=1) / count
+        return (rest - background[:, None] * weight), background, slope, model
+
+    res, background, slope, model = residual(rims, shape)
+    sse = (res ** 2).sum(axis=1)
+    damping, room = 1e-3, np.ones(len(rims))
+    for _ in range(_FIT_ROUNDS):
+        jr = (slope - ((slope * weight).sum(axis=1) / count)[:, None]) * weight     # projected: b takes the mean
+        grad_r = (res * jr).sum(axis=1)
+        hess_r = (jr * jr).sum(axis=1) + 1e-12
+        if free_shape:
+            columns = []
+            for p in range(3):
+                moved = shape.copy()
+                moved[p] += _SHAPE_STEPS[p] * max(abs(shape[p]), _SHAPE_SCALES[p])
+                other, _, _, _ = residual(rims, moved)
+                columns.append(-(other - res) / (moved[p] - shape[p]))
+            jg = np.stack(columns, axis=-1)                                # rays, samples, 3
+            a_ii = hess_r * (1.0 + damping)
+            b_i = np.einsum("rs,rsp->rp", jr, jg)
+            c = np.einsum("rsp,rsq->pq", jg, jg)
+            c = c + damping * np.diag(np.diag(c))
+            grad_g = np.einsum("rs,rsp->p", res, jg)
+            reduced = c - np.einsum("rp,rq->pq", b_i / a_ii[:, None], b_i)
+            rhs = grad_g - np.einsum("rp,r->p", b_i / a_ii[:, None], grad_r)
+            try:
+                shape_step = np.linalg.solve(reduced, rhs)
+            except np.linalg.LinAlgError:
+                break
+            rim_step = (grad_r - b_i @ shape_step) / a_ii
+        else:
+            shape_step, rim_step = np.zeros(3), grad_r / hess_r
+        rim_step = np.clip(rim_step, -1.0, 1.0) * room
+        trial_shape = shape + shape_step
+        trial_shape[2] = max(trial_shape[2], _MIN_BLUR_PX)
+        trial = residual(rims + rim_step, trial_shape)
+        trial_sse = (trial[0] ** 2).sum(axis=1)
+        if free_shape:
+            better = np.ones(len(rims), bool)
+            if not trial_sse.sum() < sse.sum():
+                damping *= 10.0
+                if damping > 1e6:
+                    break
+                continue
+            damping = max(damping / 3.0, 1e-6)
+            shape = trial_shape
+        else:
+            better = trial_sse < sse           # a ray that got worse keeps its rim and halves its next step
+        room = np.where(better, 1.0, 0.5 * room)
+        done = np.abs(rim_step).max(initial=0.0) < _FIT_SETTLED_PX
+        rims = np.where(better, rims + rim_step, rims)
+        res = np.where(better[:, None], trial[0], res)
+        background = np.where(better, trial[1], background)
+        slope = np.where(better[:, None], trial[2], slope)
+        sse = np.where(better, trial_sse, sse)
+        if done:
+            break
+    rims = np.where(np.isfinite(sse), rims, np.nan)
+    return shape, background, rims, np.sqrt(sse / count)
 
 
 #: Rim seeds: a circle's votes must reach this fraction of the strongest circle's in the view.
