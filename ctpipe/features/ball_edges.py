@@ -140,9 +140,10 @@ _UNCUT_SEARCH_PX, _COARSE_STEPS = (-0.5, 6.0, 0.05), 5
 _UNCUT_RANGE_PX = (-3.0, 6.0)
 #: ... half the rays or more must reach the clip ...
 _MIN_REACH = 0.5
-#: ... and the blurred sphere, one shape for the ball, fit them (their median misfit) within this many times as well as a
-#: sharp chord with each ray's own shape: the sphere must explain the profile. On simulated hardened scans of steel and
-#: titanium balls (``docs/calibration-phantoms.md``) the ratio was 0.35-1.32; on a coated ball cut by the clip, 1.83.
+#: ... and the blurred sphere, one shape for the ball, fit them (their median misfit) within this many times as well as
+#: a sharp chord with each ray's own shape: the sphere must explain the profile. On simulated hardened scans of steel
+#: and titanium balls (``docs/calibration-phantoms.md``) the ratio was 0.35-1.32; on a coated ball cut by the clip,
+#: 1.83.
 _SPHERE_MISFIT_RATIO = 1.5
 #: The blurred profile (:func:`_blurred_profile`): its grid's step along the ray (px; at 0.125 the discs came the same)
 #: and the least blur (px) ...
