@@ -121,8 +121,11 @@ _CONCENTRIC_PX = 2.0
 #: ball (noise on a profile that falls everywhere) to 0.29-0.55 px, where its rim's was 0.02-0.68 px.
 _INNER_SE_RATIO, _INNER_SE_PX, _INNER_MAX_SE_PX = 2.0, 0.02, 0.05
 #: A solid ball's rim where a clip cut it (:func:`_uncut_rim`): the profile is read from this fraction of the radius
-#: inside the rim, and this far beyond it (px) to find the cut ...
-_PROFILE_DEPTH, _PROFILE_BEYOND_PX = 0.1, 4.0
+#: inside the rim, and this far beyond it (px) to find the cut ... Through the blur, on eight simulated hardened scans
+#: of steel, titanium and aluminium balls (seeds 400-407, the depth chosen on them), the worst view was 0.0046-0.0161
+#: deg at 7 %, 0.0057-0.0210 at 10 %, and worse at 15 and 20 %: the two-term shape bends less than the beam does
+#: further in. The mixed phantom's scans moved within 0.0007 deg either way.
+_PROFILE_DEPTH, _PROFILE_BEYOND_PX = 0.07, 4.0
 #: ... the ball's profile shape (``a``, ``q``, the blur) from every _SHAPE_EVERY-th ray (on the simulated hardened
 #: scans, every 4th placed the discs as every 8th did) ...
 _SHAPE_EVERY = 8
