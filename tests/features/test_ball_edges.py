@@ -221,10 +221,10 @@ def test_a_hardened_balls_rim_blurred_in_the_counts_is_placed_across_a_hidden_ho
 
 
 def test_a_solid_ball_half_over_a_holder_above_the_clip_keeps_its_rim_and_flag(monkeypatch):
-    """Where a holder above the clip lies behind half the rim, those rays never reach the clip: only the opposite
-    rays' pairs along the holder's edge (2 % of them) reach it at both ends, and they cannot place the centre across
-    it (at 95 %, a circle through the rays that did moved such steel discs from 0.06 to 0.27 px off). The disc keeps
-    its rim, flagged as crossing the clip's edge, for the calibration's cut model."""
+    """Where a holder above the clip lies behind half the rim, those rays never reach the clip: the rays that do
+    leave half the turn open, and cannot place the centre across it (at 95 %, a circle through them moved such steel
+    discs from 0.06 to 0.27 px off, before the profile was fitted through the blur). The disc keeps its rim, flagged
+    as crossing the clip's edge, for the calibration's cut model."""
     from ctpipe.features import ball_edges
 
     shape = (600, 900)
