@@ -343,10 +343,9 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     sharp chord's with a shape of each ray's own: a coated ball, or a faint one cut deep, does not), concentric with
     the rim within ``_CONCENTRIC_PX`` and pinned about as well (as the shell's inside, :func:`_inner_edge`).
     """
-    rays = direction
     depth = max(_PROFILE_DEPTH * radius, _MIN_DEPTH_PX)
     radii = np.arange(radius - depth, radius + _PROFILE_BEYOND_PX, _STEP_PX)
-    values, inside = _along_rays(g, x0, y0, radii, rays)
+    values, inside = _along_rays(g, x0, y0, radii, direction)
     if not inside.all():
         return None
     values = values.astype(np.float64)
@@ -359,10 +358,10 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     # the clip's margin that lies beyond the rim (a holder's faint body, which leaves the rim whole).
     floor = values <= clip + 1e-6
     reaches &= np.any(floor & (radii[None, :] <= (cut + _FLOOR_WITHIN_PX)[:, None]), axis=1)
-    if reaches.sum() < _MIN_REACH * len(rays):
+    if reaches.sum() < _MIN_REACH * len(direction):
         return None
-    rim = np.full(len(rays), np.nan)
-    some = reaches & (np.arange(len(rays)) % _SHAPE_EVERY == 0)      # the medians need no more
+    rim = np.full(len(direction), np.nan)
+    some = reaches & (np.arange(len(direction)) % _SHAPE_EVERY == 0)      # the shape needs no more
     if not some.any():
         return None
     shapes, _, start, sharp_misfit = _profile_fit(values[some], use[some], radii, cut[some])
@@ -385,9 +384,9 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     if np.median(misfit[fitted]) > _SPHERE_MISFIT_RATIO * np.nanmedian(sharp_misfit):
         return None                 # one blurred sphere explains the rays worse than a sharp chord of their own shape
     placed = np.isfinite(rim)
-    if placed.sum() < _MIN_REACH * len(rays):
+    if placed.sum() < _MIN_REACH * len(direction):
         return None
-    theta = np.arctan2(rays[placed, 1], rays[placed, 0])
+    theta = np.arctan2(direction[placed, 1], direction[placed, 0])
     ordered = np.sort(theta)
     if max(float(np.diff(ordered).max(initial=0.0)), 2.0 * math.pi - float(ordered[-1] - ordered[0])) > \
             math.radians(_MAX_GAP_DEG):
