@@ -499,8 +499,9 @@ def _blurred_profile(rims: np.ndarray, shape, radii: np.ndarray):
 
 def _blurred_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, rims: np.ndarray, shape, *,
                  free_shape: bool):
-    """Per ray, ``(b, R, misfit)`` of :func:`_blurred_profile` plus a background ``b`` fitted to ``values`` where
-    ``use`` (least squares), and the shape ``(a, q, sigma)``: held, or with ``free_shape`` one for all the rays.
+    """``(shape, b, R, misfit)``: the shape ``(a, q, sigma)`` of :func:`_blurred_profile`, held or with
+    ``free_shape`` one fitted for all the rays, and per ray the background ``b``, the rim ``R`` and the residuals' root
+    mean square, fitted to ``values`` where ``use`` (least squares).
 
     Gauss-Newton from ``rims`` and ``shape``: each ray's ``b`` is its residuals' mean (projected out), its ``R`` and,
     where free, the shape's three found together, the rays' normal equations reduced onto the shape's (a Schur
@@ -516,9 +517,9 @@ def _blurred_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, rims: n
         model, slope = _blurred_profile(rims_, shape_, radii)
         rest = (values - model) * weight
         background = rest.sum(axis=1) / count
-        return (rest - background[:, None] * weight), background, slope, model
+        return (rest - background[:, None] * weight), background, slope
 
-    res, background, slope, model = residual(rims, shape)
+    res, background, slope = residual(rims, shape)
     sse = (res ** 2).sum(axis=1)
     damping, room = 1e-3, np.ones(len(rims))
     for _ in range(_FIT_ROUNDS):
@@ -530,7 +531,7 @@ def _blurred_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, rims: n
             for p in range(3):
                 moved = shape.copy()
                 moved[p] += _SHAPE_STEPS[p] * max(abs(shape[p]), _SHAPE_SCALES[p])
-                other, _, _, _ = residual(rims, moved)
+                other, _, _ = residual(rims, moved)
                 columns.append(-(other - res) / (moved[p] - shape[p]))
             jg = np.stack(columns, axis=-1)                                # rays, samples, 3
             a_ii = hess_r * (1.0 + damping)
