@@ -521,24 +521,26 @@ def _blurred_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, rims: n
 
     res, background, slope = residual(rims, shape)
     sse = (res ** 2).sum(axis=1)
-    damping, room = 1e-3, np.ones(len(rims))
+    damping, room, moved = 1e-3, np.ones(len(rims)), True
     for _ in range(_FIT_ROUNDS):
-        jr = (slope - ((slope * weight).sum(axis=1) / count)[:, None]) * weight     # projected: b takes the mean
-        grad_r = (res * jr).sum(axis=1)
-        hess_r = (jr * jr).sum(axis=1) + 1e-12
+        if moved:       # a rejected round changes only the damping: the derivatives at the point stand
+            jr = (slope - ((slope * weight).sum(axis=1) / count)[:, None]) * weight     # projected: b takes the mean
+            grad_r = (res * jr).sum(axis=1)
+            hess_r = (jr * jr).sum(axis=1) + 1e-12
         if free_shape:
-            columns = []
-            for p in range(3):
-                moved = shape.copy()
-                moved[p] += _SHAPE_STEPS[p] * max(abs(shape[p]), _SHAPE_SCALES[p])
-                other, _, _ = residual(rims, moved)
-                columns.append(-(other - res) / (moved[p] - shape[p]))
-            jg = np.stack(columns, axis=-1)                                # rays, samples, 3
+            if moved:
+                columns = []
+                for p in range(3):
+                    nudged = shape.copy()
+                    nudged[p] += _SHAPE_STEPS[p] * max(abs(shape[p]), _SHAPE_SCALES[p])
+                    other, _, _ = residual(rims, nudged)
+                    columns.append(-(other - res) / (nudged[p] - shape[p]))
+                jg = np.stack(columns, axis=-1)                                # rays, samples, 3
+                b_i = np.einsum("rs,rsp->rp", jr, jg)
+                normal = np.einsum("rsp,rsq->pq", jg, jg)
+                grad_g = np.einsum("rs,rsp->p", res, jg)
             a_ii = hess_r * (1.0 + damping)
-            b_i = np.einsum("rs,rsp->rp", jr, jg)
-            c = np.einsum("rsp,rsq->pq", jg, jg)
-            c = c + damping * np.diag(np.diag(c))
-            grad_g = np.einsum("rs,rsp->p", res, jg)
+            c = normal + damping * np.diag(np.diag(normal))
             reduced = c - np.einsum("rp,rq->pq", b_i / a_ii[:, None], b_i)
             rhs = grad_g - np.einsum("rp,r->p", b_i / a_ii[:, None], grad_r)
             try:
@@ -557,6 +559,7 @@ def _blurred_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, rims: n
             better = np.ones(len(rims), bool)
             if not trial_sse.sum() < sse.sum():
                 damping *= 10.0
+                moved = False
                 if damping > 1e6:
                     break
                 continue
@@ -564,6 +567,7 @@ def _blurred_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, rims: n
             shape = trial_shape
         else:
             better = trial_sse < sse           # a ray that got worse keeps its rim and halves its next step
+        moved = bool(better.any())
         room = np.where(better, 1.0, 0.5 * room)
         done = np.abs(rim_step).max(initial=0.0) < _FIT_SETTLED_PX
         rims = np.where(better, rims + rim_step, rims)
