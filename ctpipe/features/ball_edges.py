@@ -402,16 +402,16 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     return x0 + dx, y0 + dy, float(np.median(rim[placed]))
 
 
-def _robust_offset(design: np.ndarray, offset: np.ndarray, iterations: int = 10):
+def _robust_offset(design: np.ndarray, values: np.ndarray, iterations: int = 10):
     """``((dx, dy), standard error)`` of the first two of the coefficients ``c`` with which ``design @ c`` fits
-    ``offset`` (IRLS with Tukey's biweight), or None where too few points fit. The standard error is the larger axis
+    ``values`` (IRLS with Tukey's biweight), or None where too few points fit. The standard error is the larger axis
     of their covariance, the others' uncertainty included."""
-    weights = np.ones(len(offset))
+    weights = np.ones(len(values))
     shift = np.zeros(design.shape[1])
     for _ in range(iterations):
         w = np.sqrt(weights)
-        shift, *_ = np.linalg.lstsq(design * w[:, None], offset * w, rcond=None)
-        residual = offset - design @ shift
+        shift, *_ = np.linalg.lstsq(design * w[:, None], values * w, rcond=None)
+        residual = values - design @ shift
         weights = _biweight_weights(residual)
         if np.count_nonzero(weights) < 6:
             return None
