@@ -115,8 +115,6 @@ def test_a_faint_rim_running_onto_a_holders_faint_edge_is_flagged(monkeypatch):
     out to 15 % of the radius further reads the clip level (the open beam) against those that reach the
     holder. A disc wholly over the open beam, specks of dust beside its rim, is not flagged. (Such a rim, cut near
     the rim, is placed by its profile instead, below; the flag is for the rims that profile does not place.)"""
-    from ctpipe.features import ball_edges
-
     monkeypatch.setattr(ball_edges, "_uncut_rim", lambda *args: None)
     shape = (700, 1000)
     rng = np.random.default_rng(3)
@@ -142,8 +140,6 @@ def test_a_faint_rim_on_a_holders_faint_edge_that_reads_as_the_open_beam_is_flag
     every 17-view scan of the mixed ball phantom (issue 34). Read out to half the radius, those rays
     reach the holder's body above the clip level: flagged 3. The side is still the first band's. (For the rims the
     profile inside the cut does not place.)"""
-    from ctpipe.features import ball_edges
-
     monkeypatch.setattr(ball_edges, "_uncut_rim", lambda *args: None)
     shape = (700, 1000)
     rng = np.random.default_rng(4)
@@ -171,8 +167,6 @@ def test_a_solid_balls_rim_cut_unevenly_by_a_clip_is_placed_by_its_profile_insid
     chord over a background per ray, places it within a few hundredths of a pixel and its radius near the uncut one,
     also where a hardened beam bends the profile (``p - 0.2 p^2``: 2.0 reads 1.2). A faint ball, which the clip cuts
     deep, is not placed so: its rim and flag are what they were."""
-    from ctpipe.features import ball_edges
-
     shape = (600, 900)
     rng = np.random.default_rng(6)
     rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
@@ -225,8 +219,6 @@ def test_a_solid_ball_half_over_a_holder_above_the_clip_keeps_its_rim_and_flag(m
     leave half the turn open, and cannot place the centre across it (at 95 %, a circle through them moved such steel
     discs from 0.06 to 0.27 px off, before the profile was fitted through the blur). The disc keeps its rim, flagged
     as crossing the clip's edge, for the calibration's cut model."""
-    from ctpipe.features import ball_edges
-
     shape = (600, 900)
     rng = np.random.default_rng(8)
     rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
@@ -302,8 +294,6 @@ def test_a_coated_balls_centre_comes_from_its_shells_inside_where_a_clip_cuts_it
     """A clip cuts a coated ball's faint rim deeper over the open beam than over a holder's faint edge, so the rim's
     circle is pulled towards the holder (the issue's harsh clip: views 0.02-0.07 deg off). The shell's inside, far
     above the clip, is not: the centre from it is within a few hundredths of a pixel, its radius the shell's."""
-    from ctpipe.features import ball_edges
-
     centres, view = _coated_over_holder(0.15)
     start = np.array([[c[0] + 1.0, c[1] - 0.7, 80.0, 1.0, 0.0] for c in centres])
     refined, edge = edge_centres(view, start, edge_radius=True)
