@@ -166,8 +166,12 @@ _SHAPE_STEPS, _SHAPE_SCALES = (1e-4, 1e-4, 1e-4), (1e-3, 1e-5, 0.1)
 #: A ray whose profile fits the sphere this many times worse than the median ray's meets something else.
 _MISFIT_RATIO = 2.0
 #: The rays whose rim was fitted must leave no gap wider than this round the turn (deg): a circle with an elliptical
-#: term is fitted to them. On the crowded solid scans 406 and 408, 90 and 150 deg placed the same discs.
-_MAX_GAP_DEG = 90.0
+#: term is fitted to them, which over the arc left magnifies the rims' errors in the centre 1.8 times a whole turn's
+#: at a 90 deg gap, 5.2 times at 150 and 10 at 180 (beyond, less than half the rim is seen). Balls crowded on a
+#: hardened scan's axis, whose rays meet their neighbours over 100-140 deg, were left on their cut rims at 90: at 150
+#: the worst views of the crowded solid scans 406 and 408 went from 0.0099 and 0.0183 deg to 0.0041 and 0.0090
+#: (``docs/calibration-phantoms.md``; 180 placed the same discs).
+_MAX_GAP_DEG = 150.0
 #: A flag beyond :func:`ctpipe.features.find_balls`' 0, 1, 2: a disc whose rim crosses a clip edge.
 _ACROSS_CLIP = 3
 #: A clipped image: this fraction of its pixels or more read its lowest line integral exactly.
