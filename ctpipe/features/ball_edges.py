@@ -339,8 +339,8 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     ray shares in ``R``, and what rays half a turn apart share in the elliptical terms. Opposite rays that both fitted
     (half the difference of their ``R``, the version before) cancelled the same, but left out every ray whose
     opposite met a neighbour: on two simulated hardened scans of crowded balls (seeds 406 and 408, 17 views) the
-    worst views went from 0.016 deg and refused to 0.010 and 0.018 deg, the other solid scans by up to 0.0008 deg
-    nearer (``docs/calibration-phantoms.md``).
+    worst views went from 0.016 deg and refused to 0.010 and 0.018 deg (0.004 and 0.009 with the gap below widened to
+    150 deg), the other solid scans by up to 0.0008 deg nearer (``docs/calibration-phantoms.md``).
 
     It places the centre where half the rays or more fitted, leaving no gap wider than ``_MAX_GAP_DEG`` round the
     turn, where the blurred sphere explains the profile (its median misfit within ``_SPHERE_MISFIT_RATIO`` of a
