@@ -234,6 +234,20 @@ def test_hardened_balls_overlapping_across_a_hidden_holders_edge_are_placed_on_t
         assert abs(placed[k, 2] - 60.0) < 0.3 and placed[k, 4] == 0
 
 
+def test_a_blur_wider_than_the_profile_read_stops_at_its_span():
+    """A rim's profile blurred over 30 px, read over 8.5 px: nothing in the samples fixes so wide a blur, and the
+    profile's grid grows with it. The fitted blur stops at the span (12 px and rising without the bound), where
+    :func:`ball_edges._uncut_rim` refuses the ball."""
+    rng = np.random.default_rng(0)
+    radii = np.arange(55.0, 64.0, 0.5)
+    rims = 60.0 + rng.uniform(-0.3, 0.3, 40)
+    values, _ = ball_edges._blurred_profile(rims, (0.05, 0.0, 30.0), radii)
+    values = values + rng.normal(0.0, 0.003, values.shape)
+    shape, _, _, _ = ball_edges._blurred_fit(values, np.ones(values.shape, bool), radii, rims, (0.05, 0.0, 1.0),
+                                             free_shape=True)
+    assert ball_edges._widest_blur_px(radii) == 8.5 and 8.0 < shape[2] <= 8.5
+
+
 def test_a_solid_ball_half_over_a_holder_above_the_clip_keeps_its_rim_and_flag(monkeypatch):
     """Where a holder above the clip lies behind half the rim, those rays never reach the clip: the rays that do
     leave half the turn open, and cannot place the centre across it (at 95 %, a circle through them moved such steel
