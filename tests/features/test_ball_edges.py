@@ -189,6 +189,20 @@ def test_a_solid_balls_rim_cut_unevenly_by_a_clip_is_placed_by_its_profile_insid
     assert np.array_equal(placed[2], rim[2])
 
 
+def _hardened_view(centres, seed):
+    """Line integrals as a detector sees steel-like balls of radius 60 px at ``centres`` over a polymer rod (its axis
+    at column 300, 150 px in radius): a two-energy beam (the soft half stopped four times as fast by the ball), the
+    counts blurred by the scintillator (0.8 px), noisy and clipped at 80 % of the open beam."""
+    shape = (600, 900)
+    rng = np.random.default_rng(seed)
+    cols = np.arange(shape[1], dtype=np.float64)[None, :]
+    rod = 2 * np.sqrt(np.clip(150.0 ** 2 - (cols - 300.0) ** 2, 0.0, None))      # its chord, px
+    steel = sum(_ball(shape, c, 60.0, 1.0) for c in centres)
+    counts = 0.5 * np.exp(-0.05 * steel - 0.0006 * rod) + 0.5 * np.exp(-0.012 * steel - 0.0004 * rod)
+    counts = ndimage.gaussian_filter(counts, 0.8) * (1.0 + rng.normal(0.0, 0.003, shape))
+    return -np.log(np.minimum(counts, 0.8))
+
+
 def test_a_hardened_balls_rim_blurred_in_the_counts_is_placed_across_a_hidden_holders_edge():
     """As a detector sees it: a two-energy beam (the soft half stopped four times as fast by the ball), through a
     polymer rod under the clip and steel-like balls, the counts blurred by the scintillator (0.8 px) and clipped at
@@ -196,15 +210,8 @@ def test_a_hardened_balls_rim_blurred_in_the_counts_is_placed_across_a_hidden_ho
     above the clip beyond the rim. A sharp chord fitted to the blurred profile put the rim a pixel out and the discs
     across the rod's edge 0.05 px towards it; the blurred profile places them within 0.03 px and their rims within
     0.3 px."""
-    shape = (600, 900)
-    rng = np.random.default_rng(6)
-    rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
-    rod = 2 * np.sqrt(np.clip(150.0 ** 2 - (cols - 300.0) ** 2, 0.0, None))      # its chord, px
     centres = [(450.3, 300.6), (449.6, 100.3), (700.2, 290.4)]                  # across the rod's edge (450); open
-    steel = sum(_ball(shape, c, 60.0, 1.0) for c in centres)
-    counts = 0.5 * np.exp(-0.05 * steel - 0.0006 * rod) + 0.5 * np.exp(-0.012 * steel - 0.0004 * rod)
-    counts = ndimage.gaussian_filter(counts, 0.8) * (1.0 + rng.normal(0.0, 0.003, shape))
-    image = -np.log(np.minimum(counts, 0.8))
+    image = _hardened_view(centres, seed=6)
     assert np.all(image[420:440, 300:440] == image.min())                    # the rod reads as the open beam
     start = np.array([[c[0] + 0.5, c[1] - 0.5, 60.0, 1.0, 0.0] for c in centres])
     placed = edge_centres(image - image.min(), start)
@@ -218,15 +225,8 @@ def test_hardened_balls_overlapping_across_a_hidden_holders_edge_are_placed_on_t
     """Two clipped steel-like balls 80 px apart across a hidden rod's edge (the scene above): each one's rays that
     meet the other never reach the clip, a gap of about 100 deg in the rim fitted through the blur. The arc left
     places them within 0.03 px; their cut rims (kept where gaps over 90 deg were refused) lie 0.18 px off, flagged."""
-    shape = (600, 900)
-    rng = np.random.default_rng(7)
-    rows, cols = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
-    rod = 2 * np.sqrt(np.clip(150.0 ** 2 - (cols - 300.0) ** 2, 0.0, None))
     centres = [(450.3, 250.6), (455.1, 330.6)]
-    steel = sum(_ball(shape, c, 60.0, 1.0) for c in centres)
-    counts = 0.5 * np.exp(-0.05 * steel - 0.0006 * rod) + 0.5 * np.exp(-0.012 * steel - 0.0004 * rod)
-    counts = ndimage.gaussian_filter(counts, 0.8) * (1.0 + rng.normal(0.0, 0.003, shape))
-    image = -np.log(np.minimum(counts, 0.8))
+    image = _hardened_view(centres, seed=7)
     start = np.array([[c[0] + 0.5, c[1] - 0.5, 60.0, 1.0, 0.0] for c in centres])
     placed = edge_centres(image - image.min(), start)
     for k in range(2):
