@@ -76,6 +76,7 @@ only up to scale: a phantom scaled about the source projects the same).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -709,6 +710,51 @@ class _Discs:
                       self.side[keep], self.edge[keep])
 
 
+#: Forward differences' relative step: the square root of the machine epsilon, times the larger of 1 and the
+#: unknown, as ``scipy.optimize.least_squares`` takes it ('2-point').
+_FD_STEP = math.sqrt(float(np.finfo(np.float64).eps))
+
+
+def _column_groups(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> np.ndarray:
+    """Each column's group, columns of a group sharing no row (``rows``, ``cols``: the Jacobian's structure): they
+    are stepped together by forward differences. Greedy, in the columns' order (Curtis, Powell and Reid 1974)."""
+    groups = np.full(n_cols, -1)
+    taken: list[np.ndarray] = []
+    order = np.argsort(cols, kind="stable")
+    starts = np.searchsorted(cols[order], np.arange(n_cols + 1))
+    for j in range(n_cols):
+        mine = rows[order[starts[j]:starts[j + 1]]]
+        for g, used in enumerate(taken):
+            if not used[mine].any():
+                break
+        else:
+            g = len(taken)
+            taken.append(np.zeros(n_rows, bool))
+        taken[g][mine] = True
+        groups[j] = g
+    return groups
+
+
+def _forward_differences(fun, x: np.ndarray, f0: np.ndarray, rows: np.ndarray, cols: np.ndarray, groups: np.ndarray,
+                         lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The Jacobian's values at ``(rows, cols)`` by forward differences of ``fun`` from ``f0 = fun(x)``, a group of
+    columns stepped at a time, each by :data:`_FD_STEP` and turned back where a bound stops it (scipy's
+    ``approx_derivative``, '2-point', whose values these are)."""
+    step = _FD_STEP * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
+    below, above = x - lower, upper - x
+    outside = (x + step < lower) | (x + step > upper)
+    fits = np.abs(step) <= np.maximum(below, above)
+    step = np.where(outside & fits, -step, step)
+    step = np.where(fits, step, np.where(above >= below, above, -below))
+    values = np.empty(len(rows))
+    of_group = groups[cols]
+    for g in range(int(groups.max(initial=-1)) + 1):
+        stepped = np.where(groups == g, x + step, x)
+        here = of_group == g
+        values[here] = (fun(stepped)[rows[here]] - f0[rows[here]]) / (stepped - x)[cols[here]]
+    return values
+
+
 def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_views, fit_angles=True,
             fit_detector=True, scale_px: float = 1.0, loss: str = "huber", cut_px=None) -> _Fit:
     """Bundle adjustment of the free views' angles, the balls and the detector on the discs.
@@ -721,6 +767,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     (``cut_px``, its start; NaN for the others; within 0 and :data:`_MAX_CUT_FRACTION` of its radius), and a
     disc's fitted centre is taken as pulled by ``-2 cut side`` (:data:`_CUT_PULL`).
     """
+    from scipy import sparse
     from scipy.optimize import least_squares
 
     observed, weight, view_of, ball_of = discs.xy, discs.weight, discs.view_of, discs.ball_of
@@ -756,32 +803,48 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
 
     x0 = np.concatenate([angles[free_views] if n_free else [], balls.reshape(-1), cut_start[cut_balls],
                          detector if n_det else []])
-    # The Jacobian's sparsity: each observation sees its view's angle, its ball and the detector.
-    from scipy.sparse import lil_matrix
-
+    # The Jacobian's structure: each observation sees its view's angle, its ball, its ball's cut and the detector.
     M = len(observed)
-    sparsity = lil_matrix((2 * M + (1 if n_free else 0), len(x0)), dtype=int)
-    if n_free:
-        sparsity[2 * M, :n_free] = 1
-    column = {v: k for k, v in enumerate(free_views)} if n_free else {}
-    for m in range(M):
-        rows = [2 * m, 2 * m + 1]
-        if view_of[m] in column:
-            sparsity[rows, column[view_of[m]]] = 1
-        for j in range(3):
-            sparsity[rows, n_free + 3 * ball_of[m] + j] = 1
-        if one_sided[m]:
-            sparsity[rows, n_free + 3 * B + cut_column[ball_of[m]]] = 1
-        if n_det:
-            for j in range(3):
-                sparsity[rows, n_free + 3 * B + n_cut + j] = 1
+    disc = np.arange(M)
+    column = np.full(len(angles), -1)
+    column[free_views[:n_free]] = np.arange(n_free)
+    seen = [(disc[column[view_of] >= 0], column[view_of][column[view_of] >= 0])]
+    seen += [(disc, n_free + 3 * ball_of + j) for j in range(3)]
+    seen.append((disc[one_sided], n_free + 3 * B + cut_column[ball_of[one_sided]]))
+    seen += [(disc, np.full(M, n_free + 3 * B + n_cut + j)) for j in range(n_det)]
+    rows = np.concatenate([np.concatenate([2 * m, 2 * m + 1]) for m, _ in seen])
+    cols = np.concatenate([np.concatenate([k, k]) for _, k in seen])
     lower, upper = np.full(len(x0), -np.inf), np.full(len(x0), np.inf)
     depth = slice(n_free + 3 * B, n_free + 3 * B + n_cut)
     lower[depth] = 0.0
     upper[depth] = _MAX_CUT_FRACTION * radii_mm[cut_balls] * geometry.magnification / min(
         geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm)
     x0[depth] = np.clip(x0[depth], lower[depth], upper[depth])
-    solved = least_squares(residuals, x0, jac_sparsity=sparsity, bounds=(lower, upper), loss=loss, f_scale=scale_px,
+    groups = _column_groups(rows, cols, 2 * M, len(x0))
+    last = {}
+
+    def objective(x):
+        """The residuals scipy minimises, the discs' kept for the Jacobian at the same point (scipy asks for it
+        where it last evaluated them)."""
+        out = residuals(x)
+        last["x"], last["discs"] = x.copy(), out[:2 * M]
+        return out
+
+    def jacobian(x):
+        """Forward differences on the discs' rows, columns that share none stepped together, and the gauge row's
+        constant slope. Handed the structure instead (``jac_sparsity``), scipy steps each view's angle on its own,
+        the gauge row joining them all: forty evaluations of the residuals a Jacobian where this takes eight."""
+        discs_only = functools.partial(residuals, gauge=False)
+        f0 = last["discs"] if "x" in last and np.array_equal(last["x"], x) else discs_only(x)
+        values = _forward_differences(discs_only, x, f0, rows, cols, groups, lower, upper)
+        jac = sparse.csr_matrix((values, (rows, cols)), shape=(2 * M, len(x)))
+        if not n_free:
+            return jac
+        gauge = sparse.csr_matrix((np.full(n_free, _GAUGE_PX_PER_RAD / n_free), (np.zeros(n_free, int),
+                                   np.arange(n_free))), shape=(1, len(x)))
+        return sparse.vstack([jac, gauge], format="csr")
+
+    solved = least_squares(objective, x0, jac=jacobian, bounds=(lower, upper), loss=loss, f_scale=scale_px,
                            x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
     a, p, c, d = unpack(solved.x)
     cut = np.full(B, np.nan)

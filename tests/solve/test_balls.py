@@ -683,3 +683,55 @@ def test_discs_pixels_off_where_balls_merge_are_left_out_and_the_correction_stan
     assert result.kept, result.reason
     assert np.abs(error).max() < 0.01 and result.rms_px < 0.05
     assert result.left_out == len(merged) and result.to_dict()["left_out"] == len(merged)
+
+
+def test_the_adjustments_columns_are_stepped_in_eight_groups_whatever_the_views():
+    """A disc sees its view's angle, its ball, its ball's cut and the detector: every view's angle can be stepped at
+    once, and the balls' x, y and z, and the cuts. Eight groups of columns at 16 views and 36 (scipy, handed the
+    structure with the gauge row that joins the angles, made one group per view)."""
+    from ctpipe.solve.balls import _column_groups
+
+    for views in (16, 36):
+        view_of, ball_of = np.repeat(np.arange(views), 6), np.tile(np.arange(6), views)
+        disc = np.arange(len(view_of))
+        seen = [(disc, view_of), *[(disc, views + 3 * ball_of + j) for j in range(3)], (disc, views + 18 + ball_of),
+                *[(disc, np.full(len(disc), views + 24 + j)) for j in range(3)]]
+        rows = np.concatenate([m for m, _ in seen])
+        cols = np.concatenate([k for _, k in seen])
+        groups = _column_groups(rows, cols, len(disc), views + 27)
+        assert groups.max() + 1 == 8
+        for g in range(8):
+            mine = np.isin(cols, np.flatnonzero(groups == g))
+            assert len(np.unique(rows[mine])) == np.count_nonzero(mine)      # no row seen twice in a group
+
+
+def test_forward_differences_by_groups_are_the_jacobian_and_step_back_from_a_bound():
+    """Columns stepped together give each row its own column's slope; a column at its upper bound is stepped
+    backwards, and the function is never asked outside the bounds."""
+    from ctpipe.solve.balls import _column_groups, _forward_differences
+
+    rng = np.random.default_rng(0)
+    a, c = rng.normal(size=(3, 2)), rng.normal(size=(3, 2))
+
+    def fun(x):
+        assert np.all(x >= lower) and np.all(x <= upper)
+        return np.concatenate([np.sin(a @ x[:2] * x[2]), np.exp(0.1 * c @ x[2:]) * x[0]])
+
+    def exact(x):
+        jac = np.zeros((6, 4))
+        turn = np.cos(a @ x[:2] * x[2])
+        jac[:3, :2] = turn[:, None] * a * x[2]
+        jac[:3, 2] = turn * (a @ x[:2])
+        grow = np.exp(0.1 * c @ x[2:])
+        jac[3:, 0] = grow
+        jac[3:, 2:] = (grow * x[0])[:, None] * 0.1 * c
+        return jac
+
+    x = np.array([0.3, -0.7, 1.2, 2.0])
+    lower, upper = np.full(4, -np.inf), np.array([np.inf, np.inf, np.inf, 2.0])
+    structure = exact(x) != 0.0
+    rows, cols = np.nonzero(structure)
+    groups = _column_groups(rows, cols, 6, 4)
+    assert groups.max() + 1 < 4                                             # columns 1 and 3 share no row
+    values = _forward_differences(fun, x, fun(x), rows, cols, groups, lower, upper)
+    np.testing.assert_allclose(values, exact(x)[rows, cols], rtol=1e-6, atol=1e-7)
