@@ -735,3 +735,26 @@ def test_forward_differences_by_groups_are_the_jacobian_and_step_back_from_a_bou
     assert groups.max() + 1 < 4                                             # columns 1 and 3 share no row
     values = _forward_differences(fun, x, fun(x), rows, cols, groups, lower, upper)
     np.testing.assert_allclose(values, exact(x)[rows, cols], rtol=1e-6, atol=1e-7)
+
+
+def test_corrections_within_what_the_balls_disagree_on_return_the_nominal_angles():
+    """Each ball's discs sit as if its view were turned by its own 0.01 deg (the biases hardened or coated balls'
+    discs share, hundredths of a pixel), the nominal angles true. The angles absorb part of it: the F test, which
+    takes the discs' errors as independent, finds them better (p 4.5e-12) with views 0.01 deg off the truth. Left out
+    a ball at a time, the balls move each view's angle as far as the corrections go: the nominal angles come back,
+    the detector judged with them. Told angles 0.5 deg off, the same discs give the correction."""
+    rng = np.random.default_rng(0)
+    nominal = np.linspace(0.0, 360.0, 17, endpoint=False)
+    own_turn = [rng.normal(0.0, 0.01, 17) for _ in BALLS]
+    parts = [_detections(nominal + turn, BALLS[b:b + 1], 2.5, noise_px=0.002, seed=b)
+             for b, turn in enumerate(own_turn)]
+    detections = [np.vstack(view) for view in zip(*parts)]
+    found = calibrate_balls(detections, GEOMETRY, nominal)
+    assert found.p_value < 1e-3 and not found.correction_p_value < 1e-3
+    assert not found.kept and found.reason.startswith("the corrections are no larger than the balls' disagreement")
+    np.testing.assert_array_equal(found.angles_deg, nominal)
+    assert found.detector_reason.startswith("the scan's detector")       # judged with the nominal angles, and right
+    told = nominal + rng.uniform(-0.5, 0.5, 17)
+    corrected = calibrate_balls(detections, GEOMETRY, told)
+    assert corrected.kept and corrected.correction_p_value < 1e-12
+    assert np.abs(view_errors_deg(corrected.angles_deg, nominal)).max() < 0.02
