@@ -105,7 +105,7 @@ def test_the_default_estimate_recognises_a_ball_phantom_and_says_so(ball_bar_sca
     capsys.readouterr()
     assert main(["estimate", str(folder), "--out", str(tmp_path / "out")]) == 0
     said = capsys.readouterr()
-    assert "ctpipe: a ball phantom (5 views show 7 (" in said.err and "running the ball calibration" in said.err
+    assert "ctpipe: a ball phantom (9 views show 7 (" in said.err and "running the ball calibration" in said.err
     assert "ball calibration, 7 balls followed through the views, the corrected angles kept" in said.out
     # The before/after line names the measure that decided, whatever the conjugate rays make of the scan.
     verdict = next(line for line in said.out.splitlines() if line.startswith("before/after"))

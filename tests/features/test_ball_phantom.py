@@ -68,3 +68,13 @@ def test_elongated_blobs_alone_are_not_taken_for_merged_balls():
         view += 0.1 * np.sqrt(np.clip(1.0 - ((cols - x) / a) ** 2 - ((rows - y) / b) ** 2, 0.0, None)) * b
     share, balls = ball_phantom_share(view + np.random.default_rng(1).normal(0.0, 0.005, view.shape))
     assert balls == 0 and share < 0.5
+
+
+def test_nine_views_are_asked_so_that_three_unlucky_ones_do_not_decide():
+    """Seventeen views, four of them (8, 12, 14, 16) showing no balls on their own (merged, or lined up along the
+    rays): five views spread over the scan (0, 4, 8, 12, 16) would find three of them; nine find four of nine."""
+    ball = _balls(SEPARATE + [(250, 250)])
+    views = np.stack([_texture(seed=k) if k in (8, 12, 14, 16) else ball for k in range(17)])
+    yes, why = looks_like_ball_phantom(views)
+    assert yes and why.startswith("9 views show "), why
+    assert not looks_like_ball_phantom(views, views=5)[0]
