@@ -73,8 +73,9 @@ nothing is decided pair by pair:
    well as the corrected ones (the F test above finds no difference) and the fitted detector
    explains them better than the scan's own beyond noise (an F test of its three unknowns).
 
-Gauges: the first view keeps its nominal angle (a common turn only turns the phantom); the
-magnification stays the nominal one (balls of unknown positions and size fix the geometry
+Gauges: a common turn of every view only turns the phantom, so each adjustment holds the free
+views' mean angle where it starts (the corrected angles carry whatever common turn that leaves;
+the ``ball-calibration`` refiner returns them from view 0's); the magnification stays the nominal one (balls of unknown positions and size fix the geometry
 only up to scale: a phantom scaled about the source projects the same).
 """
 
@@ -105,8 +106,8 @@ class BallCalibration:
     corrected_deg : ndarray of shape (V,)
         The bundle adjustment's angles, whatever the verdict.
     angle_se_deg : ndarray of shape (V,)
-        Standard error of every corrected angle (NaN where a view had too few balls, or for view 0,
-        the gauge).
+        Standard error of every corrected angle (NaN where a view had too few balls), the common
+        turn, which nothing fixes, held.
     kept : bool
         Whether the corrected angles are returned.
     reason : str
