@@ -75,8 +75,9 @@ nothing is decided pair by pair:
 
 Gauges: a common turn of every view only turns the phantom, so each adjustment holds the free
 views' mean angle where it starts (the corrected angles carry whatever common turn that leaves;
-the ``ball-calibration`` refiner returns them from view 0's); the magnification stays the nominal one (balls of unknown positions and size fix the geometry
-only up to scale: a phantom scaled about the source projects the same).
+the ``ball-calibration`` refiner returns them from view 0's); the magnification stays the
+nominal one (balls of unknown positions and size fix the geometry only up to scale: a phantom
+scaled about the source projects the same).
 """
 
 from __future__ import annotations
