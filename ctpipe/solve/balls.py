@@ -820,12 +820,16 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     disc = np.arange(M)
     column = np.full(len(angles), -1)
     column[free_views[:n_free]] = np.arange(n_free)
-    seen = [(disc[column[view_of] >= 0], column[view_of][column[view_of] >= 0])]
+    angle_of = column[view_of]
+    seen = [(disc[angle_of >= 0], angle_of[angle_of >= 0])]
     seen += [(disc, n_free + 3 * ball_of + j) for j in range(3)]
     seen.append((disc[one_sided], n_free + 3 * B + cut_column[ball_of[one_sided]]))
     seen += [(disc, np.full(M, n_free + 3 * B + n_cut + j)) for j in range(n_det)]
     rows = np.concatenate([np.concatenate([2 * m, 2 * m + 1]) for m, _ in seen])
     cols = np.concatenate([np.concatenate([k, k]) for _, k in seen])
+    # The gauge row (the last, where the angles are free): the free views' mean angle, its slope constant.
+    gauge_rows, gauge_cols = np.full(n_free, 2 * M), np.arange(n_free)
+    gauge_slope = np.full(n_free, _GAUGE_PX_PER_RAD / n_free) if n_free else np.zeros(0)
     lower, upper = np.full(len(x0), -np.inf), np.full(len(x0), np.inf)
     depth = slice(n_free + 3 * B, n_free + 3 * B + n_cut)
     lower[depth] = 0.0
@@ -834,6 +838,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     x0[depth] = np.clip(x0[depth], lower[depth], upper[depth])
     groups = _column_groups(rows, cols, 2 * M, len(x0))
     last = {}
+    discs_only = functools.partial(residuals, gauge=False)
 
     def objective(x):
         """The residuals scipy minimises, the discs' kept for the Jacobian at the same point (scipy asks for it
@@ -846,15 +851,10 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
         """Forward differences on the discs' rows, columns that share none stepped together, and the gauge row's
         constant slope. Handed the structure instead (``jac_sparsity``), scipy steps each view's angle on its own,
         the gauge row joining them all: forty evaluations of the residuals a Jacobian where this takes eight."""
-        discs_only = functools.partial(residuals, gauge=False)
         f0 = last["discs"] if "x" in last and np.array_equal(last["x"], x) else discs_only(x)
         values = _forward_differences(discs_only, x, f0, rows, cols, groups, lower, upper)
-        jac = sparse.csr_matrix((values, (rows, cols)), shape=(2 * M, len(x)))
-        if not n_free:
-            return jac
-        gauge = sparse.csr_matrix((np.full(n_free, _GAUGE_PX_PER_RAD / n_free), (np.zeros(n_free, int),
-                                   np.arange(n_free))), shape=(1, len(x)))
-        return sparse.vstack([jac, gauge], format="csr")
+        return sparse.csr_matrix((np.concatenate([values, gauge_slope]), (np.concatenate([rows, gauge_rows]),
+                                  np.concatenate([cols, gauge_cols]))), shape=(2 * M + (1 if n_free else 0), len(x)))
 
     solved = least_squares(objective, x0, jac=jacobian, bounds=(lower, upper), loss=loss, f_scale=scale_px,
                            x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
@@ -1117,6 +1117,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     # What the balls disagree on, view by view: the larger of the jackknife's and the fit's standard errors.
     spread = np.fmax(jack_se, se)
     chi_change, dof_change, p_change, rms_change = _beyond_disagreement(change, spread)
+    within_disagreement = not p_change < p_value
     rms = float(np.sqrt(np.mean(fit.residual ** 2)))
     nominal_rms = float(np.sqrt(np.mean(nominal_fit.residual ** 2)))
     # A view whose discs mostly miss their balls has them assigned wrongly (its angle settled far off): the
@@ -1165,7 +1166,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     elif p >= p_value:
         kept, reason = False, (f"the corrected angles explain the balls no better than the nominal ones beyond noise "
                                f"(reprojection RMS {rms:.3f} px against {nominal_rms:.3f} px; F test p {p:.2g})")
-    elif not p_change < p_value:
+    elif within_disagreement:
         kept, reason = False, (f"the corrections are no larger than the balls' disagreement on the views' angles "
                                f"(standard errors up to {float(np.nanmax(spread)):.4f} deg, left out a ball at a "
                                f"time): {rms_change:.4f} deg RMS, the common turn taken out (chi-square "
@@ -1179,7 +1180,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     returned, returned_cov = (fit, cov) if kept else (nominal_fit, _covariance(nominal_fit) if fit_detector else None)
     detector_kept, detector_reason = _detector_verdict(
         returned, kept, fit_detector, p_value,
-        nominal_as_good=math.isfinite(p) and (p >= p_value or not p_change < p_value) and not len(lost),
+        nominal_as_good=math.isfinite(p) and (p >= p_value or within_disagreement) and not len(lost),
         scan_fit=lambda: _adjust(discs, radii_mm, theta0, nominal_fit.balls,
                                  np.array([geometry.u0_px, geometry.v0_px, 0.0]), geometry, free_views=free_views,
                                  fit_angles=False, fit_detector=False, scale_px=scale_px, loss=fit_loss,
