@@ -45,7 +45,13 @@ nothing is decided pair by pair:
    at the same height, pixels off) is looked for again among the leftover discs once the others
    have settled the angles (:data:`_READMIT_ERROR_RAD`), and the rounds run again with it. A disc
    pixels off its ball where the rest of its view and ball fit (two or three balls merged into one
-   disc) is left out of the rounds after (:func:`_leave_out_gross`).
+   disc) is left out of the rounds after (:func:`_leave_out_gross`). Where the projections drift (a source spot
+   that wanders as the tube warms, a detector that moves), every disc of a view is shifted alike: taken for angle
+   errors, a drift of 0.2-0.7 px left simulated views 0.01-0.12 deg off, or refused. So once the first round has
+   settled, the same adjustment with a shift ``(du, dv)`` per view is tried from its solution; where it explains the
+   balls better beyond noise (an F test at ``p_value``) and every view's shift is pinned to :data:`_MAX_SHIFT_SE_PX`,
+   the shifts are fitted from then on, in the verdict's fits too (their mean, and the columns' once-a-turn part,
+   which a common translation of the balls explains as well, held as gauges; as projection matching does).
 3. **A verdict from the balls themselves.** The same fit with the angles held at the nominal
    ones; the corrected angles are kept only where they explain the balls better beyond noise
    (an F test of the residuals, the angles' degrees of freedom against the rest), none moved
@@ -136,6 +142,12 @@ class BallCalibration:
     correction_p_value : float
         The chi-square test of the corrections against the balls' disagreement on each view's angle
         (:func:`_beyond_disagreement`); NaN where not computed.
+    view_shifts_px : ndarray of shape (V, 2) or None
+        Each view's projection's shift ``(du, dv)`` (px), fitted with the returned angles where the balls show one
+        (a drifting source spot or detector; their mean over the views is zero, the detector holding it); None
+        where not fitted.
+    shift_p_value : float
+        The F test of the views' shifts against none (NaN where not made).
     observations : int
         Detections fitted (assigned to a ball, flagged or not).
     shell_observations : int
@@ -175,6 +187,8 @@ class BallCalibration:
     shell_observations: int = 0
     left_out: int = 0
     correction_p_value: float = math.nan
+    view_shifts_px: np.ndarray | None = None
+    shift_p_value: float = math.nan
 
     def to_dict(self) -> dict:
         return {"kept": self.kept, "reason": self.reason, "balls": len(self.balls_mm),
@@ -190,6 +204,8 @@ class BallCalibration:
                 "p_value": self.p_value, "correction_p_value": self.correction_p_value,
                 "observations": self.observations,
                 "shell_observations": self.shell_observations, "left_out": self.left_out,
+                "shift_p_value": None if not math.isfinite(self.shift_p_value) else self.shift_p_value,
+                "view_shifts_px": None if self.view_shifts_px is None else np.round(self.view_shifts_px, 4).tolist(),
                 **({} if self.ball_cut_px is None else
                    {"ball_cut_px": [None if not np.isfinite(c) else round(float(c), 4) for c in self.ball_cut_px]}),
                 "views_per_ball": [int(sum(int(np.sum(a == b)) for a in self.assigned))
@@ -680,6 +696,9 @@ class _Fit:
     free_views: np.ndarray
     n_params: int
     cut_px: np.ndarray | None = None   # (B,) each ball's rim cut by the clip (px), NaN where not fitted
+    shifts_px: np.ndarray | None = None   # (V, 2) each view's shift (px), where fitted
+    shift_columns: slice = field(default_factory=lambda: slice(0, 0))   # the shifts' unknowns in ``jac``
+    n_gauge: int = 0                   # gauge rows after the discs' in ``jac``, each giving one unknown back
 
 
 #: The robust loss once a round has settled the angles from the nominal ones (the first round, and the first after a
@@ -688,6 +707,16 @@ _SETTLED_LOSS = "cauchy"
 
 #: The gauge row's weight, pixels per radian of the free views' mean turn (which nothing else fixes).
 _GAUGE_PX_PER_RAD = 1e3
+
+#: The shift gauge rows' weight, per pixel of the free views' mean shift (which the detector's axis column and
+#: principal row fix otherwise) or of its once-a-turn part (which the balls' positions do).
+_SHIFT_GAUGE_WEIGHT = 1e3
+
+#: The views' shifts are fitted only where each is pinned to this (px, its standard error) or better. Seven balls at
+#: one height (a coated scan whose three heights fell within 3.4 mm) fitted shifts of 2-3 px with standard errors of
+#: 0.9-4 px, each view's shift trading with its angle, and the scan was refused; where the projections drift
+#: (simulated walks of 0.02-0.1 px a view, jumps of 0.2-0.5 px) the shifts' standard errors were 0.006-0.015 px.
+_MAX_SHIFT_SE_PX = 0.1
 
 #: A rim cut ``d`` px deep on the rays of :attr:`~ctpipe.data.Features.clipped_side` ``s`` (the mean
 #: over all rays of the cut rays' outward directions) pulls a circle fitted to it by ``-2 d s``: to
@@ -768,7 +797,7 @@ def _forward_differences(fun, x: np.ndarray, f0: np.ndarray, rows: np.ndarray, c
 
 
 def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_views, fit_angles=True,
-            fit_detector=True, scale_px: float = 1.0, loss: str = "huber", cut_px=None) -> _Fit:
+            fit_detector=True, scale_px: float = 1.0, loss: str = "huber", cut_px=None, shifts_px=None) -> _Fit:
     """Bundle adjustment of the free views' angles, the balls and the detector on the discs.
 
     The gauge (a common turn of every view turns only the phantom) is one more residual: the free
@@ -778,6 +807,12 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     Each ball with a disc cut on one side (``discs.side``) gets one more unknown, how deep the clip cuts its rim
     (``cut_px``, its start; NaN for the others; within 0 and :data:`_MAX_CUT_FRACTION` of its radius), and a
     disc's fitted centre is taken as pulled by ``-2 cut side`` (:data:`_CUT_PULL`).
+
+    Given ``shifts_px`` (V, 2: their start), every free view's projection is shifted by its own ``(du, dv)`` px
+    besides, a source spot or a detector that drifts. Four more gauge rows (weighed :data:`_SHIFT_GAUGE_WEIGHT`)
+    hold where they start the free views' mean shift, which the axis column and the principal row would otherwise
+    share, and the columns' once-a-turn part (``du`` along ``cos`` and ``sin`` of the angle), which a common
+    translation of the balls explains as well to within the cone's magnification across the phantom.
     """
     from scipy import sparse
     from scipy.optimize import least_squares
@@ -793,6 +828,9 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     n_cut = len(cut_balls)
     cut_column = np.full(B, -1)
     cut_column[cut_balls] = np.arange(n_cut)
+    shifted = np.asarray(free_views) if shifts_px is not None and len(free_views) >= 2 else np.zeros(0, int)
+    n_shift = len(shifted)
+    first_shift = n_free + 3 * B + n_cut
 
     def unpack(x):
         a = angles.copy()
@@ -800,20 +838,38 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
             a[free_views] = x[:n_free]
         p = x[n_free:n_free + 3 * B].reshape(B, 3)
         c = np.zeros(B)
-        c[cut_balls] = x[n_free + 3 * B:n_free + 3 * B + n_cut]
-        d = x[n_free + 3 * B + n_cut:] if n_det else detector
-        return a, p, c, d
+        c[cut_balls] = x[n_free + 3 * B:first_shift]
+        t = np.zeros((len(angles), 2)) if shifts_px is None else np.array(shifts_px, dtype=np.float64)
+        t[shifted] = x[first_shift:first_shift + 2 * n_shift].reshape(-1, 2)
+        d = x[first_shift + 2 * n_shift:] if n_det else detector
+        return a, p, c, t, d
 
     start_mean = float(np.mean(angles[free_views])) if n_free else 0.0
+    # The shifts' gauges: their mean (the detector's u0 and v0 otherwise), and their columns' once-a-turn part
+    # (a common translation of the balls, to within the cone's magnification across the phantom's depth).
+    turn = angles[shifted]
+    shift_gauge = np.stack([np.r_[np.ones(n_shift), np.zeros(n_shift)], np.r_[np.zeros(n_shift), np.ones(n_shift)],
+                            np.r_[np.cos(turn), np.zeros(n_shift)], np.r_[np.sin(turn), np.zeros(n_shift)]]) / max(
+        n_shift, 1)
+    start_gauge = shift_gauge @ _interleaved(np.asarray(shifts_px, dtype=np.float64)[shifted]) if n_shift else None
+
+    def gauges(x):
+        """The gauge rows: the free views' mean angle, and where shifts are fitted their mean and once-a-turn part."""
+        rows = [_GAUGE_PX_PER_RAD * (float(np.mean(x[:n_free])) - start_mean)] if n_free else []
+        if n_shift:
+            rows += list(_SHIFT_GAUGE_WEIGHT * (shift_gauge @ _interleaved(
+                x[first_shift:first_shift + 2 * n_shift].reshape(-1, 2)) - start_gauge))
+        return rows
 
     def residuals(x, gauge=True):
-        a, p, c, d = unpack(x)
+        a, p, c, t, d = unpack(x)
         uv = ellipse_centres(p[ball_of], radii_mm[ball_of] * edge, a[view_of], geometry, d[0], d[1], d[2])
         seen = observed + _CUT_PULL * c[ball_of, None] * side     # where the disc's centre would be, uncut
-        r = ((uv - seen) * weight[:, None]).reshape(-1)
-        return np.append(r, _GAUGE_PX_PER_RAD * (float(np.mean(x[:n_free])) - start_mean)) if n_free and gauge else r
+        r = ((uv + t[view_of] - seen) * weight[:, None]).reshape(-1)
+        return np.append(r, gauges(x)) if gauge else r
 
     x0 = np.concatenate([angles[free_views] if n_free else [], balls.reshape(-1), cut_start[cut_balls],
+                         np.asarray(shifts_px, dtype=np.float64)[shifted].reshape(-1) if n_shift else [],
                          detector if n_det else []])
     # The Jacobian's structure: each observation sees its view's angle, its ball, its ball's cut and the detector.
     M = len(observed)
@@ -824,12 +880,29 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     seen = [(disc[angle_of >= 0], angle_of[angle_of >= 0])]
     seen += [(disc, n_free + 3 * ball_of + j) for j in range(3)]
     seen.append((disc[one_sided], n_free + 3 * B + cut_column[ball_of[one_sided]]))
-    seen += [(disc, np.full(M, n_free + 3 * B + n_cut + j)) for j in range(n_det)]
+    seen += [(disc, np.full(M, first_shift + 2 * n_shift + j)) for j in range(n_det)]
     rows = np.concatenate([np.concatenate([2 * m, 2 * m + 1]) for m, _ in seen])
     cols = np.concatenate([np.concatenate([k, k]) for _, k in seen])
-    # The gauge row (the last, where the angles are free): the free views' mean angle, its slope constant.
-    gauge_rows, gauge_cols = np.full(n_free, 2 * M), np.arange(n_free)
-    gauge_slope = np.full(n_free, _GAUGE_PX_PER_RAD / n_free) if n_free else np.zeros(0)
+    if n_shift:
+        # A view's shift moves its discs' u (the first column of its pair) and v (the second) alone.
+        shift_column = np.full(len(angles), -1)
+        shift_column[shifted] = first_shift + 2 * np.arange(n_shift)
+        mine = disc[shift_column[view_of] >= 0]
+        rows = np.concatenate([rows, 2 * mine, 2 * mine + 1])
+        cols = np.concatenate([cols, shift_column[view_of[mine]], shift_column[view_of[mine]] + 1])
+    # The gauge rows (after the discs'): the free views' mean angle, then their mean shift; their slopes constant.
+    gauge_rows = [np.full(n_free, 2 * M)] if n_free else []
+    gauge_cols = [np.arange(n_free)] if n_free else []
+    gauge_slope = [np.full(n_free, _GAUGE_PX_PER_RAD / n_free)] if n_free else []
+    for row in shift_gauge if n_shift else []:
+        # ``row`` weighs the shifts as (du..., dv...); their columns interleave them (du, dv per view).
+        used = np.flatnonzero(row)
+        gauge_rows.append(np.full(len(used), 2 * M + len(gauge_rows)))
+        gauge_cols.append(first_shift + np.where(used < n_shift, 2 * used, 2 * (used - n_shift) + 1))
+        gauge_slope.append(_SHIFT_GAUGE_WEIGHT * row[used])
+    n_gauge = len(gauge_rows)
+    gauge_rows, gauge_cols, gauge_slope = (np.concatenate(g) if g else np.zeros(0, int if k < 2 else float)
+                                           for k, g in enumerate((gauge_rows, gauge_cols, gauge_slope)))
     lower, upper = np.full(len(x0), -np.inf), np.full(len(x0), np.inf)
     depth = slice(n_free + 3 * B, n_free + 3 * B + n_cut)
     lower[depth] = 0.0
@@ -853,17 +926,25 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
         the gauge row joining them all: forty evaluations of the residuals a Jacobian where this takes eight."""
         f0 = last["discs"] if "x" in last and np.array_equal(last["x"], x) else discs_only(x)
         values = _forward_differences(discs_only, x, f0, rows, cols, groups, lower, upper)
-        return sparse.csr_matrix((np.concatenate([values, gauge_slope]), (np.concatenate([rows, gauge_rows]),
-                                  np.concatenate([cols, gauge_cols]))), shape=(2 * M + (1 if n_free else 0), len(x)))
+        jac = sparse.csr_matrix((np.concatenate([values, gauge_slope]), (np.concatenate([rows, gauge_rows]),
+                                 np.concatenate([cols, gauge_cols]))), shape=(2 * M + n_gauge, len(x)))
+        return jac.toarray() if n_shift else jac
 
-    solved = least_squares(objective, x0, jac=jacobian, bounds=(lower, upper), loss=loss, f_scale=scale_px,
-                           x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
-    a, p, c, d = unpack(solved.x)
+    # With the views' shifts the Jacobian is handed dense, and the bounds kept by dogbox's active set: trf on the sparse
+    # one (lsmr steps) stopped at 200 evaluations with a drift of 0.5 px fitted as 0.04 (a cut depth at its bound
+    # holds its scaled steps back). Without them, as before: dogbox from nominal angles 0.5 deg off refused two
+    # hardened scans that trf corrects to 0.009 deg.
+    method = "dogbox" if n_shift else "trf"
+
+    solved = least_squares(objective, x0, jac=jacobian, bounds=(lower, upper), method=method, loss=loss,
+                           f_scale=scale_px, x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    a, p, c, t, d = unpack(solved.x)
     cut = np.full(B, np.nan)
     cut[cut_balls] = c[cut_balls]
     return _Fit(a, p, np.asarray(d, dtype=np.float64), residuals(solved.x, gauge=False).reshape(-1, 2),
                 solved.jac.toarray() if hasattr(solved.jac, "toarray") else solved.jac,
-                np.asarray(free_views), len(x0), cut)
+                np.asarray(free_views), len(x0), cut, None if shifts_px is None else t,
+                slice(first_shift, first_shift + 2 * n_shift), n_gauge)
 
 
 #: The jackknife over the balls leaves out one group of balls at a time: each ball its own group up to this many
@@ -872,7 +953,7 @@ _JACKKNIFE_GROUPS = 10
 
 
 def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_views, fit_detector, scale_px,
-                  loss, cut_px) -> tuple[np.ndarray, np.ndarray]:
+                  loss, cut_px, shifts_px=None) -> tuple[np.ndarray, np.ndarray]:
     """Each view's angle's standard error by the delete-a-group jackknife over the balls (deg; NaN where not free),
     and how many refits adjusted it.
 
@@ -897,7 +978,8 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
         if len(free) < 2:
             continue
         refit = _adjust(left, radii_mm[keep_ball], angles, balls[keep_ball], detector, geometry, free_views=free,
-                        fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=np.asarray(cut_px)[keep_ball])
+                        fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=np.asarray(cut_px)[keep_ball],
+                        shifts_px=shifts_px)
         moved = refit.angles[free] - angles[free]
         refits[k, free] = refit.angles[free] - np.mean(moved)
     se, n = np.full(V, np.nan), np.zeros(V, dtype=int)
@@ -931,7 +1013,7 @@ def _columns(found) -> np.ndarray:
 
 def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_error_deg: float = 2.0,
                     fit_detector: bool = True, p_value: float = 1e-3, rounds: int = 3,
-                    max_angle_se_deg: float = 0.02) -> BallCalibration:
+                    max_angle_se_deg: float = 0.02, fit_shifts: bool | None = None) -> BallCalibration:
     """Every view's angle and the detector from the balls of a ball phantom (see the module docstring).
 
     Parameters
@@ -962,6 +1044,11 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     max_angle_se_deg : float
         The corrected angles are kept only where every view's standard error is within this: a
         view whose balls move along its rays, or whose discs are few, is not pinned by them.
+    fit_shifts : bool or None
+        Fit every view's projection's own shift (a drifting source spot or detector) with the rest: always (True),
+        never (False), or where the balls show it (None: an F test of the shifts, at ``p_value``, once the first
+        round has settled the angles, and each view's shift pinned to :data:`_MAX_SHIFT_SE_PX`; see the module
+        docstring).
     """
     from scipy import stats
 
@@ -997,12 +1084,16 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     start_angles, start_detector = theta0.copy(), detector.copy()
     dropped = False
     gross = [np.zeros(len(found), bool) for found in detections]   # discs left out as gross errors
+    shifting = fit_shifts is True       # whether each view's shift is fitted (from the start, or once shown)
+    shifts = np.zeros((V, 2))           # each view's shift (px), where fitted
+    shift_p, shift_tested = math.nan, False
     for readmitted in (False, True):
         done = again = 0
         while done < rounds:   # a round that drops a ball does not count (at most all but two are dropped)
+            placed = _shifted(detections, shifts)   # each view's discs where an unshifted projection puts them
             if fit is not None:
-                angles = _relocate_views(detections, balls, radii_mm, angles, theta0, error_rad, geometry, detector)
-            assigned = _assign(detections, balls, radii_mm, angles, geometry, *detector, tol)
+                angles = _relocate_views(placed, balls, radii_mm, angles, theta0, error_rad, geometry, detector)
+            assigned = _assign(placed, balls, radii_mm, angles, geometry, *detector, tol)
             for labels, left_out in zip(assigned, gross):
                 labels[left_out] = -1
             view_of, ball_of, observed, disc_px, flagged, side, edge, index_of = [], [], [], [], [], [], [], []
@@ -1027,9 +1118,23 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             radii_mm = radii_mm * (z + geometry.source_to_object_mm) / geometry.source_to_detector_mm
             discs = _Discs(observed, weight, view_of, ball_of, side, edge)
             fit = _adjust(discs, radii_mm, angles, balls, detector, geometry, free_views=free_views,
-                          fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=cut_px)
+                          fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=cut_px,
+                          shifts_px=shifts if shifting else None)
+            if fit_shifts is None and not shifting and loss == _SETTLED_LOSS and not shift_tested:
+                # Once the angles have settled: do the views' projections shift, each its own way?
+                trial = _adjust(discs, radii_mm, fit.angles, fit.balls, fit.detector, geometry, free_views=free_views,
+                                fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=fit.cut_px,
+                                shifts_px=np.zeros((V, 2)))
+                shift_p, shift_tested = _nested_p(fit, trial), True
+                if shift_p < p_value and _shift_se_px(trial) <= _MAX_SHIFT_SE_PX:
+                    fit, shifting = trial, True
+                    if done == rounds - 1:
+                        again += 1   # one more round, assigned with the shifts
+                        done -= 1
             fit_loss = loss   # the nominal fit below is made with the loss of the fit it is tested against
             angles, balls, detector, cut_px = fit.angles, fit.balls, fit.detector, fit.cut_px
+            if shifting:
+                shifts = fit.shifts_px
             rms = float(np.sqrt(np.mean(fit.residual ** 2)))
             # A "ball" that fits far worse than the others in most of its views (its residuals' robust spread), or is
             # seen in too few views, is not one (dust that lined up by chance, a merged pair): it is dropped and the
@@ -1049,6 +1154,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                 flag_weight = _first_flag_weights()   # their residuals held the dropped ball's discs
                 gross = [np.zeros(len(found), bool) for found in detections]
                 angles, detector = start_angles.copy(), start_detector.copy()   # as it bent them
+                shifting, shifts, shift_p, shift_tested = fit_shifts is True, np.zeros((V, 2)), math.nan, False
                 dropped = True
                 loss = "huber"
                 continue
@@ -1070,7 +1176,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             break
         # Balls dropped while the angles were still the nominal ones (their discs given to a neighbour at
         # the same height, pixels off) are looked for again among the discs left over, the angles settled.
-        leftover = [found[labels < 0] for found, labels in zip(detections, assigned)]
+        leftover = [found[labels < 0] for found, labels in zip(_shifted(detections, shifts), assigned)]
         settled = dataclasses.replace(geometry, u0_px=float(detector[0]), v0_px=float(detector[1]))
         more, more_radii_mm = _find_balls(leftover, angles, settled, _READMIT_ERROR_RAD, radius_px, min_views)
         if not len(more):
@@ -1081,8 +1187,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         ball_weight, cut_px = np.append(ball_weight, np.ones(len(more))), np.append(cut_px, np.zeros(len(more)))
         start_angles, start_detector = angles.copy(), detector.copy()
         loss = "huber"
+    view_shifts = shifts if shifting else None
     nominal_fit = _adjust(discs, radii_mm, theta0, balls, detector, geometry, free_views=free_views, fit_angles=False,
-                          fit_detector=fit_detector, scale_px=scale_px, loss=fit_loss, cut_px=cut_px)
+                          fit_detector=fit_detector, scale_px=scale_px, loss=fit_loss, cut_px=cut_px,
+                          shifts_px=view_shifts)
     # The gauge row takes one unknown back: the angles add len(free_views) - 1 over the nominal fit.
     chi_corrected, dof = _chi_dof(fit)
     chi_nominal = float(np.sum(nominal_fit.residual ** 2))
@@ -1102,7 +1210,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     jack_se, jack_n = np.full(V, np.nan), np.zeros(V, dtype=int)
     if len(free_views) and extra > 0:
         jack_se, jack_n = _jackknife_se(discs, radii_mm, angles, balls, detector, geometry, free_views=free_views,
-                                        fit_detector=fit_detector, scale_px=scale_px, loss=fit_loss, cut_px=cut_px)
+                                        fit_detector=fit_detector, scale_px=scale_px, loss=fit_loss, cut_px=cut_px,
+                                        shifts_px=view_shifts)
     # Beyond the allowed standard error by more than the jackknife's own spread: its variance is about chi-square
     # with one fewer degrees of freedom than the refits, so it exceeds the bar where that chi-square does at p_value.
     with np.errstate(invalid="ignore"):
@@ -1154,8 +1263,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                                f"standard error of {jack_se[view]:.3f} deg, beyond the {max_angle_se_deg:g} deg "
                                f"allowed (chi-square p < {p_value:g}; {len(disagree)} view(s) so)")
     # Every view is free here (the unfixed ones were refused above).
-    elif ambiguous := _ambiguous_views(detections, assigned, balls, radii_mm, angles, theta0, error_rad, geometry,
-                                       detector):
+    elif ambiguous := _ambiguous_views(_shifted(detections, shifts), assigned, balls, radii_mm, angles, theta0,
+                                       error_rad, geometry, detector):
         view, other = min(ambiguous.items(), key=lambda item: abs(item[1] - angles[item[0]]))
         kept, reason = False, (f"view {view}'s discs fit its balls as well at {math.degrees(other):.2f} deg as at "
                                f"{corrected[view]:.2f} deg, with other balls on them: the balls do not fix its angle "
@@ -1184,7 +1293,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         scan_fit=lambda: _adjust(discs, radii_mm, theta0, nominal_fit.balls,
                                  np.array([geometry.u0_px, geometry.v0_px, 0.0]), geometry, free_views=free_views,
                                  fit_angles=False, fit_detector=False, scale_px=scale_px, loss=fit_loss,
-                                 cut_px=nominal_fit.cut_px))
+                                 cut_px=nominal_fit.cut_px, shifts_px=nominal_fit.shifts_px))
     detector = returned.detector
     return BallCalibration(angles_deg=corrected if kept else nominal.copy(), corrected_deg=corrected,
                            angle_se_deg=se, kept=kept, reason=reason, balls_mm=balls, u0_px=float(detector[0]),
@@ -1195,13 +1304,52 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                            assigned=assigned, ball_cut_px=cut_px,
                            detector_se=_detector_se(returned_cov if fit_detector else None),
                            angle_jackknife_se_deg=jack_se, detector_kept=detector_kept,
-                           detector_reason=detector_reason, correction_p_value=p_change)
+                           detector_reason=detector_reason, correction_p_value=p_change,
+                           view_shifts_px=None if returned.shifts_px is None else returned.shifts_px.copy(),
+                           shift_p_value=shift_p if shift_tested else math.nan)
+
+
+def _interleaved(shifts_px: np.ndarray) -> np.ndarray:
+    """Shifts (N, 2) as one vector of every du, then every dv."""
+    return np.concatenate([shifts_px[:, 0], shifts_px[:, 1]])
+
+
+def _shifted(detections, shifts_px: np.ndarray) -> list[np.ndarray]:
+    """Each view's detections with its shift taken off their centres: where an unshifted projection puts them."""
+    if not np.any(shifts_px):
+        return detections
+    moved = []
+    for found, shift in zip(detections, shifts_px):
+        found = found.copy()
+        found[:, :2] -= shift
+        moved.append(found)
+    return moved
+
+
+def _nested_p(fit: _Fit, larger: _Fit) -> float:
+    """The F test's p-value of ``larger`` (more unknowns, ``fit`` nested in it) against ``fit``; NaN where it cannot
+    be computed."""
+    from scipy import stats
+
+    chi, _ = _chi_dof(fit)
+    chi_larger, dof = _chi_dof(larger)
+    extra = (larger.n_params - larger.n_gauge) - (fit.n_params - fit.n_gauge)
+    if dof <= 0 or extra <= 0 or chi_larger <= 0:
+        return math.nan
+    return float(stats.f.sf(((chi - chi_larger) / extra) / (chi_larger / dof), extra, dof))
+
+
+def _shift_se_px(fit: _Fit) -> float:
+    """The largest standard error (px) of a fit's views' shifts; infinite where it cannot be computed."""
+    cov = _covariance(fit)
+    if cov is None or fit.shift_columns.stop <= fit.shift_columns.start:
+        return math.inf
+    return float(np.sqrt(np.max(np.clip(np.diag(cov)[fit.shift_columns], 0.0, None))))
 
 
 def _chi_dof(fit: _Fit) -> tuple[float, int]:
     """A fit's residual sum of squares and its degrees of freedom (the gauge row gives one unknown back)."""
-    gauge = 1 if fit.jac is not None and fit.jac.shape[0] > fit.residual.size else 0
-    return float(np.sum(fit.residual ** 2)), int(fit.residual.size - (fit.n_params - gauge))
+    return float(np.sum(fit.residual ** 2)), int(fit.residual.size - (fit.n_params - fit.n_gauge))
 
 
 def _covariance(fit: _Fit) -> np.ndarray | None:

@@ -15,15 +15,17 @@ GEOMETRY = Geometry(source_to_object_mm=172.0, source_to_detector_mm=1000.0, det
                     pixel_pitch_u_mm=0.2, pixel_pitch_v_mm=0.2)
 
 
-def _detections(truth_deg, balls_mm, radius_mm, *, u0_px=999.5, tilt_deg=0.0, noise_px=0.02, seed=0, dust=0):
+def _detections(truth_deg, balls_mm, radius_mm, *, u0_px=999.5, tilt_deg=0.0, noise_px=0.02, seed=0, dust=0,
+                shifts_px=None):
     """Per view, the discs a detector would report: ellipse centres with noise, each of the radius its
-    ball's depth gives it; dust anywhere."""
+    ball's depth gives it, the whole view shifted by ``shifts_px`` (V, 2) where given; dust anywhere."""
     rng = np.random.default_rng(seed)
     out = []
-    for angle in np.deg2rad(truth_deg):
+    shifts_px = np.zeros((len(truth_deg), 2)) if shifts_px is None else shifts_px
+    for angle, shift in zip(np.deg2rad(truth_deg), shifts_px):
         uv = ellipse_centres(balls_mm, np.full(len(balls_mm), radius_mm), np.full(len(balls_mm), angle), GEOMETRY,
                              u0_px, GEOMETRY.v0_px, np.deg2rad(tilt_deg))
-        uv = uv + rng.normal(0.0, noise_px, uv.shape)
+        uv = uv + shift + rng.normal(0.0, noise_px, uv.shape)
         depth = np.sin(angle) * balls_mm[:, 0] + np.cos(angle) * balls_mm[:, 2] + GEOMETRY.source_to_object_mm
         radius_px = radius_mm * GEOMETRY.source_to_detector_mm / (GEOMETRY.pixel_pitch_u_mm * depth)
         found = np.column_stack([uv, radius_px, np.zeros(len(uv))])
@@ -758,3 +760,61 @@ def test_corrections_within_what_the_balls_disagree_on_return_the_nominal_angles
     corrected = calibrate_balls(detections, GEOMETRY, told)
     assert corrected.kept and corrected.correction_p_value < 1e-12
     assert np.abs(view_errors_deg(corrected.angles_deg, nominal)).max() < 0.02
+
+
+def _drift(n_views, seed, *, walk_px=0.1, jump_px=0.6):
+    """A source spot's drift: a random walk in both directions from view 0, and one jump half-way."""
+    rng = np.random.default_rng(seed)
+    steps = rng.normal(0.0, walk_px, (n_views, 2))
+    steps[0] = 0.0
+    steps[n_views // 2] += jump_px
+    return np.cumsum(steps, axis=0)
+
+
+def _without_gauge(shifts_px, angles_deg):
+    """Shifts less their mean and their columns' once-a-turn part (what the balls' positions and the detector take)."""
+    theta = np.deg2rad(angles_deg)
+    basis = np.column_stack([np.ones_like(theta), np.cos(theta), np.sin(theta)])
+    u = shifts_px[:, 0] - basis @ np.linalg.lstsq(basis, shifts_px[:, 0], rcond=None)[0]
+    return np.column_stack([u, shifts_px[:, 1] - shifts_px[:, 1].mean()])
+
+
+def test_projections_that_drift_are_fitted_view_by_view_and_every_angle_stays_right():
+    """A drifting source spot shifts each view's discs alike: taken for angles, it leaves views a tenth of a degree
+    off; the balls show it, and each view's shift is fitted with its angle."""
+    n_views = 17
+    rng = np.random.default_rng(5)
+    nominal = np.linspace(0.0, 360.0, n_views, endpoint=False)
+    truth = nominal + rng.normal(0.0, 0.5, n_views)
+    drift = _drift(n_views, 5)
+    detections = _detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=5, shifts_px=drift)
+
+    def worst(result):
+        error = result.corrected_deg - truth
+        return float(np.abs(error - np.median(error)).max())
+
+    blind = calibrate_balls(detections, GEOMETRY, nominal, fit_shifts=False)
+    found = calibrate_balls(detections, GEOMETRY, nominal)
+    assert worst(blind) > 0.02
+    assert found.kept and worst(found) < 0.01 and found.shift_p_value < 1e-3
+    fitted = _without_gauge(found.view_shifts_px, found.angles_deg)
+    assert np.abs(fitted - _without_gauge(drift, truth)).max() < 0.05
+    assert found.to_dict()["view_shifts_px"] == np.round(found.view_shifts_px, 4).tolist()
+
+
+def test_right_nominal_angles_and_a_drift_return_the_nominal_angles_and_the_drift():
+    n_views = 17
+    nominal = np.linspace(0.0, 360.0, n_views, endpoint=False)
+    detections = _detections(nominal, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=6, shifts_px=_drift(n_views, 6))
+    found = calibrate_balls(detections, GEOMETRY, nominal)
+    assert not found.kept and np.array_equal(found.angles_deg, nominal)
+    assert found.view_shifts_px is not None and np.abs(found.corrected_deg - nominal).max() < 0.01
+
+
+def test_discs_that_do_not_drift_get_no_shifts():
+    rng = np.random.default_rng(7)
+    nominal = np.linspace(0.0, 360.0, 17, endpoint=False)
+    truth = nominal + rng.normal(0.0, 0.5, 17)
+    found = calibrate_balls(_detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=7), GEOMETRY, nominal)
+    assert found.kept and found.view_shifts_px is None and found.shift_p_value >= 1e-3
+    assert found.to_dict()["view_shifts_px"] is None
