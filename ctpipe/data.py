@@ -258,6 +258,10 @@ class ScanSolution:
     angle_se_deg : ndarray of shape (V,) or None
         Standard error of every view's angle, degrees, where the refiner can tell (e.g. the
         curvature of projection matching's fit); None otherwise.
+    view_shifts_px : ndarray of shape (V, 2) or None
+        Each view's own shift of the projection ``(du, dv)`` in pixels (a drifting source spot or
+        detector: the view's principal point is ``(u0_px + du, v0_px + dv)``), where the refiner
+        estimated it; None otherwise.
     """
 
     angles_rad: np.ndarray
@@ -267,3 +271,4 @@ class ScanSolution:
     v0_px: float | None = None
     tilt_deg: float | None = None
     angle_se_deg: np.ndarray | None = None
+    view_shifts_px: np.ndarray | None = None

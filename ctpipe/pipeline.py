@@ -57,14 +57,18 @@ class RefinedGeometry:
     tilt_deg : float
         In-plane detector tilt the refiner estimated, degrees; 0 when it estimated none.
     refined : tuple of str
-        Which of ``"u0_px"``, ``"v0_px"``, ``"tilt_deg"`` the refiner estimated (bundle
-        adjustment with ``estimate_u0``, ``estimate_v0`` or ``estimate_tilt``); empty when
-        ``geometry`` is the input geometry as it was.
+        Which of ``"u0_px"``, ``"v0_px"``, ``"tilt_deg"``, ``"view_shifts_px"`` the refiner
+        estimated (bundle adjustment with ``estimate_u0``, ``estimate_v0`` or ``estimate_tilt``;
+        the ball calibration); empty when ``geometry`` is the input geometry as it was.
+    view_shifts_px : ndarray of shape (V, 2) or None
+        Each view's own shift of the projection (px), where the refiner estimated it
+        (:attr:`ctpipe.data.ScanSolution.view_shifts_px`).
     """
 
     geometry: Geometry
     tilt_deg: float = 0.0
     refined: tuple[str, ...] = ()
+    view_shifts_px: np.ndarray | None = None
 
     @classmethod
     def from_solution(cls, geometry: Geometry, solution: ScanSolution) -> "RefinedGeometry":
@@ -73,7 +77,11 @@ class RefinedGeometry:
         corrected = dataclasses.replace(geometry, **{k: float(getattr(solution, k)) for k in ("u0_px", "v0_px")
                                                      if k in refined})
         tilt = solution.tilt_deg
-        return cls(corrected, 0.0 if tilt is None else float(tilt), refined)
+        shifts = solution.view_shifts_px
+        if shifts is not None:
+            shifts = np.asarray(shifts, dtype=np.float64)
+            refined = (*refined, "view_shifts_px")
+        return cls(corrected, 0.0 if tilt is None else float(tilt), refined, shifts)
 
 
 @dataclass(frozen=True)
@@ -378,6 +386,8 @@ class ScanResult:
             # What geometry_vectors.csv holds, for a lab to set beside its scanner's calibration.
             report["refined_geometry"] = {"geometry": refined.geometry.to_dict(), "tilt_deg": refined.tilt_deg,
                                           "refined": list(refined.refined)}
+            if refined.view_shifts_px is not None:
+                report["refined_geometry"]["view_shifts_px"] = np.round(refined.view_shifts_px, 4).tolist()
         if self.gate is not None:
             report["gate"] = self.gate.to_dict()
         if self.angle_se_deg is not None:
@@ -418,7 +428,8 @@ class ScanResult:
         With the :attr:`refined_geometry` and :attr:`estimated_deg`: what geometry_vectors.csv holds.
         """
         refined = self.refined_geometry
-        return cone_vectors(refined.geometry, self.estimated_deg, tilt_deg=refined.tilt_deg)
+        return cone_vectors(refined.geometry, self.estimated_deg, tilt_deg=refined.tilt_deg,
+                            shifts_px=refined.view_shifts_px)
 
     def failed_pairs_warning(self) -> str | None:
         """One line saying how many pairs failed and why the first did, or None when none failed."""
@@ -473,6 +484,12 @@ class ScanResult:
                       f"inner edge, which no clip or neighbour beyond the rim moves"] if shells else []) + \
                 ([f"{left_out} disc(s) left out as gross errors, pixels off their ball where the rest of their view "
                   f"and ball fit (balls merged into one disc)"] if left_out else [])
+            shifts, shift_p = balls.get("view_shifts_px"), balls.get("shift_p_value")
+            if shifts is not None:
+                shifts = np.asarray(shifts, dtype=np.float64)
+                notes.append(f"each view's projection shifted by up to {np.abs(shifts[:, 0]).max():.2f} px across and "
+                             f"{np.abs(shifts[:, 1]).max():.2f} px along the axis, fitted with its angle (a source "
+                             f"spot or detector that drifts{'' if shift_p is None else f'; F test p {shift_p:.2g}'})")
             placed = f" ({'; '.join(notes)})" if notes else ""
             lines.append(f"refiner: ball calibration, {balls['balls']} balls followed through the views{placed}, "
                          f"{'the corrected angles kept' if balls['kept'] else 'the nominal angles returned'}: "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -31,7 +32,9 @@ class BallCalibrationRefiner(Refiner):
     fitted with the returned angles are the refined geometry (``geometry_vectors.csv``, the
     summary) where the corrected angles are kept, and with the nominal angles where those explain
     the balls as well and the fitted detector explains them better than the scan's beyond noise
-    (``info["balls"]["detector_reason"]``).
+    (``info["balls"]["detector_reason"]``). Where the balls show the views' projections shifting each its own way (a
+    source spot or a detector that drifts), each view's shift is fitted with its angle
+    (``info["balls"]["view_shifts_px"]``), so that the drift is not taken for angle errors.
     """
 
     max_error_deg: float = param(2.0, doc="largest error a nominal angle may have: where balls are looked for, and "
@@ -42,6 +45,10 @@ class BallCalibrationRefiner(Refiner):
     max_angle_se_deg: float = param(0.02, doc="keep the corrected angles only where every view's standard error is "
                                     "within this (deg): a view whose balls barely pin it is not passed off as "
                                     "corrected", gt=0, le=30)
+
+    view_shifts: Literal["auto", "always", "never"] = param(
+        "auto", doc="fit each view's own shift of the projection (a drifting source spot or detector) with its angle: "
+        "where the balls show one (auto: an F test once the angles settle), always, or never")
 
     reads_descriptors = False   # the discs' centres and sizes only
 
@@ -62,7 +69,8 @@ class BallCalibrationRefiner(Refiner):
             detections.append(np.column_stack([features.xy, 0.5 * np.asarray(features.size), flags, side, edge]))
         found = calibrate_balls(detections, observations.geometry, nominal, max_error_deg=self.max_error_deg,
                                 fit_detector=self.fit_detector, p_value=self.p_value,
-                                max_angle_se_deg=self.max_angle_se_deg)
+                                max_angle_se_deg=self.max_angle_se_deg,
+                                fit_shifts={"auto": None, "always": True, "never": False}[self.view_shifts])
         angles = found.angles_deg
         info = {"balls": found.to_dict(), "chosen": "corrected" if found.kept else "nominal"}
         # The detector is given with the nominal angles too, where the balls show it (a stage that is right, a
@@ -70,7 +78,8 @@ class BallCalibrationRefiner(Refiner):
         detector = ({"u0_px": found.u0_px, "v0_px": found.v0_px, "tilt_deg": found.tilt_deg}
                     if found.detector_kept else {})
         return ScanSolution(np.deg2rad(angles - angles[0]), tuple(observations.estimates), info,
-                            angle_se_deg=found.angle_se_deg if found.kept else None, **detector)
+                            angle_se_deg=found.angle_se_deg if found.kept else None,
+                            view_shifts_px=found.view_shifts_px, **detector)
 
 
 @hookimpl

@@ -59,7 +59,7 @@ def scanner_frame_deg(angles_deg, nominal_deg) -> np.ndarray:
     return angles + (float(np.median(nominal[both] - angles[both])) if both.any() else 0.0)
 
 
-def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0) -> np.ndarray:
+def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0, shifts_px=None) -> np.ndarray:
     """ASTRA ``cone_vec`` rows, one per view: source, detector centre, column step, row step (mm).
 
     Parameters
@@ -70,6 +70,10 @@ def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0) -> np
         Turntable angles in ctpipe's convention.
     tilt_deg : float
         In-plane detector tilt, as bundle adjustment reports it.
+    shifts_px : array_like of shape (V, 2) or None
+        Each view's own shift of the projection ``(du, dv)`` (px): that view's principal point is
+        ``(u0_px + du, v0_px + dv)``, its detector moved by ``-du`` columns and ``-dv`` rows
+        (:attr:`ctpipe.data.ScanSolution.view_shifts_px`).
 
     Returns
     -------
@@ -84,11 +88,13 @@ def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0) -> np
     centre_cam = (np.array([0.0, 0.0, g.source_to_detector_mm])
                   + ((g.detector_cols - 1) / 2.0 - g.u0_px) * u_cam + ((g.detector_rows - 1) / 2.0 - g.v0_px) * v_cam)
     shift = np.array([0.0, 0.0, g.source_to_object_mm])
+    angles = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
+    shifts = np.zeros((len(angles), 2)) if shifts_px is None else np.asarray(shifts_px, dtype=np.float64)
     rows = []
-    for angle in np.deg2rad(np.asarray(angles_deg, dtype=np.float64)):
+    for angle, (du, dv) in zip(angles, shifts):
         to_object = rotation_matrix(angle).T
         source = to_object @ (-shift)
-        centre = to_object @ (centre_cam - shift)
+        centre = to_object @ (centre_cam - du * u_cam - dv * v_cam - shift)
         rows.append(np.concatenate([TO_ASTRA @ source, TO_ASTRA @ centre, TO_ASTRA @ (to_object @ u_cam),
                                     TO_ASTRA @ (to_object @ v_cam)]))
     return np.array(rows).reshape(-1, 12)

@@ -33,6 +33,19 @@ def test_cone_vectors_project_points_where_the_camera_model_does(tilt_deg):
     np.testing.assert_allclose(got, expected, atol=1e-9)
 
 
+@pytest.mark.parametrize("tilt_deg", [0.0, 0.4])
+def test_a_views_shift_moves_its_projection_by_that_many_pixels(tilt_deg):
+    """A view shifted by (du, dv) images every point du columns and dv rows on: its principal point moved."""
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-20, 20, (30, 3))
+    angles_deg = rng.uniform(-180, 180, 30)
+    shifts = rng.uniform(-2.0, 2.0, (30, 2))
+    expected = project_points(points, np.deg2rad(angles_deg), GEOMETRY, tilt_rad=np.deg2rad(tilt_deg)) + shifts
+    vectors = cone_vectors(GEOMETRY, angles_deg, tilt_deg=tilt_deg, shifts_px=shifts)
+    got = np.array([_pixel_from_vectors(row, TO_ASTRA @ p, GEOMETRY) for row, p in zip(vectors, points)])
+    np.testing.assert_allclose(got, expected, atol=1e-9)
+
+
 def test_cone_vectors_at_angle_zero_and_a_quarter_turn():
     g = dataclasses.replace(GEOMETRY, u0_px=(GEOMETRY.detector_cols - 1) / 2, v0_px=(GEOMETRY.detector_rows - 1) / 2)
     at_zero, quarter = cone_vectors(g, [0.0, 90.0])
