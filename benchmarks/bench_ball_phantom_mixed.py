@@ -29,6 +29,12 @@ for each seed) as the issue's real scan shows them: a dark ring around a lighter
 three overlapping in some views, through a polychromatic beam with scatter, and the last view a
 closing image a turn on from the first (``--views 17``: 22.5 deg steps, 0 to 360).
 
+``--drift-walk-px W`` and ``--drift-jump-px J`` make the projections drift as a source spot does while the
+tube warms (:mod:`ctpipe.sim.drift`: a random walk of normal steps of ``W`` px between views in both
+directions, and one jump of ``J`` px at a random view); the calibration should fit each view's
+shift and keep its angles (the per-view shifts are then printed against the simulator's, less their
+mean and their columns' once-a-turn part, which the balls' positions and the axis take).
+
 ``--random-layout`` places the phantom's nine balls anew for each seed (:func:`random_layout`: the
 same four kinds and the same holder, 7-18 mm from the axis at random heights, none touching), so
 that what is measured is not one layout's luck: several balls at one height overlap in many
@@ -158,22 +164,44 @@ def coated_spec(views: int, jitter_deg: float, seed: int) -> dict:
 
 
 def simulate_scan(views: int, jitter_deg: float, max_error_deg: float | None, seed: int, random: bool = False,
-                  coated: bool = False, saturation: float | None = None):
+                  coated: bool = False, saturation: float | None = None, drift: dict | None = None):
     """The simulated scan and the nominal angles given to the pipeline (``saturation``: the clip's level, as a
-    share of the open beam, in place of the spec's 95 %)."""
+    share of the open beam, in place of the spec's 95 %; ``drift``: the misalignment's ``drift`` section)."""
     spec = coated_spec(views, jitter_deg, seed) if coated else scan_spec(views, jitter_deg, seed)
     if saturation is not None:
         spec["detector"] = {**spec["detector"], "saturation_fraction": saturation}
+    if drift:
+        spec["misalignment"] = {**spec["misalignment"], "drift": drift}
+        if max_error_deg:
+            spec["jitter"] = [{"gaussian": {"sigma_deg": 0.0}}]   # the simulator drifts only a jittered scan
     spec = parse_scan_spec(spec)
     rng = np.random.default_rng(seed)
     phantom = coated_layout(seed) if coated else random_layout(seed) if random else load_phantom(str(PHANTOM))
-    scan = simulate(phantom, spec, rng=rng, jitter=not max_error_deg)
+    scan = simulate(phantom, spec, rng=rng, jitter=not max_error_deg or bool(drift))
     nominal = scan.nominal_angles_deg
     if max_error_deg:
         # Scanned at the nominal angles: the error is in the angles the pipeline is told instead.
         told = nominal + rng.uniform(-max_error_deg, max_error_deg, len(nominal))
         return scan, told, nominal.copy()
     return scan, nominal, scan.true_angles_deg
+
+
+def _gauge_basis(angles_deg) -> np.ndarray:
+    theta = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
+    return np.column_stack([np.ones_like(theta), np.cos(theta), np.sin(theta)])
+
+
+def _axis_part(shifts_px, angles_deg) -> float:
+    """The column shift every view shares (the constant of a fit in 1, cos, sin): the axis column takes it."""
+    return float(np.linalg.lstsq(_gauge_basis(angles_deg), shifts_px[:, 0], rcond=None)[0][0])
+
+
+def _gauge_free(shifts_px, angles_deg) -> np.ndarray:
+    """Per-view shifts less what the axis and the balls' positions take: the columns' fit in 1, cos, sin, and the
+    rows' mean."""
+    basis = _gauge_basis(angles_deg)
+    u = shifts_px[:, 0] - basis @ np.linalg.lstsq(basis, shifts_px[:, 0], rcond=None)[0]
+    return np.column_stack([u, shifts_px[:, 1] - shifts_px[:, 1].mean()])
 
 
 def main(argv=None) -> int:
@@ -187,6 +215,10 @@ def main(argv=None) -> int:
     parser.add_argument("--saturation", type=float, default=None,
                         help="the detector clips at this share of the open beam (default 0.95; 0.8 is harsh: "
                              "docs/calibration-phantoms.md, 'A harsh clip')")
+    parser.add_argument("--drift-walk-px", type=float, default=0.0,
+                        help="the projections drift: a random walk of this step between views (px, both directions)")
+    parser.add_argument("--drift-jump-px", type=float, default=0.0,
+                        help="and one jump of this size (px) at a random view")
     layout = parser.add_mutually_exclusive_group()
     layout.add_argument("--random-layout", action="store_true", help="place the balls anew for each seed")
     layout.add_argument("--coated", action="store_true",
@@ -197,8 +229,10 @@ def main(argv=None) -> int:
     failed = False
     for seed in args.seeds:
         start = time.perf_counter()
+        drift = ({"walk_px": args.drift_walk_px, "jumps": 1 if args.drift_jump_px else 0,
+                  "jump_px": args.drift_jump_px} if args.drift_walk_px or args.drift_jump_px else None)
         scan, nominal, truth = simulate_scan(args.views, args.jitter_deg, args.max_error_deg, seed, args.random_layout,
-                                             args.coated, args.saturation)
+                                             args.coated, args.saturation, drift)
         simulated = time.perf_counter() - start
         start = time.perf_counter()
         recognised, why = looks_like_ball_phantom(scan.projections)
@@ -212,7 +246,10 @@ def main(argv=None) -> int:
         errors = view_errors_deg(result.angles_deg, truth)
         largest, rms = float(np.abs(errors).max()), float(np.sqrt(np.mean(errors ** 2)))
         nominal_errors = view_errors_deg(nominal, truth)
-        axis_px = balls.get("u0_px", np.nan) - (scan.geometry.u0_px + COR_OFFSET_PX)
+        offsets = scan.true_detector_offsets_px
+        drifted = (np.zeros((len(truth), 2)) if offsets is None         # the drift alone
+                   else offsets - np.array([COR_OFFSET_PX, 0.0]))
+        axis_px = balls.get("u0_px", np.nan) - (scan.geometry.u0_px + COR_OFFSET_PX + _axis_part(drifted, truth))
         tilt_deg = balls.get("tilt_deg", np.nan) + TILT_DEG
         print(f"seed {seed}: {args.views} views simulated in {simulated:.1f} s; nominal off by "
               f"{float(np.abs(nominal_errors).max()):.3f} deg at most, {float(np.sqrt(np.mean(nominal_errors ** 2))):.3f} RMS")
@@ -226,6 +263,13 @@ def main(argv=None) -> int:
         print(f"  detector: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it; reprojection "
               f"RMS {balls.get('rms_px', np.nan):.3f} px (nominal angles {balls.get('nominal_rms_px', np.nan):.3f}); "
               f"rims cut by the clip (px, per ball): {balls.get('ball_cut_px')}")
+        shifts = balls.get("view_shifts_px")
+        if drift or shifts is not None:
+            fitted = "none fitted" if shifts is None else (
+                f"fitted within {np.abs(_gauge_free(np.array(shifts), truth) - _gauge_free(drifted, truth)).max():.3f} "
+                f"px of the simulator's")
+            print(f"  views' shifts: the simulator's up to {np.abs(drifted).max():.3f} px; {fitted} (F test p "
+                  f"{balls.get('shift_p_value')})")
         failed |= not (largest <= args.bar_deg and abs(axis_px) <= GEOMETRY_BAR_PX and abs(tilt_deg) <= GEOMETRY_BAR_DEG)
     return 1 if failed else 0
 
