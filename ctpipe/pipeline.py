@@ -60,15 +60,16 @@ class RefinedGeometry:
         Which of ``"u0_px"``, ``"v0_px"``, ``"tilt_deg"``, ``"view_shifts_px"`` the refiner
         estimated (bundle adjustment with ``estimate_u0``, ``estimate_v0`` or ``estimate_tilt``;
         the ball calibration); empty when ``geometry`` is the input geometry as it was.
-    view_shifts_px : ndarray of shape (V, 2) or None
-        Each view's own shift of the projection (px), where the refiner estimated it
-        (:attr:`ctpipe.data.ScanSolution.view_shifts_px`).
+    view_shifts_px : tuple of (float, float) per view, or None
+        Each view's own shift of the projection ``(du, dv)`` (px), where the refiner estimated it
+        (:attr:`ctpipe.data.ScanSolution.view_shifts_px`); a tuple, so that the geometry compares and
+        hashes by value.
     """
 
     geometry: Geometry
     tilt_deg: float = 0.0
     refined: tuple[str, ...] = ()
-    view_shifts_px: np.ndarray | None = None
+    view_shifts_px: tuple[tuple[float, float], ...] | None = None
 
     @classmethod
     def from_solution(cls, geometry: Geometry, solution: ScanSolution) -> "RefinedGeometry":
@@ -79,7 +80,7 @@ class RefinedGeometry:
         tilt = solution.tilt_deg
         shifts = solution.view_shifts_px
         if shifts is not None:
-            shifts = np.asarray(shifts, dtype=np.float64)
+            shifts = tuple((float(du), float(dv)) for du, dv in np.asarray(shifts, dtype=np.float64))
             refined = (*refined, "view_shifts_px")
         return cls(corrected, 0.0 if tilt is None else float(tilt), refined, shifts)
 
@@ -387,7 +388,7 @@ class ScanResult:
             report["refined_geometry"] = {"geometry": refined.geometry.to_dict(), "tilt_deg": refined.tilt_deg,
                                           "refined": list(refined.refined)}
             if refined.view_shifts_px is not None:
-                report["refined_geometry"]["view_shifts_px"] = np.round(refined.view_shifts_px, 4).tolist()
+                report["refined_geometry"]["view_shifts_px"] = np.round(np.array(refined.view_shifts_px), 4).tolist()
         if self.gate is not None:
             report["gate"] = self.gate.to_dict()
         if self.angle_se_deg is not None:
