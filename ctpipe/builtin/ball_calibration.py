@@ -46,9 +46,9 @@ class BallCalibrationRefiner(Refiner):
                                     "within this (deg): a view whose balls barely pin it is not passed off as "
                                     "corrected", gt=0, le=30)
 
-    view_shifts: Literal["auto", "always", "never"] = param(
-        "auto", doc="fit each view's own shift of the projection (a drifting source spot or detector) with its angle: "
-        "where the balls show one (auto: an F test once the angles settle), always, or never")
+    view_shifts: Literal["auto", "never"] = param(
+        "auto", doc="fit each view's own shift of the projection (a drifting source spot or detector) with its angle "
+        "where the balls show one (auto: an F test once the angles settle, on scans of up to 400 views), or never")
 
     reads_descriptors = False   # the discs' centres and sizes only
 
@@ -70,7 +70,7 @@ class BallCalibrationRefiner(Refiner):
         found = calibrate_balls(detections, observations.geometry, nominal, max_error_deg=self.max_error_deg,
                                 fit_detector=self.fit_detector, p_value=self.p_value,
                                 max_angle_se_deg=self.max_angle_se_deg,
-                                fit_shifts={"auto": None, "always": True, "never": False}[self.view_shifts])
+                                fit_shifts=None if self.view_shifts == "auto" else False)
         angles = found.angles_deg
         info = {"balls": found.to_dict(), "chosen": "corrected" if found.kept else "nominal"}
         # The detector is given with the nominal angles too, where the balls show it (a stage that is right, a

@@ -818,3 +818,18 @@ def test_discs_that_do_not_drift_get_no_shifts():
     found = calibrate_balls(_detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=7), GEOMETRY, nominal)
     assert found.kept and found.view_shifts_px is None and found.shift_p_value >= 1e-3
     assert found.to_dict()["view_shifts_px"] is None
+
+
+def test_a_drifting_view_with_two_discs_is_refitted_only_where_both_are_left():
+    """With its own shift a view has three unknowns: a jackknife refit that leaves it one disc cannot place it, and
+    must not count it (it made the balls "disagree" on the view by 0.34 deg and refused the scan)."""
+    n_views = 17
+    rng = np.random.default_rng(5)
+    nominal = np.linspace(0.0, 360.0, n_views, endpoint=False)
+    truth = nominal + rng.normal(0.0, 0.5, n_views)
+    detections = _detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=5, shifts_px=_drift(n_views, 5))
+    detections[4] = detections[4][:2]
+    found = calibrate_balls(detections, GEOMETRY, nominal)
+    error = found.corrected_deg - truth
+    assert found.kept and found.view_shifts_px is not None
+    assert np.abs(error - np.median(error)).max() < 0.01 and found.angle_jackknife_se_deg[4] < 0.02
