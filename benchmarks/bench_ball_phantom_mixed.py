@@ -56,6 +56,7 @@ from ctpipe.evaluate.scoring import view_errors_deg
 from ctpipe.features.ball_phantom import looks_like_ball_phantom
 from ctpipe.pipeline import Pipeline
 from ctpipe.sim.phantoms import load_phantom, parse_phantom
+from ctpipe.solve.reprojection import _axis_part, _shift_gauge
 from ctpipe.sim.scan_spec import parse_scan_spec
 from ctpipe.sim.simulator import simulate
 
@@ -186,22 +187,11 @@ def simulate_scan(views: int, jitter_deg: float, max_error_deg: float | None, se
     return scan, nominal, scan.true_angles_deg
 
 
-def _gauge_basis(angles_deg) -> np.ndarray:
-    theta = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
-    return np.column_stack([np.ones_like(theta), np.cos(theta), np.sin(theta)])
-
-
-def _axis_part(shifts_px, angles_deg) -> float:
-    """The column shift every view shares (the constant of a fit in 1, cos, sin): the axis column takes it."""
-    return float(np.linalg.lstsq(_gauge_basis(angles_deg), shifts_px[:, 0], rcond=None)[0][0])
-
-
 def _gauge_free(shifts_px, angles_deg) -> np.ndarray:
-    """Per-view shifts less what the axis and the balls' positions take: the columns' fit in 1, cos, sin, and the
-    rows' mean."""
-    basis = _gauge_basis(angles_deg)
-    u = shifts_px[:, 0] - basis @ np.linalg.lstsq(basis, shifts_px[:, 0], rcond=None)[0]
-    return np.column_stack([u, shifts_px[:, 1] - shifts_px[:, 1].mean()])
+    """Per-view shifts less what the balls' positions take (projection matching's gauge: the columns' once-a-turn
+    part, the rows' mean) and the axis column (the columns' common part)."""
+    theta = np.deg2rad(angles_deg)
+    return _shift_gauge(shifts_px, theta) - [_axis_part(shifts_px[:, 0], theta), 0.0]
 
 
 def main(argv=None) -> int:
@@ -249,7 +239,8 @@ def main(argv=None) -> int:
         offsets = scan.true_detector_offsets_px
         drifted = (np.zeros((len(truth), 2)) if offsets is None         # the drift alone
                    else offsets - np.array([COR_OFFSET_PX, 0.0]))
-        axis_px = balls.get("u0_px", np.nan) - (scan.geometry.u0_px + COR_OFFSET_PX + _axis_part(drifted, truth))
+        axis_px = balls.get("u0_px", np.nan) - (scan.geometry.u0_px + COR_OFFSET_PX
+                                                + _axis_part(drifted[:, 0], np.deg2rad(truth)))
         tilt_deg = balls.get("tilt_deg", np.nan) + TILT_DEG
         print(f"seed {seed}: {args.views} views simulated in {simulated:.1f} s; nominal off by "
               f"{float(np.abs(nominal_errors).max()):.3f} deg at most, {float(np.sqrt(np.mean(nominal_errors ** 2))):.3f} RMS")

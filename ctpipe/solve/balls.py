@@ -846,25 +846,27 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
         c = np.zeros(B)
         c[cut_balls] = x[n_free + 3 * B:first_shift]
         t = np.zeros((len(angles), 2)) if shifts_px is None else np.array(shifts_px, dtype=np.float64)
-        t[shifted] = x[first_shift:first_shift + 2 * n_shift].reshape(-1, 2)
+        t[shifted] = x[shift_unknowns].reshape(-1, 2)
         d = x[first_shift + 2 * n_shift:] if n_det else detector
         return a, p, c, t, d
 
     start_mean = float(np.mean(angles[free_views])) if n_free else 0.0
-    # The shifts' gauges: their mean (the detector's u0 and v0 otherwise), and their columns' once-a-turn part
-    # (a common translation of the balls, to within the cone's magnification across the phantom's depth).
+    # The shifts' gauges, over their unknowns (du, dv of each shifted view in turn): their mean (the detector's u0 and
+    # v0 otherwise), and their columns' once-a-turn part (a common translation of the balls, to within the cone's
+    # magnification across the phantom's depth).
     turn = angles[shifted]
-    shift_gauge = np.stack([np.r_[np.ones(n_shift), np.zeros(n_shift)], np.r_[np.zeros(n_shift), np.ones(n_shift)],
-                            np.r_[np.cos(turn), np.zeros(n_shift)], np.r_[np.sin(turn), np.zeros(n_shift)]]) / max(
-        n_shift, 1)
-    start_gauge = shift_gauge @ _interleaved(np.asarray(shifts_px, dtype=np.float64)[shifted]) if n_shift else None
+    shift_gauge = np.zeros((4, 2 * n_shift))
+    shift_gauge[0, 0::2], shift_gauge[1, 1::2] = 1.0, 1.0
+    shift_gauge[2, 0::2], shift_gauge[3, 0::2] = np.cos(turn), np.sin(turn)
+    shift_gauge /= max(n_shift, 1)
+    shift_unknowns = slice(first_shift, first_shift + 2 * n_shift)
+    start_gauge = shift_gauge @ np.asarray(shifts_px, dtype=np.float64)[shifted].reshape(-1) if n_shift else None
 
     def gauges(x):
         """The gauge rows: the free views' mean angle, and where shifts are fitted their mean and once-a-turn part."""
         rows = [_GAUGE_PX_PER_RAD * (float(np.mean(x[:n_free])) - start_mean)] if n_free else []
         if n_shift:
-            rows += list(_SHIFT_GAUGE_WEIGHT * (shift_gauge @ _interleaved(
-                x[first_shift:first_shift + 2 * n_shift].reshape(-1, 2)) - start_gauge))
+            rows += list(_SHIFT_GAUGE_WEIGHT * (shift_gauge @ x[shift_unknowns] - start_gauge))
         return rows
 
     def residuals(x, gauge=True):
@@ -902,10 +904,9 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     gauge_cols = [np.arange(n_free)] if n_free else []
     gauge_slope = [np.full(n_free, _GAUGE_PX_PER_RAD / n_free)] if n_free else []
     for row in shift_gauge if n_shift else []:
-        # ``row`` weighs the shifts as (du..., dv...); their columns interleave them (du, dv per view).
         used = np.flatnonzero(row)
         gauge_rows.append(np.full(len(used), 2 * M + len(gauge_rows)))
-        gauge_cols.append(first_shift + np.where(used < n_shift, 2 * used, 2 * (used - n_shift) + 1))
+        gauge_cols.append(first_shift + used)
         gauge_slope.append(_SHIFT_GAUGE_WEIGHT * row[used])
     n_gauge = len(gauge_rows)
     gauge_rows, gauge_cols, gauge_slope = (np.concatenate(g) if g else np.zeros(0, int if k < 2 else float)
@@ -950,8 +951,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     cut[cut_balls] = c[cut_balls]
     return _Fit(a, p, np.asarray(d, dtype=np.float64), residuals(solved.x, gauge=False).reshape(-1, 2),
                 solved.jac.toarray() if hasattr(solved.jac, "toarray") else solved.jac,
-                np.asarray(free_views), len(x0), cut, None if shifts_px is None else t,
-                slice(first_shift, first_shift + 2 * n_shift), n_gauge)
+                np.asarray(free_views), len(x0), cut, None if shifts_px is None else t, shift_unknowns, n_gauge)
 
 
 #: The jackknife over the balls leaves out one group of balls at a time: each ball its own group up to this many
@@ -1137,7 +1137,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                 trial = _adjust(discs, radii_mm, fit.angles, fit.balls, fit.detector, geometry, free_views=free_views,
                                 fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=fit.cut_px,
                                 shifts_px=np.zeros((V, 2)))
-                shift_p, shift_tested = _nested_p(fit, trial), True
+                shift_p, shift_tested = _f_test(fit, trial)[1], True
                 if shift_p < p_value and _shift_se_px(trial) <= _MAX_SHIFT_SE_PX:
                     fit, shifting = trial, True
                     if done == rounds - 1:
@@ -1206,14 +1206,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                           fit_detector=fit_detector, scale_px=scale_px, loss=fit_loss, cut_px=cut_px,
                           shifts_px=view_shifts)
     # The gauge row takes one unknown back: the angles add len(free_views) - 1 over the nominal fit.
-    chi_corrected, dof = _chi_dof(fit)
-    chi_nominal = float(np.sum(nominal_fit.residual ** 2))
     extra = len(free_views) - 1
-    if dof > 0 and extra > 0 and chi_corrected > 0:
-        f_stat = ((chi_nominal - chi_corrected) / extra) / (chi_corrected / dof)
-        p = float(stats.f.sf(f_stat, extra, dof))
-    else:
-        f_stat, p = math.nan, math.nan
+    f_stat, p = _f_test(nominal_fit, fit)
     # Standard errors: the Gauss-Newton covariance of the angles, scaled by the residual variance.
     se = np.full(V, np.nan)
     cov = _covariance(fit) if extra > 0 else None
@@ -1310,7 +1304,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                                  cut_px=nominal_fit.cut_px, shifts_px=nominal_fit.shifts_px))
     detector = returned.detector
     # The shifts go out where every view is fixed and each shift pinned: into the geometry a user reconstructs with.
-    pinned = returned.shifts_px is not None and _shift_se_px(returned) <= _MAX_SHIFT_SE_PX
+    pinned = returned.shifts_px is not None and _shift_se_px(returned, returned_cov) <= _MAX_SHIFT_SE_PX
     shifts_out = returned.shifts_px.copy() if pinned and not len(unfixed) and not len(lost) else None
     return BallCalibration(angles_deg=corrected if kept else nominal.copy(), corrected_deg=corrected,
                            angle_se_deg=se, kept=kept, reason=reason, balls_mm=balls, u0_px=float(detector[0]),
@@ -1325,11 +1319,6 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                            view_shifts_px=shifts_out, shift_p_value=shift_p)
 
 
-def _interleaved(shifts_px: np.ndarray) -> np.ndarray:
-    """Shifts (N, 2) as one vector of every du, then every dv."""
-    return np.concatenate([shifts_px[:, 0], shifts_px[:, 1]])
-
-
 def _shifted(detections, shifts_px: np.ndarray) -> list[np.ndarray]:
     """Each view's detections with its shift taken off their centres: where an unshifted projection puts them."""
     if not np.any(shifts_px):
@@ -1342,22 +1331,24 @@ def _shifted(detections, shifts_px: np.ndarray) -> list[np.ndarray]:
     return moved
 
 
-def _nested_p(fit: _Fit, larger: _Fit) -> float:
-    """The F test's p-value of ``larger`` (more unknowns, ``fit`` nested in it) against ``fit``; NaN where it cannot
-    be computed."""
+def _f_test(fit: _Fit, larger: _Fit) -> tuple[float, float]:
+    """The F test of ``larger`` (more unknowns, ``fit`` nested in it) against ``fit``: ``(F, p-value)``, NaN where it
+    cannot be computed. The extra unknowns are counted less the gauge rows on either side."""
     from scipy import stats
 
     chi, _ = _chi_dof(fit)
     chi_larger, dof = _chi_dof(larger)
     extra = (larger.n_params - larger.n_gauge) - (fit.n_params - fit.n_gauge)
     if dof <= 0 or extra <= 0 or chi_larger <= 0:
-        return math.nan
-    return float(stats.f.sf(((chi - chi_larger) / extra) / (chi_larger / dof), extra, dof))
+        return math.nan, math.nan
+    f_stat = ((chi - chi_larger) / extra) / (chi_larger / dof)
+    return f_stat, float(stats.f.sf(f_stat, extra, dof))
 
 
-def _shift_se_px(fit: _Fit) -> float:
-    """The largest standard error (px) of a fit's views' shifts; infinite where it cannot be computed."""
-    cov = _covariance(fit)
+def _shift_se_px(fit: _Fit, cov: np.ndarray | None = None) -> float:
+    """The largest standard error (px) of a fit's views' shifts, from its covariance ``cov`` (computed where not
+    given); infinite where it cannot be computed."""
+    cov = _covariance(fit) if cov is None else cov
     if cov is None or fit.shift_columns.stop <= fit.shift_columns.start:
         return math.inf
     return float(np.sqrt(np.max(np.clip(np.diag(cov)[fit.shift_columns], 0.0, None))))
@@ -1413,8 +1404,6 @@ def _detector_verdict(returned: _Fit, kept: bool, fit_detector: bool, p_value: f
 
     ``scan_fit`` makes the fit with the scan's own detector and the nominal angles, only when it is needed.
     """
-    from scipy import stats
-
     if not fit_detector:
         return False, "the detector was not fitted"
     if kept:
@@ -1426,10 +1415,9 @@ def _detector_verdict(returned: _Fit, kept: bool, fit_detector: bool, p_value: f
     if dof <= 0 or chi <= 0:
         return False, "not given: too few discs to test the fitted detector"
     scan = scan_fit()
-    chi_scan = float(np.sum(scan.residual ** 2))
     rms = math.sqrt(chi / returned.residual.size)
-    rms_scan = math.sqrt(chi_scan / scan.residual.size)
-    p = float(stats.f.sf(((chi_scan - chi) / 3.0) / (chi / dof), 3, dof))
+    rms_scan = math.sqrt(float(np.sum(scan.residual ** 2)) / scan.residual.size)
+    _, p = _f_test(scan, returned)    # the detector's three unknowns
     if p < p_value:
         return True, (f"with the nominal angles, the fitted detector explains the balls better than the scan's: "
                       f"reprojection RMS {rms:.3f} px against {rms_scan:.3f} px (F test p {p:.2g})")

@@ -772,11 +772,12 @@ def _drift(n_views, seed, *, walk_px=0.1, jump_px=0.6):
 
 
 def _without_gauge(shifts_px, angles_deg):
-    """Shifts less their mean and their columns' once-a-turn part (what the balls' positions and the detector take)."""
+    """Shifts less their mean and their columns' once-a-turn part (what the balls' positions and the detector take):
+    projection matching's gauge, the axis column's part taken out too."""
+    from ctpipe.solve.reprojection import _axis_part, _shift_gauge
+
     theta = np.deg2rad(angles_deg)
-    basis = np.column_stack([np.ones_like(theta), np.cos(theta), np.sin(theta)])
-    u = shifts_px[:, 0] - basis @ np.linalg.lstsq(basis, shifts_px[:, 0], rcond=None)[0]
-    return np.column_stack([u, shifts_px[:, 1] - shifts_px[:, 1].mean()])
+    return _shift_gauge(shifts_px, theta) - [_axis_part(shifts_px[:, 0], theta), 0.0]
 
 
 def test_projections_that_drift_are_fitted_view_by_view_and_every_angle_stays_right():
