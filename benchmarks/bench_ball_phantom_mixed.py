@@ -29,6 +29,10 @@ for each seed) as the issue's real scan shows them: a dark ring around a lighter
 three overlapping in some views, through a polychromatic beam with scatter, and the last view a
 closing image a turn on from the first (``--views 17``: 22.5 deg steps, 0 to 360).
 
+``--solid`` scans seven solid balls of steel, titanium and aluminium (:func:`solid_layout`) through the coated
+scan's beam: with ``--saturation 0.9`` the polymer rod's middle reads above the clip and its edges under it, and
+titanium discs across that edge are pulled towards the rod (``docs/calibration-phantoms.md``, Limits).
+
 ``--drift-walk-px W`` and ``--drift-jump-px J`` make the projections drift as a source spot does while the
 tube warms (:mod:`ctpipe.sim.drift`: a random walk of normal steps of ``W`` px between views in both
 directions, and one jump of ``J`` px at a random view); the calibration should fit each view's
@@ -152,6 +156,31 @@ def coated_layout(seed: int, balls: int = COATED_BALLS):
     return parse_phantom({"name": f"coated-balls-{seed}", "units": "mm", "objects": objects})
 
 
+#: The solid balls' materials, in turn.
+SOLIDS = ("steel", "titanium", "aluminium")
+
+
+def solid_layout(seed: int, balls: int = COATED_BALLS):
+    """Seven solid balls of steel, titanium and aluminium in turn, placed as :func:`coated_layout` places the coated
+    ones (from ``seed``, its own draw), on the same PMMA rod: through the coated scan's polychromatic beam the steel
+    and titanium harden it, and where the clip is at 90 % the rod's middle reads above it and its edges under it."""
+    rng = np.random.default_rng(30_000 + seed)
+    objects = [{"cylinder": {"centre_mm": [0.0, 0.0, 0.0], "radius_mm": 4.0, "height_mm": 50.0, "material": "pmma"}}]
+    levels = rng.uniform(-18.0, 18.0, 3)
+    placed = []
+    for k in range(balls):
+        while True:
+            radius = float(rng.uniform(2.6, 2.9))
+            height = levels[k % 3] + rng.uniform(-1.5, 1.5)
+            distance, azimuth = float(rng.uniform(8.0, 17.0)), float(rng.uniform(0.0, 2.0 * np.pi))
+            centre = np.array([distance * np.cos(azimuth), height, distance * np.sin(azimuth)])
+            if all(np.linalg.norm(centre - other) > radius + other_radius + 0.5 for other, other_radius in placed):
+                break
+        placed.append((centre, radius))
+        objects.append({"sphere": {"centre_mm": centre.tolist(), "radius_mm": radius, "material": SOLIDS[k % 3]}})
+    return parse_phantom({"name": f"solid-balls-{seed}", "units": "mm", "objects": objects})
+
+
 def coated_spec(views: int, jitter_deg: float, seed: int) -> dict:
     """The mixed scan's spec as a lab scanner records coated balls: a 130 kV tungsten tube through
     0.25 mm of copper, 3 % scatter, a 0.8 px detector blur, gains drifted 0.3 % since the flats,
@@ -165,10 +194,12 @@ def coated_spec(views: int, jitter_deg: float, seed: int) -> dict:
 
 
 def simulate_scan(views: int, jitter_deg: float, max_error_deg: float | None, seed: int, random: bool = False,
-                  coated: bool = False, saturation: float | None = None, drift: dict | None = None):
+                  coated: bool = False, saturation: float | None = None, drift: dict | None = None,
+                  solid: bool = False):
     """The simulated scan and the nominal angles given to the pipeline (``saturation``: the clip's level, as a
-    share of the open beam, in place of the spec's 95 %; ``drift``: the misalignment's ``drift`` section)."""
-    spec = coated_spec(views, jitter_deg, seed) if coated else scan_spec(views, jitter_deg, seed)
+    share of the open beam, in place of the spec's 95 %; ``drift``: the misalignment's ``drift`` section; ``solid``:
+    :func:`solid_layout` through the coated scan's beam)."""
+    spec = coated_spec(views, jitter_deg, seed) if coated or solid else scan_spec(views, jitter_deg, seed)
     if saturation is not None:
         spec["detector"] = {**spec["detector"], "saturation_fraction": saturation}
     if drift:
@@ -177,7 +208,8 @@ def simulate_scan(views: int, jitter_deg: float, max_error_deg: float | None, se
             spec["jitter"] = [{"gaussian": {"sigma_deg": 0.0}}]   # the simulator drifts only a jittered scan
     spec = parse_scan_spec(spec)
     rng = np.random.default_rng(seed)
-    phantom = coated_layout(seed) if coated else random_layout(seed) if random else load_phantom(str(PHANTOM))
+    phantom = (coated_layout(seed) if coated else solid_layout(seed) if solid else random_layout(seed) if random
+               else load_phantom(str(PHANTOM)))
     scan = simulate(phantom, spec, rng=rng, jitter=not max_error_deg or bool(drift))
     nominal = scan.nominal_angles_deg
     if max_error_deg:
@@ -214,6 +246,9 @@ def main(argv=None) -> int:
     layout.add_argument("--coated", action="store_true",
                         help="seven coated balls at three heights, placed anew for each seed, through a polychromatic "
                              "beam with scatter, and a closing view (the issue's real scan; coated_layout)")
+    layout.add_argument("--solid", action="store_true",
+                        help="seven solid balls of steel, titanium and aluminium, placed as --coated places its balls, "
+                             "through the same beam (solid_layout)")
     args = parser.parse_args(argv)
 
     failed = False
@@ -222,7 +257,7 @@ def main(argv=None) -> int:
         drift = ({"walk_px": args.drift_walk_px, "jumps": 1 if args.drift_jump_px else 0,
                   "jump_px": args.drift_jump_px} if args.drift_walk_px or args.drift_jump_px else None)
         scan, nominal, truth = simulate_scan(args.views, args.jitter_deg, args.max_error_deg, seed, args.random_layout,
-                                             args.coated, args.saturation, drift)
+                                             args.coated, args.saturation, drift, args.solid)
         simulated = time.perf_counter() - start
         start = time.perf_counter()
         recognised, why = looks_like_ball_phantom(scan.projections)
@@ -246,7 +281,7 @@ def main(argv=None) -> int:
               f"{float(np.abs(nominal_errors).max()):.3f} deg at most, {float(np.sqrt(np.mean(nominal_errors ** 2))):.3f} RMS")
         print(f"  ball-phantom check: {'yes' if recognised else 'NO'} ({why}; {checked:.1f} s)")
         print(f"  calibration: {ran:.1f} s (stages: {' '.join(f'{k} {v:.1f}' for k, v in result.timings_s.items())}); "
-              f"{balls.get('balls', 0)} of {COATED_BALLS if args.coated else 9} balls followed, "
+              f"{balls.get('balls', 0)} of {COATED_BALLS if args.coated or args.solid else 9} balls followed, "
               f"views per ball {balls.get('views_per_ball')}; "
               f"{'corrected' if balls.get('kept') else 'NOMINAL'} angles returned: {balls.get('reason', '')}")
         print(f"  per-view error (deg): max {largest:.4f}, RMS {rms:.4f}; "
