@@ -123,18 +123,14 @@ SHELLS = (("steel", 7.9), ("titanium", 4.5))
 CORES = ("pmma", "aluminium", None)
 
 
-def coated_layout(seed: int, balls: int = COATED_BALLS):
-    """Seven coated balls as the issue's real scan shows them, placed anew from ``seed``.
+#: The coated and solid scans' holder: a PMMA rod 4 mm in radius along the axis.
+ROD = {"cylinder": {"centre_mm": [0.0, 0.0, 0.0], "radius_mm": 4.0, "height_mm": 50.0, "material": "pmma"}}
 
-    Every ball a dark ring around a lighter disc in the raw counts: a shell of steel or titanium,
-    0.3-0.6 mm thick, around a core of PMMA, aluminium or nothing; radii 2.6-2.9 mm (150-170 px
-    across at magnification 5.8 on 0.2 mm pixels), 8-17 mm from the axis at any azimuth, at three
-    heights drawn over -18 to +18 mm, each ball within 1.5 mm of its height, so that two or three
-    overlap in some views; none touching. On a PMMA rod 4 mm in radius along the axis. Materials,
-    not attenuations: the scan's polychromatic beam hardens through the steel.
-    """
-    rng = np.random.default_rng(20_000 + seed)
-    objects = [{"cylinder": {"centre_mm": [0.0, 0.0, 0.0], "radius_mm": 4.0, "height_mm": 50.0, "material": "pmma"}}]
+
+def _three_heights(rng, balls: int):
+    """The coated scan's layout, ball by ball as ``(k, centre, radius)``: three heights drawn over -18 to +18 mm,
+    the k-th ball within 1.5 mm of height ``k % 3``, radius 2.6-2.9 mm, 8-17 mm from the axis at any azimuth, drawn
+    again until it clears every ball before it by 0.5 mm (the caller may draw from ``rng`` between balls)."""
     levels = rng.uniform(-18.0, 18.0, 3)
     placed = []
     for k in range(balls):
@@ -146,6 +142,22 @@ def coated_layout(seed: int, balls: int = COATED_BALLS):
             if all(np.linalg.norm(centre - other) > radius + other_radius + 0.5 for other, other_radius in placed):
                 break
         placed.append((centre, radius))
+        yield k, centre, radius
+
+
+def coated_layout(seed: int, balls: int = COATED_BALLS):
+    """Seven coated balls as the issue's real scan shows them, placed anew from ``seed``.
+
+    Every ball a dark ring around a lighter disc in the raw counts: a shell of steel or titanium,
+    0.3-0.6 mm thick, around a core of PMMA, aluminium or nothing; radii 2.6-2.9 mm (150-170 px
+    across at magnification 5.8 on 0.2 mm pixels), 8-17 mm from the axis at any azimuth, at three
+    heights drawn over -18 to +18 mm, each ball within 1.5 mm of its height, so that two or three
+    overlap in some views; none touching. On a PMMA rod 4 mm in radius along the axis. Materials,
+    not attenuations: the scan's polychromatic beam hardens through the steel.
+    """
+    rng = np.random.default_rng(20_000 + seed)
+    objects = [ROD]
+    for k, centre, radius in _three_heights(rng, balls):
         (shell, density), core = SHELLS[k % 2], CORES[k % 3]
         inner = radius - float(rng.uniform(0.3, 0.6))
         objects.append({"sphere": {"centre_mm": centre.tolist(), "radius_mm": radius, "material": shell}})
@@ -164,19 +176,8 @@ def solid_layout(seed: int, balls: int = COATED_BALLS):
     """Seven solid balls of steel, titanium and aluminium in turn, placed as :func:`coated_layout` places the coated
     ones (from ``seed``, its own draw), on the same PMMA rod: through the coated scan's polychromatic beam the steel
     and titanium harden it, and where the clip is at 90 % the rod's middle reads above it and its edges under it."""
-    rng = np.random.default_rng(30_000 + seed)
-    objects = [{"cylinder": {"centre_mm": [0.0, 0.0, 0.0], "radius_mm": 4.0, "height_mm": 50.0, "material": "pmma"}}]
-    levels = rng.uniform(-18.0, 18.0, 3)
-    placed = []
-    for k in range(balls):
-        while True:
-            radius = float(rng.uniform(2.6, 2.9))
-            height = levels[k % 3] + rng.uniform(-1.5, 1.5)
-            distance, azimuth = float(rng.uniform(8.0, 17.0)), float(rng.uniform(0.0, 2.0 * np.pi))
-            centre = np.array([distance * np.cos(azimuth), height, distance * np.sin(azimuth)])
-            if all(np.linalg.norm(centre - other) > radius + other_radius + 0.5 for other, other_radius in placed):
-                break
-        placed.append((centre, radius))
+    objects = [ROD]
+    for k, centre, radius in _three_heights(np.random.default_rng(30_000 + seed), balls):
         objects.append({"sphere": {"centre_mm": centre.tolist(), "radius_mm": radius, "material": SOLIDS[k % 3]}})
     return parse_phantom({"name": f"solid-balls-{seed}", "units": "mm", "objects": objects})
 
