@@ -326,7 +326,7 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     titanium and steel discs whose rims ran over a hidden rod's edge were placed up to 0.1 px towards it: on seven
     simulated scans of hardened solid balls over a PMMA rod (clipped at 80-95 %; the line chosen on them) the worst
     view was 0.0044-0.0199 deg, six beyond 0.01, and with the line 0.0051-0.0141, one beyond and one refused (0.0198
-    kept before); on four drawn after, 0.0132-0.0262 -> 0.0063-0.0108, a fifth refused either way. Scans of balls
+    kept before); on five drawn after, 0.0132-0.0262 -> 0.0063-0.0108, a sixth refused either way. Scans of balls
     through a monochromatic beam lost up to 0.003 deg, all within 0.005 (``docs/calibration-phantoms.md``). A ray
     whose ``R`` ends outside ``_UNCUT_RANGE_PX`` of its cut, or that fits ``_MISFIT_RATIO`` times worse than the
     median ray, meets something else (a neighbour's edge, a holder's ramp) and is left out.
