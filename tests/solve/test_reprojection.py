@@ -29,6 +29,10 @@ SCAN = {
 }
 
 
+#: The levels and iterations the tests match the scan with.
+MATCH = {"binning": (2, 1), "iterations": (3, 2), "max_voxels": 96}
+
+
 def rms(angles_deg, truth_deg) -> float:
     return float(np.sqrt(np.mean(view_errors_deg(angles_deg, truth_deg) ** 2)))
 
@@ -36,6 +40,12 @@ def rms(angles_deg, truth_deg) -> float:
 @pytest.fixture(scope="module")
 def scan():
     return simulate(load_phantom("bead-cylinder"), parse_scan_spec(SCAN), rng=np.random.default_rng(5))
+
+
+@pytest.fixture(scope="module")
+def matched(scan):
+    """The scan matched from its nominal angles as several tests here read it (one run of about 8 s, shared)."""
+    return projection_matching(scan.projections, scan.geometry, scan.nominal_angles_deg, **MATCH)
 
 
 def test_the_projected_tangential_derivative_is_the_derivative_of_the_projection():
@@ -87,11 +97,10 @@ def test_intensities_are_recognised_and_turned_into_line_integrals(scan):
     np.testing.assert_allclose(back[inside], line[inside], atol=0.05)
 
 
-def test_projection_matching_recovers_the_jitter_from_the_nominal_angles(scan):
+def test_projection_matching_recovers_the_jitter_from_the_nominal_angles(scan, matched):
     nominal, truth = scan.nominal_angles_deg, scan.true_angles_deg
     before = rms(nominal, truth)
-    result = projection_matching(scan.projections, scan.geometry, nominal, binning=(2, 1), iterations=(3, 2),
-                                 max_voxels=96)
+    result = matched
     after = rms(result.angles_deg, truth)
     assert before > 0.4
     assert after < 0.1 * before, (before, after)
@@ -152,7 +161,7 @@ def test_held_out_decisive_asks_every_angle_set_to_be_past_the_margin_either_way
     assert not held_out_decisive(scores(-5.9), "nominal") and not held_out_decisive(scores(-20.0, 1.0), "nominal")
 
 
-def test_the_standard_errors_cover_the_errors_and_grow_with_the_noise(scan):
+def test_the_standard_errors_cover_the_errors_and_grow_with_the_noise(scan, matched):
     """Most matched views within two standard errors, not all; fewer photons, larger error bars.
 
     The calibration (SE_CALIBRATION) was set on the 1e5-photon scan; the 300-photon one is not.
@@ -161,11 +170,12 @@ def test_the_standard_errors_cover_the_errors_and_grow_with_the_noise(scan):
 
     results = {}
     for photons in (100000, 300):
-        spec = parse_scan_spec({**SCAN, "noise": {**SCAN["noise"], "photons_per_pixel": photons}})
-        noisy = scan if photons == 100000 else simulate(load_phantom("bead-cylinder"), spec,
-                                                        rng=np.random.default_rng(5))
-        result = projection_matching(noisy.projections, noisy.geometry, noisy.nominal_angles_deg, binning=(2, 1),
-                                     iterations=(3, 2), max_voxels=96)
+        if photons == 100000:
+            noisy, result = scan, matched
+        else:
+            spec = parse_scan_spec({**SCAN, "noise": {**SCAN["noise"], "photons_per_pixel": photons}})
+            noisy = simulate(load_phantom("bead-cylinder"), spec, rng=np.random.default_rng(5))
+            result = projection_matching(noisy.projections, noisy.geometry, noisy.nominal_angles_deg, **MATCH)
         coverage = se_coverage(view_errors_deg(result.angles_deg, noisy.true_angles_deg), result.angle_se_deg)
         assert coverage["views"] == 120 and 0.85 <= coverage["fraction"] <= 0.99, coverage
         results[photons] = coverage["median_se_deg"]
@@ -180,7 +190,7 @@ def test_a_drifting_detector_is_fitted_with_the_angles_instead_of_bending_them()
     spec = parse_scan_spec({**SCAN, "misalignment": {"drift": {"walk_px": 0.1, "jumps": 2, "jump_px": 1.0}}})
     drifting = simulate(load_phantom("bead-cylinder"), spec, rng=np.random.default_rng(5))
     nominal, truth = drifting.nominal_angles_deg, drifting.true_angles_deg
-    kwargs = {"binning": (2, 1), "iterations": (3, 2), "max_voxels": 96}
+    kwargs = MATCH
     plain = projection_matching(drifting.projections, drifting.geometry, nominal, **kwargs)
     fitted = projection_matching(drifting.projections, drifting.geometry, nominal, shifts=True, **kwargs)
     assert plain.shifts_px is None and fitted.shifts_px.shape == (120, 2)
@@ -193,11 +203,10 @@ def test_a_drifting_detector_is_fitted_with_the_angles_instead_of_bending_them()
     assert np.sqrt(np.mean((fitted.shifts_px - true_drift) ** 2)) < 0.3 * np.sqrt(np.mean(true_drift ** 2))
 
 
-def test_fitting_shifts_costs_nothing_on_a_scan_without_drift(scan):
+def test_fitting_shifts_costs_nothing_on_a_scan_without_drift(scan, matched):
     nominal, truth = scan.nominal_angles_deg, scan.true_angles_deg
-    kwargs = {"binning": (2, 1), "iterations": (3, 2), "max_voxels": 96}
-    plain = projection_matching(scan.projections, scan.geometry, nominal, **kwargs)
-    fitted = projection_matching(scan.projections, scan.geometry, nominal, shifts=True, **kwargs)
+    plain = matched
+    fitted = projection_matching(scan.projections, scan.geometry, nominal, shifts=True, **MATCH)
     assert rms(fitted.angles_deg, truth) < 1.1 * rms(plain.angles_deg, truth)
     assert np.sqrt(np.mean(fitted.shifts_px ** 2)) < 0.15
 
@@ -302,7 +311,7 @@ def test_the_axis_and_the_detector_tilt_are_fitted_with_the_angles(tilt_deg):
     spec = parse_scan_spec({**SCAN, "misalignment": {"cor_offset_px": 1.5, "tilt_deg": tilt_deg}})
     misaligned = simulate(load_phantom("bead-cylinder"), spec, rng=np.random.default_rng(5))
     nominal, truth = misaligned.nominal_angles_deg, misaligned.true_angles_deg
-    kwargs = {"binning": (2, 1), "iterations": (3, 2), "max_voxels": 96, "shifts": True}
+    kwargs = {**MATCH, "shifts": True}
     fitted = projection_matching(misaligned.projections, misaligned.geometry, nominal, detector=True, **kwargs)
     plain = projection_matching(misaligned.projections, misaligned.geometry, nominal, **kwargs)
     assert fitted.axis_offset_px == pytest.approx(1.5, abs=0.1)
