@@ -190,9 +190,8 @@ def test_a_drifting_detector_is_fitted_with_the_angles_instead_of_bending_them()
     spec = parse_scan_spec({**SCAN, "misalignment": {"drift": {"walk_px": 0.1, "jumps": 2, "jump_px": 1.0}}})
     drifting = simulate(load_phantom("bead-cylinder"), spec, rng=np.random.default_rng(5))
     nominal, truth = drifting.nominal_angles_deg, drifting.true_angles_deg
-    kwargs = MATCH
-    plain = projection_matching(drifting.projections, drifting.geometry, nominal, **kwargs)
-    fitted = projection_matching(drifting.projections, drifting.geometry, nominal, shifts=True, **kwargs)
+    plain = projection_matching(drifting.projections, drifting.geometry, nominal, **MATCH)
+    fitted = projection_matching(drifting.projections, drifting.geometry, nominal, shifts=True, **MATCH)
     assert plain.shifts_px is None and fitted.shifts_px.shape == (120, 2)
     assert rms(fitted.angles_deg, truth) < 0.7 * rms(plain.angles_deg, truth), (rms(fitted.angles_deg, truth),
                                                                                  rms(plain.angles_deg, truth))
