@@ -384,8 +384,8 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
             and np.isfinite(start).any()):
         return None                 # no sphere's chord, or a blur the profile read cannot tell
     beyond = float(np.nanmedian(start - cut[some]))          # every ray starts as far beyond its cut
-    shape, background, fitted_rim, misfit = _blurred_fit(values[reaches], use[reaches], radii, cut[reaches] + beyond,
-                                                         shape, free_shape=False)
+    shape, _, fitted_rim, misfit = _blurred_fit(values[reaches], use[reaches], radii, cut[reaches] + beyond, shape,
+                                                free_shape=False)
     lo, hi = _UNCUT_RANGE_PX
     fitted = np.isfinite(fitted_rim) & (fitted_rim - cut[reaches] > lo) & (fitted_rim - cut[reaches] < hi)
     if not fitted.any():
@@ -524,9 +524,9 @@ def _blurred_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, rims: n
     along each ray, ``b + s r``, or with ``sloped=False`` a constant.
 
     Gauss-Newton from ``rims`` and ``shape``: each ray's background is what it fits of the residuals (projected out,
-    :func:`_background_projection`), its ``R`` and,
-    where free, the shape's three found together, the rays' normal equations reduced onto the shape's (a Schur
-    complement) and damped (Levenberg-Marquardt) until the sum of squares stops falling. Each ray's step in ``R`` is
+    :func:`_background_projection`), its ``R`` and, where free, the shape's three found together, the rays' normal
+    equations reduced onto the shape's (a Schur complement) and damped (Levenberg-Marquardt) until the sum of squares
+    stops falling. Each ray's step in ``R`` is
     at most a pixel, the blur at most :func:`_widest_blur_px`. ``R`` is NaN where a round left it non-finite.
     """
     weight = use.astype(np.float64)
