@@ -87,6 +87,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from ctpipe._shared.jit import FASTMATH, njit
 from ctpipe.errors import InputError
 from ctpipe.features.balls import _OVERLAP, _TRUNCATED
 from ctpipe.images import block_mean
@@ -283,7 +284,7 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
     return result()
 
 
-def _inner_edge(spline: np.ndarray, x0: float, y0: float, radius: float, direction: np.ndarray, rim_se: float):
+def _inner_edge(spline: _SmoothedSpline, x0: float, y0: float, radius: float, direction: np.ndarray, rim_se: float):
     """``(x, y, radius)`` of a hollow or coated ball's inner edge where it places the centre, else None.
 
     Cast from the rim's centre, then from its own until it moves less than ``_SETTLED_PX``; it places the centre where
@@ -704,8 +705,15 @@ def _directions(rays: int) -> np.ndarray:
     return np.stack([np.cos(phi), np.sin(phi)], axis=1)
 
 
-def _smoothed_spline(g: np.ndarray, blur_px: float) -> np.ndarray:
-    """The cubic B-spline coefficients (float64) of ``g`` smoothed by a Gaussian of ``blur_px``, which the rays sample.
+#: The spline is computed over the window its samples need, widened by this (px): past the Gaussian's reach (four of
+#: its sigmas) and the spline's prefilter's (a recursive filter whose boundary's pull falls 0.268 times a pixel, to
+#: 2e-14 at 24 px), so that a window's samples are the whole image's; and by this slack (px), so that the rays cast
+#: again from a centre moved a few pixels still fall inside it.
+_SPLINE_MARGIN_PX, _SPLINE_SLACK_PX = 24, 8
+
+
+class _SmoothedSpline:
+    """``g`` smoothed by a Gaussian of ``blur_px``, sampled through its cubic B-spline along the rays.
 
     Not bilinear samples: their slope is constant across each pixel and jumps at its edges, so the steepest slope
     along a ray locks onto pixel edges, by up to a quarter of a pixel a ray, differently from ray to ray (pixel
@@ -713,12 +721,80 @@ def _smoothed_spline(g: np.ndarray, blur_px: float) -> np.ndarray:
     (``benchmarks/bench_ball_phantom_mixed.py --coated --views 24``, seed 800), discs placed on a clean shell's
     inside came 0.026 px RMS from the truth sampled bilinearly and 0.018 px through the spline, overlapping ones 0.040
     and 0.036, and rims 0.041 and 0.037 (``docs/calibration-phantoms.md``, "Pixel locking").
+
+    The coefficients are computed over the window the samples asked for reach (with ``_SPLINE_MARGIN_PX`` and
+    ``_SPLINE_SLACK_PX``), again where later samples leave it: a ball's rays cover a few percent of a view, and the
+    whole view's spline was a tenth of its detection (0.2 s a 2000^2 view). The samples are the whole image's spline's
+    (the image's own edges are the window's where it reaches them, read with ``mode="nearest"`` as before).
     """
-    smooth = ndimage.gaussian_filter(np.asarray(g, dtype=np.float32), blur_px, mode="nearest")
-    return ndimage.spline_filter(smooth, order=3, output=np.float64, mode="nearest")
+
+    def __init__(self, g: np.ndarray, blur_px: float):
+        self.g, self.blur_px = g, blur_px
+        self.shape = np.shape(g)
+        self._box = (0, 0, 0, 0)                 # rows y_lo:y_hi, columns x_lo:x_hi of the coefficients
+        self._coefficients = np.zeros((0, 0))
+
+    def sample(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """The smoothed image at ``(xs, ys)`` (px; any shape, the result's), through the spline."""
+        rows, cols = self.shape
+        need = (max(int(math.floor(ys.min())) - 2, 0), min(int(math.ceil(ys.max())) + 3, rows),
+                max(int(math.floor(xs.min())) - 2, 0), min(int(math.ceil(xs.max())) + 3, cols))
+        y_lo, y_hi, x_lo, x_hi = self._box
+        if not (need[0] >= y_lo and need[1] <= y_hi and need[2] >= x_lo and need[3] <= x_hi):
+            within = _SPLINE_MARGIN_PX + _SPLINE_SLACK_PX
+            y_lo, y_hi = max(need[0] - within, 0), min(need[1] + within, rows)
+            x_lo, x_hi = max(need[2] - within, 0), min(need[3] + within, cols)
+            smooth = ndimage.gaussian_filter(np.asarray(self.g[y_lo:y_hi, x_lo:x_hi], dtype=np.float32), self.blur_px,
+                                             mode="nearest")
+            self._coefficients = ndimage.spline_filter(smooth, order=3, output=np.float64, mode="nearest")
+            self._box = (y_lo, y_hi, x_lo, x_hi)
+        out = np.empty(xs.size)
+        _cubic_samples(self._coefficients, np.ravel(ys) - y_lo, np.ravel(xs) - x_lo, out)
+        return out.reshape(xs.shape)
 
 
-def _rim_circle(spline: np.ndarray, cx: float, cy: float, r: float, direction: np.ndarray):
+@njit(fastmath=FASTMATH, cache=True)
+def _cubic_samples(coefficients, ys, xs, out):  # pragma: no cover - numba
+    """``out[k]``: the cubic B-spline of ``coefficients`` (rows, cols) at ``(xs[k], ys[k])``.
+
+    Within the image, ``scipy.ndimage.map_coordinates(..., order=3, mode="nearest", prefilter=False)`` to 1e-15
+    (coefficients beyond the edge read the edge's); a point beyond the edge is read on it (scipy reads otherwise:
+    the rays drop such samples). A fifth of scipy's time here, whose n-dimensional loop was a fifth of a view's
+    detection. Serial, like the other kernels of a view's detection: the pipeline detects views in threads of its
+    own."""
+    rows, cols = coefficients.shape
+    for k in range(xs.shape[0]):
+        x = min(max(xs[k], 0.0), cols - 1.0)
+        y = min(max(ys[k], 0.0), rows - 1.0)
+        i, j = int(math.floor(y)), int(math.floor(x))
+        ty, tx = y - i, x - j
+        wy0, wy1, wy2, wy3 = _cubic_weights(ty)
+        wx0, wx1, wx2, wx3 = _cubic_weights(tx)
+        j0, j1, j2, j3 = max(j - 1, 0), j, min(j + 1, cols - 1), min(j + 2, cols - 1)
+        total = 0.0
+        for m in range(4):
+            row = min(max(i - 1 + m, 0), rows - 1)
+            wy = wy0 if m == 0 else wy1 if m == 1 else wy2 if m == 2 else wy3
+            total += wy * (wx0 * coefficients[row, j0] + wx1 * coefficients[row, j1] + wx2 * coefficients[row, j2]
+                           + wx3 * coefficients[row, j3])
+        out[k] = total
+
+
+@njit(fastmath=FASTMATH, cache=True, inline="always")
+def _cubic_weights(t):  # pragma: no cover - numba
+    """The cubic B-spline's weights of the four coefficients at -1, 0, 1, 2 for a point ``t`` in [0, 1) past 0."""
+    u = 1.0 - t
+    return u * u * u / 6.0, (3.0 * t * t * (t - 2.0) + 4.0) / 6.0, (3.0 * u * u * (u - 2.0) + 4.0) / 6.0, \
+        t * t * t / 6.0
+
+
+def _smoothed_spline(g: np.ndarray, blur_px: float) -> _SmoothedSpline:
+    """``g`` smoothed by a Gaussian of ``blur_px``, for the rays to sample through its cubic B-spline
+    (:class:`_SmoothedSpline`)."""
+    return _SmoothedSpline(g, blur_px)
+
+
+def _rim_circle(spline: _SmoothedSpline, cx: float, cy: float, r: float, direction: np.ndarray):
     """``((x0, y0, radius), rays that fit, centre's standard error)`` of the rim seen along rays from ``(cx, cy)``, or
     None (too few rays); ``spline`` as :func:`_smoothed_spline` returns it."""
     radii = np.arange((1.0 - _WINDOW) * r, (1.0 + _WINDOW) * r + _EDGE_STEP_PX, _EDGE_STEP_PX)
@@ -728,7 +804,7 @@ def _rim_circle(spline: np.ndarray, cx: float, cy: float, r: float, direction: n
     return _circle(np.column_stack([cx + direction[:, 0] * rim, cy + direction[:, 1] * rim])[usable])
 
 
-def _inner_circle(spline: np.ndarray, cx: float, cy: float, r: float, direction: np.ndarray):
+def _inner_circle(spline: _SmoothedSpline, cx: float, cy: float, r: float, direction: np.ndarray):
     """``((x0, y0, radius), rays that fit, centre's standard error)`` of a hollow or coated ball's inner edge seen
     along rays from ``(cx, cy)`` (the outer rim's radius ``r``), or None (too few rays rise).
 
@@ -746,7 +822,7 @@ def _inner_circle(spline: np.ndarray, cx: float, cy: float, r: float, direction:
     return _circle(np.column_stack([cx + direction[:, 0] * edge, cy + direction[:, 1] * edge])[usable])
 
 
-def _steepest(spline: np.ndarray, cx: float, cy: float, radii: np.ndarray, direction: np.ndarray, *, rising: bool):
+def _steepest(spline: _SmoothedSpline, cx: float, cy: float, radii: np.ndarray, direction: np.ndarray, *, rising: bool):
     """Along each ray from ``(cx, cy)`` over ``radii``, where the line integrals fall (or rise) outwards the steepest,
     to a fraction of a step (a parabola through the three slopes around it); ``spline`` as :func:`_smoothed_spline`
     returns it.
@@ -767,15 +843,16 @@ def _steepest(spline: np.ndarray, cx: float, cy: float, radii: np.ndarray, direc
     return edge, inside.all(axis=1) & changes, (peak > 0) & (peak < slope.shape[1] - 1)
 
 
-def _along_rays(image: np.ndarray, cx: float, cy: float, radii: np.ndarray, direction: np.ndarray, *,
-                spline: bool = False):
+def _along_rays(image, cx: float, cy: float, radii: np.ndarray, direction: np.ndarray, *, spline: bool = False):
     """``image`` sampled along each ray from ``(cx, cy)`` at ``radii``, shape (rays, radii), and whether each sample
-    lies in the image: bilinear, or where ``spline``, ``image`` is the cubic B-spline coefficients of an image
-    (:func:`_smoothed_spline`) and the image is sampled through them."""
+    lies in the image: bilinear, or where ``spline``, ``image`` is a :class:`_SmoothedSpline` (an image smoothed,
+    sampled through its cubic B-spline)."""
     xs = cx + direction[:, 0, None] * radii[None, :]
     ys = cy + direction[:, 1, None] * radii[None, :]
     inside = (xs >= 0) & (ys >= 0) & (xs <= image.shape[1] - 1) & (ys <= image.shape[0] - 1)
-    values = ndimage.map_coordinates(image, [ys.ravel(), xs.ravel()], order=3 if spline else 1, mode="nearest",
+    if spline:
+        return image.sample(xs, ys), inside
+    values = ndimage.map_coordinates(image, [ys.ravel(), xs.ravel()], order=1, mode="nearest",
                                      prefilter=False).reshape(xs.shape)
     return values, inside
 
@@ -798,13 +875,15 @@ def _centre_se(points: np.ndarray, x0: float, y0: float, radius: float) -> float
     return spread * math.sqrt(2.0 / max(fitting, 1))
 
 
+@njit(cache=True)
 def _biweight_scale(residual: np.ndarray) -> tuple[float, float]:
     """The residuals' robust spread (1.4826 times their median absolute deviation) and Tukey's biweight cut-off at
     4.685 of it (0.05 px at least: rim points on a clean circle agree to a few hundredths of a pixel)."""
-    spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+    spread = 1.4826 * np.median(np.abs(residual - np.median(residual)))
     return spread, 4.685 * max(spread, 0.05)
 
 
+@njit(cache=True)
 def _biweight_weights(residual: np.ndarray) -> np.ndarray:
     """Tukey's biweight of each residual, at the cut-off :func:`_biweight_scale` sets (0 beyond it)."""
     _, cut = _biweight_scale(residual)
@@ -878,33 +957,94 @@ def bright_view(image, polarity: str = "auto") -> np.ndarray:
 
 
 def _robust_circle(points: np.ndarray, iterations: int = 10):
-    """``((x0, y0, radius), points that fit)`` by IRLS with Tukey's biweight, from Kasa's algebraic fit; None if degenerate."""
-    weights = np.ones(len(points))
-    x0 = y0 = radius = None
+    """``((x0, y0, radius), points that fit)`` by IRLS with Tukey's biweight, from Kasa's algebraic fit; None if degenerate.
+
+    Compiled (:func:`_robust_circle_kernel`): a view's few hundred fits of a thousand rim points each, in numpy, were a
+    tenth of its detection."""
+    points = np.asarray(points, dtype=np.float64)
+    x0, y0, radius, fitting = _robust_circle_kernel(np.ascontiguousarray(points[:, 0]),
+                                                    np.ascontiguousarray(points[:, 1]), iterations)
+    if fitting < 0:
+        return None
+    return (float(x0), float(y0), float(radius)), int(fitting)
+
+
+@njit(cache=True)
+def _robust_circle_kernel(xs, ys, iterations):  # pragma: no cover - numba
+    """:func:`_robust_circle`'s ``(x0, y0, radius, points that fit)``, ``points that fit`` -1 where degenerate.
+
+    Kasa's fit ``x^2 + y^2 + D x + E y + F = 0``, each point's equation weighted by its biweight, about the points'
+    mean (the same circle, better conditioned), ``iterations`` times; then five Gauss-Newton steps on the distances
+    with the biweights held. Each a 3 x 3 system of normal equations."""
+    n = xs.shape[0]
+    mx, my = np.mean(xs), np.mean(ys)
+    x, y = xs - mx, ys - my
+    weights = np.ones(n)
+    x0 = y0 = radius = 0.0
+    normal = np.empty((3, 3))
+    right = np.empty(3)
     for _ in range(iterations):
-        # Kasa: x^2 + y^2 + D x + E y + F = 0, weighted.
-        a = np.column_stack([points[:, 0], points[:, 1], np.ones(len(points))]) * weights[:, None]
-        rhs = -(points[:, 0] ** 2 + points[:, 1] ** 2) * weights
-        try:
-            (d, e, f), *_ = np.linalg.lstsq(a, rhs, rcond=None)
-        except np.linalg.LinAlgError:
-            return None
-        x0, y0 = -0.5 * d, -0.5 * e
-        squared = x0 ** 2 + y0 ** 2 - f
-        if squared <= 0:
-            return None
+        normal[:] = 0.0
+        right[:] = 0.0
+        for k in range(n):
+            w2 = weights[k] * weights[k]
+            a = (x[k], y[k], 1.0)
+            b = -(x[k] * x[k] + y[k] * y[k])
+            for i in range(3):
+                right[i] += w2 * a[i] * b
+                for j in range(3):
+                    normal[i, j] += w2 * a[i] * a[j]
+        solved, d = _solve3(normal, right)
+        if not solved:
+            return 0.0, 0.0, 0.0, -1
+        x0, y0 = -0.5 * d[0], -0.5 * d[1]
+        squared = x0 * x0 + y0 * y0 - d[2]
+        if squared <= 0.0:
+            return 0.0, 0.0, 0.0, -1
         radius = math.sqrt(squared)
-        residual = np.hypot(points[:, 0] - x0, points[:, 1] - y0) - radius
-        weights = _biweight_weights(residual)
-        if weights.sum() < 6:
-            return None
+        weights = _biweight_weights(np.hypot(x - x0, y - y0) - radius)
+        if weights.sum() < 6.0:
+            return 0.0, 0.0, 0.0, -1
     # The final geometric refinement: Gauss-Newton on the distances, the biweights held.
     for _ in range(5):
-        dx, dy = points[:, 0] - x0, points[:, 1] - y0
-        distance = np.maximum(np.hypot(dx, dy), 1e-9)
-        residual = distance - radius
-        jac = np.column_stack([-dx / distance, -dy / distance, -np.ones(len(points))])
-        w = np.sqrt(weights)
-        step, *_ = np.linalg.lstsq(jac * w[:, None], -residual * w, rcond=None)
+        normal[:] = 0.0
+        right[:] = 0.0
+        for k in range(n):
+            dx, dy = x[k] - x0, y[k] - y0
+            distance = max(math.hypot(dx, dy), 1e-9)
+            residual = distance - radius
+            a = (-dx / distance, -dy / distance, -1.0)
+            for i in range(3):
+                right[i] -= weights[k] * a[i] * residual
+                for j in range(3):
+                    normal[i, j] += weights[k] * a[i] * a[j]
+        solved, step = _solve3(normal, right)
+        if not solved:
+            return 0.0, 0.0, 0.0, -1
         x0, y0, radius = x0 + step[0], y0 + step[1], radius + step[2]
-    return (float(x0), float(y0), float(radius)), int(np.sum(weights > 0))
+    return x0 + mx, y0 + my, radius, np.count_nonzero(weights > 0.0)
+
+
+@njit(cache=True)
+def _solve3(m, v):  # pragma: no cover - numba
+    """``(True, x)`` with ``m x = v`` for a 3 x 3 ``m`` (Cramer's rule), ``(False, zeros)`` where ``m`` is singular to
+    double precision."""
+    c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+    c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+    c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+    det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+    scale = abs(m[0, 0]) * abs(m[1, 1]) * abs(m[2, 2])
+    x = np.zeros(3)
+    if not abs(det) > 1e-14 * scale:
+        return False, x
+    inverse = np.empty((3, 3))
+    inverse[0, 0], inverse[1, 0], inverse[2, 0] = c00, c01, c02
+    inverse[0, 1] = m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]
+    inverse[1, 1] = m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]
+    inverse[2, 1] = m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]
+    inverse[0, 2] = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+    inverse[1, 2] = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
+    inverse[2, 2] = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    for i in range(3):
+        x[i] = (inverse[i, 0] * v[0] + inverse[i, 1] * v[1] + inverse[i, 2] * v[2]) / det
+    return True, x
