@@ -10,7 +10,7 @@ hollow balls 110-190 px across (``docs/calibration-phantoms.md``).
 Along rays from the detected centre, each rim point is the steepest fall of the line integrals
 within a quarter of the radius of the detected rim, to a fraction of a pixel (a parabola through
 the three samples around it), the rays sampling the view through a cubic spline: a bilinear
-sample's slope jumps at pixel edges and locks the steepest fall onto them (:func:`_smoothed_spline`).
+sample's slope jumps at pixel edges and locks the steepest fall onto them (:class:`_SmoothedSpline`).
 A circle is fitted to the rim points with iteratively reweighted least squares (Tukey's biweight on
 the points' distances from it), so an arc covered by another ball or a speck of dust drops out, and
 the rays are cast again from its centre until it moves less than 0.02 px (at most three times): rays
@@ -238,7 +238,7 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
 
     if not len(out):
         return result()
-    spline = _smoothed_spline(g, blur_px)
+    spline = _SmoothedSpline(g, blur_px)
     clip = _clip_level(g)
     for k, (cx0, cy0, r0, *_rest) in enumerate(out):
         direction = _directions(max(_RAYS, int(math.ceil(2.0 * math.pi * r0 / _RAY_SPACING_PX))))
@@ -788,15 +788,9 @@ def _cubic_weights(t):  # pragma: no cover - numba
         t * t * t / 6.0
 
 
-def _smoothed_spline(g: np.ndarray, blur_px: float) -> _SmoothedSpline:
-    """``g`` smoothed by a Gaussian of ``blur_px``, for the rays to sample through its cubic B-spline
-    (:class:`_SmoothedSpline`)."""
-    return _SmoothedSpline(g, blur_px)
-
-
 def _rim_circle(spline: _SmoothedSpline, cx: float, cy: float, r: float, direction: np.ndarray):
     """``((x0, y0, radius), rays that fit, centre's standard error)`` of the rim seen along rays from ``(cx, cy)``, or
-    None (too few rays); ``spline`` as :func:`_smoothed_spline` returns it."""
+    None (too few rays); ``spline`` a :class:`_SmoothedSpline`."""
     radii = np.arange((1.0 - _WINDOW) * r, (1.0 + _WINDOW) * r + _EDGE_STEP_PX, _EDGE_STEP_PX)
     rim, usable, _ = _steepest(spline, cx, cy, radii, direction, rising=False)
     if usable.sum() < 12:
@@ -822,10 +816,10 @@ def _inner_circle(spline: _SmoothedSpline, cx: float, cy: float, r: float, direc
     return _circle(np.column_stack([cx + direction[:, 0] * edge, cy + direction[:, 1] * edge])[usable])
 
 
-def _steepest(spline: _SmoothedSpline, cx: float, cy: float, radii: np.ndarray, direction: np.ndarray, *, rising: bool):
+def _steepest(spline: _SmoothedSpline, cx: float, cy: float, radii: np.ndarray, direction: np.ndarray, *,
+              rising: bool):
     """Along each ray from ``(cx, cy)`` over ``radii``, where the line integrals fall (or rise) outwards the steepest,
-    to a fraction of a step (a parabola through the three slopes around it); ``spline`` as :func:`_smoothed_spline`
-    returns it.
+    to a fraction of a step (a parabola through the three slopes around it); ``spline`` a :class:`_SmoothedSpline`.
 
     Returns that radius per ray, whether the ray lies in the image and falls (rises) there, and whether the steepest
     slope lies inside the window rather than at either end of it.
@@ -957,7 +951,8 @@ def bright_view(image, polarity: str = "auto") -> np.ndarray:
 
 
 def _robust_circle(points: np.ndarray, iterations: int = 10):
-    """``((x0, y0, radius), points that fit)`` by IRLS with Tukey's biweight, from Kasa's algebraic fit; None if degenerate.
+    """``((x0, y0, radius), points that fit)`` by IRLS with Tukey's biweight, from Kasa's algebraic fit; None if
+    degenerate.
 
     Compiled (:func:`_robust_circle_kernel`): a view's few hundred fits of a thousand rim points each, in numpy, were a
     tenth of its detection."""

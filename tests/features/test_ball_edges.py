@@ -386,7 +386,7 @@ def test_rims_and_shells_do_not_lock_onto_pixel_edges(inner):
         view = ndimage.gaussian_filter(_ball((160, 160), centre, 50.0, 0.02, inner), 0.8)
         refined = edge_centres(view, np.array([[round(centre[0]), round(centre[1]), 50.0, 1.0, 0.0]]))
         assert np.hypot(refined[0, 0] - centre[0], refined[0, 1] - centre[1]) < 0.01
-        (x0, y0, _), _, centre_se = ball_edges._rim_circle(ball_edges._smoothed_spline(view, 1.0), *centre, 50.0,
+        (x0, y0, _), _, centre_se = ball_edges._rim_circle(ball_edges._SmoothedSpline(view, 1.0), *centre, 50.0,
                                                            ball_edges._directions(720))
         assert np.hypot(x0 - centre[0], y0 - centre[1]) < 0.01
         assert centre_se < 0.003
