@@ -14,7 +14,9 @@ Runs what a user runs: the views go through the ball-phantom check the default p
 (:func:`ctpipe.features.ball_phantom.looks_like_ball_phantom`), then through
 ``configs/calibration-beads.yaml`` (what ``ctpipe estimate`` runs on a ball phantom). Prints, per
 seed: whether the check recognised the phantom, the time (simulation apart; the first seed's run
-may load or compile numba's cache), the balls followed and seen per ball, every view's error
+may load or compile numba's cache) and its ratio to a peer timed in the same run (OpenCV's circle Hough
+transform on the same views, :func:`hough_peer`: this machine's speed varies from run to run by half), the
+balls followed and seen per ball, every view's error
 against the truth (after the common offset), the largest and the RMS, and the fitted detector
 against the true one (axis column in pixels, tilt in degrees, the camera convention of
 :mod:`ctpipe.solve.balls`: the simulator's ``tilt_deg`` with the opposite sign) and how deep the
@@ -227,6 +229,33 @@ def _gauge_free(shifts_px, angles_deg) -> np.ndarray:
     return _shift_gauge(shifts_px, theta) - [_axis_part(shifts_px[:, 0], theta), 0.0]
 
 
+#: The peer's circle radii (px): the balls' 2-3 mm radii at magnification 5.8 on 0.2 mm pixels, 58-87 px, +-15 %
+#: with their depth.
+PEER_RADII_PX = (45, 105)
+
+
+def hough_peer(projections) -> tuple[float, float]:
+    """The time's peer, measured in the same run (this machine's speed varies from run to run): OpenCV's circle
+    Hough transform (``cv2.HoughCircles``, ``HOUGH_GRADIENT_ALT``, the balls' radii given) on every view made 8-bit,
+    as a lab finds its balls with one library call (centres on a 1.5 px grid, no calibration). Returns its seconds
+    over the views (the transform alone, one view at a time) and the circles it found a view."""
+    import cv2
+
+    from ctpipe.features.ball_edges import bright_view
+
+    seconds, circles = 0.0, 0
+    for view in projections:
+        g = bright_view(view)
+        lo, hi = np.percentile(g, [0.5, 99.95])
+        u8 = np.clip((g - lo) / max(hi - lo, 1e-12) * 255.0, 0, 255).astype(np.uint8)
+        start = time.perf_counter()
+        found = cv2.HoughCircles(u8, cv2.HOUGH_GRADIENT_ALT, dp=1.5, minDist=PEER_RADII_PX[0], param1=300,
+                                 param2=0.9, minRadius=PEER_RADII_PX[0], maxRadius=PEER_RADII_PX[1])
+        seconds += time.perf_counter() - start
+        circles += 0 if found is None else len(found[0])
+    return seconds, circles / max(len(projections), 1)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -285,6 +314,10 @@ def main(argv=None) -> int:
               f"{balls.get('balls', 0)} of {COATED_BALLS if args.coated or args.solid else 9} balls followed, "
               f"views per ball {balls.get('views_per_ball')}; "
               f"{'corrected' if balls.get('kept') else 'NOMINAL'} angles returned: {balls.get('reason', '')}")
+        peer_s, peer_circles = hough_peer(scan.projections)
+        print(f"  peer: OpenCV's HoughCircles on the {len(truth)} views {peer_s:.1f} s ({peer_circles:.1f} circles "
+              f"a view); the calibration took {ran / peer_s:.1f}x its time, the detection "
+              f"{result.timings_s['detect'] / peer_s:.1f}x")
         print(f"  per-view error (deg): max {largest:.4f}, RMS {rms:.4f}; "
               f"{np.array2string(errors, precision=4, max_line_width=150, suppress_small=True)}")
         print(f"  detector: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it; reprojection "
