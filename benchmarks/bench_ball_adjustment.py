@@ -5,7 +5,9 @@ noise, dust, nominal angles off by up to 2 deg), timed as it runs, where each ad
 Jacobian steps the columns that share no disc row together and gives the gauge row's slope
 (``_forward_differences`` in ``ctpipe/solve/balls.py``); and, in the same run, the peer: the same
 calibration with every adjustment handed to ``scipy.optimize.least_squares`` as before, the
-Jacobian's structure (gauge row included) as ``jac_sparsity`` for scipy's own sparse differences.
+Jacobian's structure (gauge row included) as ``jac_sparsity`` for scipy's own sparse differences
+(and so lsmr's inexact trust-region steps, where ctpipe hands a Jacobian this small dense for exact
+ones: ``_DENSE_JACOBIAN_ENTRIES``).
 Prints the median wall time of each over ``--runs``, their ratio, the residual evaluations each
 made, and how far the two calibrations' angles lie apart (less their common turn). Never fails on
 time.
