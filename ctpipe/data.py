@@ -60,6 +60,10 @@ class Features:
         outer rim's (``size / 2``) or, for a hollow or coated ball, its shell's inner edge, which a clip, a holder
         or a neighbour beyond the rim does not move (:mod:`ctpipe.features.ball_edges`). The calibration models the
         projected centre of a sphere of that radius. None for other detectors.
+    centre_se_px : ndarray of shape (N,), float32, or None
+        For discs (the ``beads`` detector's rim method): the standard error (px) of the centre from the edge that
+        placed it, which grows as less of that edge is seen (a neighbour, the clip); NaN where no edge placed it.
+        The calibration weighs each disc by it against its ball's other discs. None for other detectors.
     """
 
     xy: np.ndarray
@@ -72,6 +76,7 @@ class Features:
     norm: str
     clipped_side: np.ndarray | None = None
     centre_edge_px: np.ndarray | None = None
+    centre_se_px: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.xy)
@@ -94,8 +99,10 @@ class Features:
             raise InputError(f"Features.clipped_side must have shape ({n}, 2), got {self.clipped_side.shape}")
         if self.centre_edge_px is not None and self.centre_edge_px.shape != (n,):
             raise InputError(f"Features.centre_edge_px must have shape ({n},), got {self.centre_edge_px.shape}")
+        if self.centre_se_px is not None and self.centre_se_px.shape != (n,):
+            raise InputError(f"Features.centre_se_px must have shape ({n},), got {self.centre_se_px.shape}")
         for array in (self.xy, self.size, self.angle_deg, self.response, self.octave, self.class_id, self.descriptors,
-                      self.clipped_side, self.centre_edge_px):
+                      self.clipped_side, self.centre_edge_px, self.centre_se_px):
             if array is not None:
                 array.flags.writeable = False
 
@@ -117,7 +124,7 @@ class Features:
 
     @classmethod
     def build(cls, *, xy, size, angle_deg, response, octave=None, class_id=None, descriptors, norm,
-              clipped_side=None, centre_edge_px=None) -> "Features":
+              clipped_side=None, centre_edge_px=None, centre_se_px=None) -> "Features":
         """Normalise dtypes and apply the ordering rule; detectors construct through this."""
         xy = np.asarray(xy, dtype=np.float32).reshape(-1, 2)
         n = len(xy)
@@ -140,6 +147,7 @@ class Features:
                           np.ascontiguousarray(np.asarray(clipped_side, dtype=np.float32).reshape(n, 2)[order])),
             centre_edge_px=(None if centre_edge_px is None else
                             np.asarray(centre_edge_px, dtype=np.float32).reshape(n)[order]),
+            centre_se_px=None if centre_se_px is None else np.asarray(centre_se_px, dtype=np.float32).reshape(n)[order],
         )
 
 

@@ -163,22 +163,26 @@ def test_angle_nan_is_written_as_opencv_minus_one(tmp_path):
     with np.load(write_keypoints(tmp_path / "kp.npz", features, detector="x", params={"k": (1, 2)})) as kp:
         np.testing.assert_array_equal(kp["angle"], np.float32([-1.0, 45.0]))
         assert json.loads(str(kp["params"])) == {"k": [1, 2]} and str(kp["norm"]) == "HAMMING"
-        assert "clipped_side" not in kp.files and "centre_edge_px" not in kp.files
+        assert not {"clipped_side", "centre_edge_px", "centre_se_px"} & set(kp.files)
 
 
 def test_the_side_a_clip_cuts_a_disc_on_is_written_with_its_keypoint(tmp_path):
-    """The ``beads`` detector's ``clipped_side`` and ``centre_edge_px``, in the keypoints' order (strongest first)."""
+    """The ``beads`` detector's ``clipped_side``, ``centre_edge_px`` and ``centre_se_px``, in the keypoints' order
+    (strongest first)."""
     features = Features.build(xy=[[1.0, 2.0], [3.0, 4.0]], size=[5.0, 6.0], angle_deg=[np.nan, np.nan],
                               response=[1.0, 2.0], descriptors=np.zeros((2, 2), np.float32), norm="L2",
-                              clipped_side=[[0.0, 0.0], [-0.3, 0.1]], centre_edge_px=[2.5, 2.4])
+                              clipped_side=[[0.0, 0.0], [-0.3, 0.1]], centre_edge_px=[2.5, 2.4],
+                              centre_se_px=[0.01, np.nan])
     with np.load(write_keypoints(tmp_path / "kp.npz", features, detector="beads", params={})) as kp:
         np.testing.assert_array_equal(kp["pt"][0], np.float32([3.0, 4.0]))
         np.testing.assert_array_equal(kp["clipped_side"], np.float32([[-0.3, 0.1], [0.0, 0.0]]))
         np.testing.assert_array_equal(kp["centre_edge_px"], np.float32([2.4, 2.5]))
-    with pytest.raises(InputError, match=r"Features.centre_edge_px must have shape \(2,\)"):
-        Features(xy=features.xy, size=features.size, angle_deg=features.angle_deg, response=features.response,
-                 octave=features.octave, class_id=features.class_id, descriptors=features.descriptors, norm="L2",
-                 centre_edge_px=np.zeros(3, np.float32))
+        np.testing.assert_array_equal(kp["centre_se_px"], np.float32([np.nan, 0.01]))
+    for name in ("centre_edge_px", "centre_se_px"):
+        with pytest.raises(InputError, match=rf"Features.{name} must have shape \(2,\)"):
+            Features(xy=features.xy, size=features.size, angle_deg=features.angle_deg, response=features.response,
+                     octave=features.octave, class_id=features.class_id, descriptors=features.descriptors, norm="L2",
+                     **{name: np.zeros(3, np.float32)})
 
 
 @pytest.mark.parametrize("text, expected", [

@@ -66,7 +66,8 @@ class BallCalibrationRefiner(Refiner):
             flags = np.zeros(len(features.xy)) if features.class_id is None else np.asarray(features.class_id)
             side = np.zeros((len(features.xy), 2)) if features.clipped_side is None else features.clipped_side
             edge = 0.5 * np.asarray(features.size) if features.centre_edge_px is None else features.centre_edge_px
-            detections.append(np.column_stack([features.xy, 0.5 * np.asarray(features.size), flags, side, edge]))
+            se = np.full(len(features.xy), np.nan) if features.centre_se_px is None else features.centre_se_px
+            detections.append(np.column_stack([features.xy, 0.5 * np.asarray(features.size), flags, side, edge, se]))
         found = calibrate_balls(detections, observations.geometry, nominal, max_error_deg=self.max_error_deg,
                                 fit_detector=self.fit_detector, p_value=self.p_value,
                                 max_angle_se_deg=self.max_angle_se_deg,

@@ -18,8 +18,9 @@ rim crosses the edge of a clipped background, which pulls its circle
 background cuts the rim on, from which the calibration models that pull
 (:attr:`ctpipe.data.Features.clipped_side`), and ``centre_edge_px`` the radius of the circle whose
 centre ``xy`` is: the rim's, or a hollow or coated ball's shell's inside where it shows one, which
-no clip reaches (:attr:`ctpipe.data.Features.centre_edge_px`). A ball whose centre is off the image
-is not reported.
+no clip reaches (:attr:`ctpipe.data.Features.centre_edge_px`), and ``centre_se_px`` its centre's
+standard error from that edge (:attr:`ctpipe.data.Features.centre_se_px`). A ball whose centre is off
+the image is not reported.
 """
 
 from __future__ import annotations
@@ -125,17 +126,18 @@ class BeadDetector(Detector):
         if factor > 1:   # back to the full image's pixels: a block's centre is (index + 0.5) factor - 0.5
             beads[:, :2] = (beads[:, :2] + 0.5) * factor - 0.5
             beads[:, 2] *= factor
-        side = edge = None
+        side = edge = se = None
         if method == "rim":
-            beads, side, placed, edge = edge_centres(bright, beads, clipped_side=True, fitted=True, edge_radius=True)
+            beads, side, placed, edge, se = edge_centres(bright, beads, clipped_side=True, fitted=True,
+                                                         edge_radius=True, centre_se=True)
             # A seed whose rim could not be fitted is no ball found (dust, a holder's edge): only a found ball keeps
             # its detected centre where its rim does not fit.
             keep = _distinct(beads) & (placed | (np.arange(len(beads)) < found_before_seeds))
-            beads, side, edge = beads[keep], side[keep], edge[keep]
+            beads, side, edge, se = beads[keep], side[keep], edge[keep], se[keep]
         return Features.build(xy=beads[:, :2], size=2.0 * beads[:, 2], angle_deg=np.full(len(beads), np.nan),
                               response=beads[:, 3], class_id=beads[:, 4].astype(np.int32),
                               descriptors=beads[:, 2:4].astype(np.float32), norm="L2", clipped_side=side,
-                              centre_edge_px=edge)
+                              centre_edge_px=edge, centre_se_px=se)
 
     def _binning(self, image: np.ndarray) -> tuple[int, float | None, float | None]:
         """The binning the balls are fitted at (1, or what brings their radius near ``fit_radius_px``),

@@ -191,7 +191,7 @@ _REACH_FRACTION = 0.5
 
 
 def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clipped_side: bool = False,
-                 fitted: bool = False, edge_radius: bool = False):
+                 fitted: bool = False, edge_radius: bool = False, centre_se: bool = False):
     """Refine every ball's centre and radius on its outer rim (the module docstring).
 
     Parameters
@@ -207,7 +207,9 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
     fitted : bool
         Also return whether each ball's rim was fitted (False: its detected centre was kept).
     edge_radius : bool
-        Also return, last, the radius (px) of the edge each centre was placed on.
+        Also return the radius (px) of the edge each centre was placed on.
+    centre_se : bool
+        Also return, last, each centre's standard error (px).
 
     Returns
     -------
@@ -226,14 +228,20 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
     ndarray of shape (n,)
         With ``edge_radius``: the radius (px) of the circle the centre is that of: the shell's inner edge where it
         placed the centre, else the rim (the returned radius).
+    ndarray of shape (n,)
+        With ``centre_se``: the standard error (px) of the centre from the edge that placed it: the rim's circle's
+        (:func:`_centre_se`), the shell's inside's, or the uncut rim's (:func:`_robust_offset`, which grows as the
+        arc the profile placed shrinks); NaN where the rim was not fitted.
     """
     out = np.array(balls, dtype=np.float64, copy=True)
     side = np.zeros((len(out), 2))
     edge = out[:, 2].copy() if len(out) else np.zeros(0)
     placed = np.zeros(len(out), bool)
+    se = np.full(len(out), np.nan)
 
     def result():
-        extra = ((side,) if clipped_side else ()) + ((placed,) if fitted else ()) + ((edge,) if edge_radius else ())
+        extra = ((side,) if clipped_side else ()) + ((placed,) if fitted else ()) + ((edge,) if edge_radius else ()) \
+            + ((se,) if centre_se else ())
         return (out, *extra) if extra else out
 
     if not len(out):
@@ -259,12 +267,12 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
         placed[k] = True
         (x0, y0, radius), clean, rim_se = found_rim
         out[k, 0], out[k, 1], out[k, 2] = x0, y0, radius
-        edge[k] = radius
+        edge[k], se[k] = radius, rim_se
         inner = _inner_edge(spline, x0, y0, radius, direction, rim_se)
         if inner is not None:
             # The shell's inside places the centre: a clip's cut is the rim's alone; a ball covering the rim may
             # reach the inner edge too, so the disc stays flagged as overlapping.
-            out[k, 0], out[k, 1], edge[k] = inner
+            out[k, 0], out[k, 1], edge[k], se[k] = inner
             if out[k, 4] != _TRUNCATED:
                 out[k, 4] = _OVERLAP if clean < _MIN_CLEAN * len(direction) or out[k, 4] == _OVERLAP else 0
             continue
@@ -275,7 +283,7 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
         uncut = _uncut_rim(g, x0, y0, radius, direction, clip, rim_se)
         if uncut is not None:
             # The rim the clip cut, placed where the ball's own profile ends: the cut no longer pulls the centre.
-            out[k, 0], out[k, 1], out[k, 2] = uncut
+            out[k, 0], out[k, 1], out[k, 2], se[k] = uncut
             edge[k] = uncut[2]
             continue
         mixed, side[k] = _across_clip(g, x0, y0, radius, direction, clip)
@@ -285,7 +293,8 @@ def edge_centres(g: np.ndarray, balls: np.ndarray, *, blur_px: float = 1.0, clip
 
 
 def _inner_edge(spline: _SmoothedSpline, x0: float, y0: float, radius: float, direction: np.ndarray, rim_se: float):
-    """``(x, y, radius)`` of a hollow or coated ball's inner edge where it places the centre, else None.
+    """``(x, y, radius, centre's standard error)`` of a hollow or coated ball's inner edge where it places the centre,
+    else None.
 
     Cast from the rim's centre, then from its own until it moves less than ``_SETTLED_PX``; it places the centre where
     it fits on ``_MIN_CLEAN`` of the rays, concentric with the rim within ``_CONCENTRIC_PX`` and pinned as well as
@@ -306,12 +315,13 @@ def _inner_edge(spline: _SmoothedSpline, x0: float, y0: float, radius: float, di
     (xi, yi, ri), clean, se = found
     if clean < _MIN_CLEAN * len(direction) or se > min(max(_INNER_SE_RATIO * rim_se, _INNER_SE_PX), _INNER_MAX_SE_PX):
         return None
-    return xi, yi, ri
+    return xi, yi, ri, se
 
 
 def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np.ndarray, clip: float,
                rim_se: float):
-    """``(x, y, radius)`` of a solid ball's rim where a clip cut it, from the profile inside the cut, else None.
+    """``(x, y, radius, centre's standard error)`` of a solid ball's rim where a clip cut it, from the profile inside
+    the cut, else None.
 
     Along each ray from the rim's centre, the raw line integrals from ``_PROFILE_DEPTH`` of the radius (at least
     ``_MIN_DEPTH_PX``) inside the rim out to where they first read within ``_CLIP_MARGIN`` of the clip level (the
@@ -411,7 +421,7 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     (dx, dy), se = found
     if math.hypot(dx, dy) > _CONCENTRIC_PX or se > min(max(_INNER_SE_RATIO * rim_se, _INNER_SE_PX), _INNER_MAX_SE_PX):
         return None
-    return x0 + dx, y0 + dy, float(np.median(rim[placed]))
+    return x0 + dx, y0 + dy, float(np.median(rim[placed])), se
 
 
 def _robust_offset(design: np.ndarray, values: np.ndarray, iterations: int = 10):

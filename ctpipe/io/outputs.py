@@ -463,8 +463,9 @@ def write_keypoints(path: str | Path, features, *, detector: str, params: dict) 
     ``class_id`` (N,) int32, ``descriptors`` (N, D) float32 for float norms (also SIFT's, which
     :class:`~ctpipe.data.Features` holds as uint8) or uint8 for binary ones, ``norm`` (the distance
     the descriptors are compared with, e.g. ``"L2"``), ``detector`` and ``params``, and where the
-    detector reports them ``clipped_side`` (N, 2) float32 (:attr:`~ctpipe.data.Features.clipped_side`) and
-    ``centre_edge_px`` (N,) float32 (:attr:`~ctpipe.data.Features.centre_edge_px`).
+    detector reports them ``clipped_side`` (N, 2) float32 (:attr:`~ctpipe.data.Features.clipped_side`),
+    ``centre_edge_px`` (N,) float32 (:attr:`~ctpipe.data.Features.centre_edge_px`) and ``centre_se_px`` (N,) float32
+    (:attr:`~ctpipe.data.Features.centre_se_px`).
     Strings are stored as 0-d unicode arrays, so ``np.load`` needs no pickle.
     """
     return atomic_write(path, keypoints_writer(features, detector=detector, params=params))
@@ -491,4 +492,6 @@ def keypoints_writer(features, *, detector: str, params: dict) -> Callable[[io.B
         arrays["clipped_side"] = np.asarray(features.clipped_side, dtype=np.float32).reshape(-1, 2)
     if features.centre_edge_px is not None:
         arrays["centre_edge_px"] = np.asarray(features.centre_edge_px, dtype=np.float32).reshape(-1)
+    if features.centre_se_px is not None:
+        arrays["centre_se_px"] = np.asarray(features.centre_se_px, dtype=np.float32).reshape(-1)
     return lambda handle: np.savez(handle, **arrays)

@@ -58,6 +58,18 @@ def test_overlapping_balls_and_dust_keep_their_centres():
         assert np.hypot(refined[k, 0] - centre[0], refined[k, 1] - centre[1]) < 0.1
 
 
+def test_a_faint_balls_centre_has_the_larger_standard_error():
+    """Each centre's standard error (what the calibration weighs the disc by) says how well its rim pins it: a ball
+    a quarter as dense, in the same noise, 2.4 times less well (its rim's steepest fall is as sharp, its noise
+    four times larger against it, and the spline's blur smooths the noise)."""
+    centres = [(400.0, 500.0), (800.0, 600.0)]
+    view = _view([(centres[0], 80.0, 0.05), (centres[1], 80.0, 0.0125)])
+    balls = np.array([[c[0] + 1.0, c[1] - 1.0, 80.0, 1.0, 0.0] for c in centres])
+    refined, se = edge_centres(view, balls, centre_se=True)
+    assert np.all(np.hypot(refined[:, 0] - [c[0] for c in centres], refined[:, 1] - [c[1] for c in centres]) < 0.1)
+    assert 1.6 * se[0] < se[1] < 8.0 * se[0]
+
+
 def test_nothing_to_refine_is_nothing():
     assert edge_centres(np.zeros((64, 64)), np.zeros((0, 5))).shape == (0, 5)
 
@@ -326,8 +338,9 @@ def test_whether_each_rim_was_fitted_is_reported_and_a_bad_radius_refused():
 
     view = _view([((400.0, 500.0), 80.0, 0.05, 72.0)])
     starts = np.array([[402.0, 498.0, 80.0, 1.0, 0.0], [-60.0, -60.0, 80.0, 1.0, 0.0]])   # a ball; a rim off the view
-    refined, placed = edge_centres(view, starts, fitted=True)
+    refined, placed, se = edge_centres(view, starts, fitted=True, centre_se=True)
     assert placed.tolist() == [True, False] and np.hypot(refined[0, 0] - 400.0, refined[0, 1] - 500.0) < 0.1
+    assert 0.0 < se[0] < 0.05 and np.isnan(se[1])
     with pytest.raises(InputError, match="radius_px: the balls' typical radius must be a finite number"):
         rim_seeds(view, 0.0)
 

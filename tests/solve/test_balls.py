@@ -407,8 +407,39 @@ def test_discs_cut_on_no_side_fit_as_they_did():
                             nominal)
     np.testing.assert_array_equal(seven.corrected_deg, four.corrected_deg)
     assert seven.shell_observations == 0
-    with pytest.raises(InputError, match=r"\(N, 4\), \(N, 6\) or \(N, 7\)"):
+    # An eighth, the centres' standard errors, unknown (NaN) or alike, changes nothing.
+    for se in (np.nan, 0.02):
+        eight = calibrate_balls([np.column_stack([d, np.zeros((len(d), 2)), d[:, 2], np.full(len(d), se)])
+                                 for d in detections], GEOMETRY, nominal)
+        np.testing.assert_array_equal(eight.corrected_deg, four.corrected_deg)
+    with pytest.raises(InputError, match=r"\(N, 4\), \(N, 6\), \(N, 7\) or \(N, 8\)"):
         calibrate_balls([d[:, :3] for d in detections], GEOMETRY, nominal)
+
+
+def test_a_disc_the_detector_placed_loosely_weighs_less():
+    """In every view one disc is off by 0.1 px (an arc of its rim hidden) and the detector says its centre's standard
+    error is four times its ball's others': weighed by it, the views come nearer the truth than without it."""
+    rng = np.random.default_rng(21)
+    nominal = np.linspace(0.0, 360.0, 24, endpoint=False)
+    truth = nominal + np.clip(rng.normal(0.0, 0.5, 24), -2.0, 2.0)
+    detections = _detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, noise_px=0.01, seed=21)
+    given, unknown = [], []
+    for view, found in enumerate(detections):
+        se = np.full(len(found), 0.01)
+        loose = view % len(found)
+        direction = rng.uniform(0.0, 2.0 * np.pi)
+        found = found.copy()
+        found[loose, :2] += 0.1 * np.array([np.cos(direction), np.sin(direction)])
+        se[loose] = 0.04
+        rest = np.column_stack([found, np.zeros((len(found), 2)), found[:, 2]])
+        given.append(np.column_stack([rest, se]))
+        unknown.append(np.column_stack([rest, np.full(len(found), np.nan)]))
+    errors = []
+    for detections in (given, unknown):
+        found = calibrate_balls(detections, GEOMETRY, nominal)
+        assert found.kept
+        errors.append(np.abs(view_errors_deg(found.angles_deg, truth)).max())
+    assert errors[0] < 0.7 * errors[1]
 
 
 def test_a_view_settled_on_the_wrong_discs_is_found_again_by_its_angle_alone():
