@@ -27,7 +27,9 @@ nothing is decided pair by pair:
    weighted by what their residuals show: each ball by its own root mean square (a faint ball's
    rim is pulled in some views), and each kind of flagged disc (overlapping another, cut by the
    border, its rim across the edge of a clipped background) by its residuals' against the clean
-   discs' (a quarter of a clean disc's weight in the first round). A ball's projected disc is an
+   discs' (a quarter of a clean disc's weight in the first round); and each disc by its centre's
+   standard error against its ball's others, where the detector reports it (:func:`_se_weights`:
+   a rim placed from part of its arc). A ball's projected disc is an
    ellipse whose centre is not the projection of the ball's centre (Clackdoyle and Mennessier 2011):
    the model predicts the ellipse's centre (:func:`ellipse_centres`), of the sphere whose edge placed the disc (a
    hollow or coated ball's shell's inside, where the detector placed it there: a sphere that much smaller, whose
@@ -583,27 +585,6 @@ _LOST_VIEW_PX = 1.0
 #: in the first round at a quarter of the weight (four times the error) of a clean one, since its
 #: fitted centre may be pulled; after it, at the weight each kind's own residuals give (:func:`_flag_weights`).
 _FLAGGED_WEIGHT = 0.25
-def _se_weights(se_px: np.ndarray, ball_of: np.ndarray, n_balls: int) -> np.ndarray:
-    """Each disc's weight from its centre's standard error (:attr:`ctpipe.data.Features.centre_se_px`): its ball's
-    median standard error over its own, at most 1 (1 where not known, or where the ball has fewer than two known).
-
-    Within a ball, the edge that places a disc is seen whole in some views and in part in others (a neighbour covers
-    it, a clip cuts it and the profile inside the cut is fitted on the rays left), and the centre's error grows as
-    the part shrinks: on a simulated hardened scan (solid 1202, clipped at 90 %), discs placed inside the clip's cut
-    from under 70 % of their rays were 0.037 px RMS off, from 70-99 % 0.018, whole rims 0.012. The detector's
-    standard error says so per disc; between balls the residuals weigh them (:func:`_ball_weights`). On 11 cached
-    scans of 17-36 views (hardened solid, mixed, random and coated balls; chosen on them over a weight against every
-    disc's median, which double counts the balls' own spreads) the worst view went from 0.0042-0.0141 deg (median
-    0.0067) to 0.0032-0.0141 (median 0.0059), better on 7, up to 0.0013 worse on 4 (``docs/calibration-phantoms.md``).
-    """
-    weights = np.ones(len(se_px))
-    known = np.isfinite(se_px) & (se_px > 0)
-    for b in range(n_balls):
-        mine = known & (ball_of == b)
-        if np.count_nonzero(mine) >= 2:
-            weights[mine] = np.minimum(1.0, float(np.median(se_px[mine])) / se_px[mine])
-    return weights
-
 
 #: Disc flags of the ``beads`` detector: 0 clean, 1 overlapping, 2 cut by the border, 3 rim across a clip edge.
 _CLEAN_FLAG, _FLAG_KINDS = 0, 4
@@ -631,6 +612,28 @@ def _ball_weights(residual_px: np.ndarray, ball_of: np.ndarray, n_balls: int) ->
             spread[b] = _spread_px(mine)
     reference = float(np.nanmedian(spread)) if np.isfinite(spread).any() else 1.0
     return np.where(np.isfinite(spread), np.minimum(reference / spread, 1.0), 1.0)
+
+
+def _se_weights(se_px: np.ndarray, ball_of: np.ndarray, n_balls: int) -> np.ndarray:
+    """Each disc's weight from its centre's standard error (:attr:`ctpipe.data.Features.centre_se_px`): its ball's
+    median standard error over its own, at most 1 (1 where not known, or where the ball has fewer than two known).
+
+    Within a ball, the edge that places a disc is seen whole in some views and in part in others (a neighbour covers
+    it, a clip cuts it and the profile inside the cut is fitted on the rays left), and the centre's error grows as
+    the part shrinks: on a simulated hardened scan (solid 1202, clipped at 90 %), discs placed inside the clip's cut
+    from under 70 % of their rays were 0.037 px RMS off, from 70-99 % 0.018, whole rims 0.012. The detector's
+    standard error says so per disc; between balls the residuals weigh them (:func:`_ball_weights`). On 11 cached
+    scans of 17-36 views (hardened solid, mixed, random and coated balls; chosen on them over a weight against every
+    disc's median, which double counts the balls' own spreads) the worst view went from 0.0042-0.0141 deg (median
+    0.0067) to 0.0032-0.0141 (median 0.0059), better on 7, up to 0.0013 worse on 4 (``docs/calibration-phantoms.md``).
+    """
+    weights = np.ones(len(se_px))
+    known = np.isfinite(se_px) & (se_px > 0)
+    for b in range(n_balls):
+        mine = known & (ball_of == b)
+        if np.count_nonzero(mine) >= 2:
+            weights[mine] = np.minimum(1.0, float(np.median(se_px[mine])) / se_px[mine])
+    return weights
 
 
 #: A disc off its ball by more than this many robust deviations of the discs' (1.4826 times their median
