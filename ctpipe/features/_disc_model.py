@@ -167,8 +167,9 @@ def _bands(weights):  # pragma: no cover - numba
 @njit(cache=True)
 def _window_model(p, x_first, n_x, y_first, n_y, chords, chord_at, edges, edge_at, plane, full):  # pragma: no cover
     """The model (pixels,) of a window at parameters ``p`` (:class:`_Window`'s), its transposed Jacobian written into
-    ``full`` (parameters, pixels). One compiled call per evaluation: the Levenberg-Marquardt fits of a view evaluate
-    a few hundred windows of a few discs, where the disc by disc calls from Python cost three times the arithmetic.
+    ``full`` (parameters, pixels). One compiled call per evaluation: the Levenberg-Marquardt fits of a 2000^2 view of
+    the mixed ball phantom evaluate windows of one to four discs about 650 times, and calling the kernels and stacking
+    their arrays disc by disc from Python added to each evaluation's arithmetic (the same values either way).
     """
     sigma = p[3]
     n_pixels = n_y * n_x
