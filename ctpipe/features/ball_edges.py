@@ -537,8 +537,8 @@ def _blurred_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, rims: n
     Gauss-Newton from ``rims`` and ``shape``: each ray's background is what it fits of the residuals (projected out,
     :func:`_background_projection`), its ``R`` and, where free, the shape's three found together, the rays' normal
     equations reduced onto the shape's (a Schur complement) and damped (Levenberg-Marquardt) until the sum of squares
-    stops falling. Each ray's step in ``R`` is
-    at most a pixel, the blur at most :func:`_widest_blur_px`. ``R`` is NaN where a round left it non-finite.
+    stops falling. Each ray's step in ``R`` is at most a pixel, the blur at most :func:`_widest_blur_px`. ``R`` is NaN
+    where a round left it non-finite.
     """
     weight = use.astype(np.float64)
     count = np.maximum(weight.sum(axis=1), 1.0)
@@ -992,13 +992,7 @@ def _robust_circle_kernel(xs, ys, iterations):  # pragma: no cover - numba
         normal[:] = 0.0
         right[:] = 0.0
         for k in range(n):
-            w2 = weights[k] * weights[k]
-            a = (x[k], y[k], 1.0)
-            b = -(x[k] * x[k] + y[k] * y[k])
-            for i in range(3):
-                right[i] += w2 * a[i] * b
-                for j in range(3):
-                    normal[i, j] += w2 * a[i] * a[j]
+            _add_equation(normal, right, weights[k] * weights[k], x[k], y[k], 1.0, -(x[k] * x[k] + y[k] * y[k]))
         solved, d = _solve3(normal, right)
         if not solved:
             return 0.0, 0.0, 0.0, -1
@@ -1017,17 +1011,22 @@ def _robust_circle_kernel(xs, ys, iterations):  # pragma: no cover - numba
         for k in range(n):
             dx, dy = x[k] - x0, y[k] - y0
             distance = max(math.hypot(dx, dy), 1e-9)
-            residual = distance - radius
-            a = (-dx / distance, -dy / distance, -1.0)
-            for i in range(3):
-                right[i] -= weights[k] * a[i] * residual
-                for j in range(3):
-                    normal[i, j] += weights[k] * a[i] * a[j]
+            _add_equation(normal, right, weights[k], -dx / distance, -dy / distance, -1.0, radius - distance)
         solved, step = _solve3(normal, right)
         if not solved:
             return 0.0, 0.0, 0.0, -1
         x0, y0, radius = x0 + step[0], y0 + step[1], radius + step[2]
     return x0 + mx, y0 + my, radius, np.count_nonzero(weights > 0.0)
+
+
+@njit(cache=True, inline="always")
+def _add_equation(normal, right, weight, a0, a1, a2, b):  # pragma: no cover - numba
+    """One weighted equation ``a . p = b`` added to the 3 x 3 normal equations ``normal p = right``."""
+    a = (a0, a1, a2)
+    for i in range(3):
+        right[i] += weight * a[i] * b
+        for j in range(3):
+            normal[i, j] += weight * a[i] * a[j]
 
 
 @njit(cache=True)
