@@ -793,6 +793,45 @@ def test_corrections_within_what_the_balls_disagree_on_return_the_nominal_angles
     assert np.abs(view_errors_deg(corrected.angles_deg, nominal)).max() < 0.02
 
 
+
+def test_a_view_one_refit_loses_does_not_move_the_others_jackknife():
+    """A view left with one good disc and a merged pair's (4 px off): left out its good ball, the refit pins it on the
+    merged disc alone, a degree off. Its refit's gauge holds the views' mean, so every other view moved by its share;
+    taken out by the median, only that view's jackknife is large, and the reason counts one view, not twenty."""
+    rng = np.random.default_rng(11)
+    nominal = np.linspace(0.0, 360.0, 20, endpoint=False)
+    truth = nominal + rng.normal(0.0, 0.5, 20)
+    detections = _detections(truth, BALLS, 2.5, noise_px=0.01, seed=3)
+    uv = ellipse_centres(BALLS, np.full(len(BALLS), 2.5), np.full(len(BALLS), np.deg2rad(truth[7])), GEOMETRY, 999.5,
+                         GEOMETRY.v0_px, 0.0)
+    keep = [int(np.argmin(np.hypot(*(detections[7][:, :2] - uv[b]).T))) for b in (0, 1)]
+    detections[7] = detections[7][keep].copy()
+    detections[7][1, :2] += [4.0, 0.0]
+    found = calibrate_balls(detections, GEOMETRY, nominal)
+    assert not found.kept and found.reason.startswith("the balls disagree on view 7's angle")
+    assert found.reason.endswith("(chi-square p < 0.001; 1 view(s) so)")
+    others = np.delete(found.angle_jackknife_se_deg, 7)
+    assert found.angle_jackknife_se_deg[7] > 0.5 and others.max() < 0.005
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_correction_over_the_jackknifes_spread_counts_as_students_t(seed):
+    """A jackknife's spread over six balls is itself estimated from five degrees of freedom: one view corrected by 7
+    of them among views of noise is as likely as a normal deviate of 3.3, not 7. Spreads known (infinite degrees of freedom) count as normal; corrections of tenths of a
+    degree stand out either way."""
+    from ctpipe.solve.balls import _beyond_disagreement
+
+    rng = np.random.default_rng(seed)
+    spread = np.full(24, 0.002)
+    change = rng.normal(0.0, 0.002, 24)
+    change[3] = 0.014
+    chi_normal, dof, p_normal, _ = _beyond_disagreement(change, spread)
+    chi_t, dof_t, p_t, _ = _beyond_disagreement(change, spread, np.full(24, 5.0))
+    assert dof == dof_t == 23 and chi_t < chi_normal
+    assert p_normal < 1e-3 < p_t
+    assert _beyond_disagreement(change, spread, np.full(24, np.inf))[0] == chi_normal
+    far = change + rng.uniform(-0.5, 0.5, 24)
+    assert _beyond_disagreement(far, spread, np.full(24, 5.0))[2] < 1e-12
+
 def _drift(n_views, seed, *, walk_px=0.1, jump_px=0.6):
     """A source spot's drift: a random walk in both directions from view 0, and one jump half-way."""
     rng = np.random.default_rng(seed)
