@@ -816,8 +816,8 @@ def test_a_view_one_refit_loses_does_not_move_the_others_jackknife():
 @pytest.mark.parametrize("seed", range(3))
 def test_a_correction_over_the_jackknifes_spread_counts_as_students_t(seed):
     """A jackknife's spread over six balls is itself estimated from five degrees of freedom: one view corrected by 7
-    of them among views of noise is as likely as a normal deviate of 3.3, not 7. Spreads known (infinite degrees of freedom) count as normal; corrections of tenths of a
-    degree stand out either way."""
+    of them among views of noise is as likely as a normal deviate of 3.3, not 7. Spreads known (infinite degrees of
+    freedom) count as normal; corrections of tenths of a degree stand out either way."""
     from ctpipe.solve.balls import _beyond_disagreement
 
     rng = np.random.default_rng(seed)
