@@ -1466,7 +1466,7 @@ def _beyond_disagreement(change_deg: np.ndarray, spread_deg: np.ndarray,
     correction over it is Student's t, not normal (Efron and Tibshirani 1993, ch. 11), and is counted as the normal
     deviate of the same tail probability: over six balls' spread a correction 7 times it is as likely as a normal
     one 3.3 times. Told its true angles, a hardened scan's corrections (solid 1202, what its discs share) stood out
-    at p 3.4e-4 taken as normal, 1.8e-3 so, and the nominal angles came back (``docs/calibration-phantoms.md``).
+    at p 3.8e-4 taken as normal, 1.3e-3 so, and the nominal angles came back (``docs/calibration-phantoms.md``).
     """
     from scipy import stats
 
