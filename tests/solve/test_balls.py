@@ -793,7 +793,6 @@ def test_corrections_within_what_the_balls_disagree_on_return_the_nominal_angles
     assert np.abs(view_errors_deg(corrected.angles_deg, nominal)).max() < 0.02
 
 
-
 def test_a_view_one_refit_loses_does_not_move_the_others_jackknife():
     """A view left with one good disc and a merged pair's (4 px off): left out its good ball, the refit pins it on the
     merged disc alone, a degree off. Its refit's gauge holds the views' mean, so every other view moved by its share;
@@ -813,6 +812,7 @@ def test_a_view_one_refit_loses_does_not_move_the_others_jackknife():
     others = np.delete(found.angle_jackknife_se_deg, 7)
     assert found.angle_jackknife_se_deg[7] > 0.5 and others.max() < 0.005
 
+
 @pytest.mark.parametrize("seed", range(3))
 def test_a_correction_over_the_jackknifes_spread_counts_as_students_t(seed):
     """A jackknife's spread over six balls is itself estimated from five degrees of freedom: one view corrected by 7
@@ -831,6 +831,7 @@ def test_a_correction_over_the_jackknifes_spread_counts_as_students_t(seed):
     assert _beyond_disagreement(change, spread, np.full(24, np.inf))[0] == chi_normal
     far = change + rng.uniform(-0.5, 0.5, 24)
     assert _beyond_disagreement(far, spread, np.full(24, 5.0))[2] < 1e-12
+
 
 def _drift(n_views, seed, *, walk_px=0.1, jump_px=0.6):
     """A source spot's drift: a random walk in both directions from view 0, and one jump half-way."""
