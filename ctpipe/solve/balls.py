@@ -1001,7 +1001,7 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
     and how many refits adjusted it.
 
     The adjustment is made again with each group of balls left out, from its solution; each
-    refit is put in the full fit's frame (their common turn over the views both adjust removed),
+    refit is put in the full fit's frame (their common turn, the median over the views both adjust, removed),
     and ``sqrt((G - 1) / G * sum (a_g - mean a)^2)`` over the ``G`` refits that adjust the view is
     its standard error (Efron and Tibshirani, "An Introduction to the Bootstrap", 1993, ch. 11).
     Where balls are biased each in its own way, as a clip cutting their rims unevenly, their
