@@ -97,10 +97,10 @@ class Features:
                              f"got {self.descriptors.dtype}")
         if self.clipped_side is not None and self.clipped_side.shape != (n, 2):
             raise InputError(f"Features.clipped_side must have shape ({n}, 2), got {self.clipped_side.shape}")
-        if self.centre_edge_px is not None and self.centre_edge_px.shape != (n,):
-            raise InputError(f"Features.centre_edge_px must have shape ({n},), got {self.centre_edge_px.shape}")
-        if self.centre_se_px is not None and self.centre_se_px.shape != (n,):
-            raise InputError(f"Features.centre_se_px must have shape ({n},), got {self.centre_se_px.shape}")
+        for name in ("centre_edge_px", "centre_se_px"):
+            array = getattr(self, name)
+            if array is not None and array.shape != (n,):
+                raise InputError(f"Features.{name} must have shape ({n},), got {array.shape}")
         for array in (self.xy, self.size, self.angle_deg, self.response, self.octave, self.class_id, self.descriptors,
                       self.clipped_side, self.centre_edge_px, self.centre_se_px):
             if array is not None:
@@ -134,6 +134,11 @@ class Features:
         if n == 0:
             descriptors = descriptors.reshape(0, descriptors.shape[1] if descriptors.ndim == 2 else 0)
         dtype = np.uint8 if norm.startswith("HAMMING") or descriptors.dtype == np.uint8 else np.float32
+
+        def per_disc(values):
+            """An optional float32 value per feature, in the features' order."""
+            return None if values is None else np.asarray(values, dtype=np.float32).reshape(n)[order]
+
         return cls(
             xy=np.ascontiguousarray(xy[order]),
             size=np.asarray(size, dtype=np.float32).reshape(n)[order],
@@ -145,9 +150,8 @@ class Features:
             norm=norm,
             clipped_side=(None if clipped_side is None else
                           np.ascontiguousarray(np.asarray(clipped_side, dtype=np.float32).reshape(n, 2)[order])),
-            centre_edge_px=(None if centre_edge_px is None else
-                            np.asarray(centre_edge_px, dtype=np.float32).reshape(n)[order]),
-            centre_se_px=None if centre_se_px is None else np.asarray(centre_se_px, dtype=np.float32).reshape(n)[order],
+            centre_edge_px=per_disc(centre_edge_px),
+            centre_se_px=per_disc(centre_se_px),
         )
 
 

@@ -490,8 +490,7 @@ def keypoints_writer(features, *, detector: str, params: dict) -> Callable[[io.B
     }
     if features.clipped_side is not None:
         arrays["clipped_side"] = np.asarray(features.clipped_side, dtype=np.float32).reshape(-1, 2)
-    if features.centre_edge_px is not None:
-        arrays["centre_edge_px"] = np.asarray(features.centre_edge_px, dtype=np.float32).reshape(-1)
-    if features.centre_se_px is not None:
-        arrays["centre_se_px"] = np.asarray(features.centre_se_px, dtype=np.float32).reshape(-1)
+    for name in ("centre_edge_px", "centre_se_px"):
+        if getattr(features, name) is not None:
+            arrays[name] = np.asarray(getattr(features, name), dtype=np.float32).reshape(-1)
     return lambda handle: np.savez(handle, **arrays)
