@@ -2,6 +2,7 @@
 
 import json
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -113,6 +114,37 @@ def test_the_default_estimate_recognises_a_ball_phantom_and_says_so(ball_bar_sca
                     r"with the corrected ones \(a ball phantom's measure, the one that decides\); beside it \(not a "
                     r"ball phantom's measure\), the projections' conjugate rays cannot judge the angles "
                     r"\(\d+ views have a view half a turn apart to compare with, too few", verdict)
+
+
+def test_a_nikon_ball_scan_clipped_flat_at_its_white_level_is_calibrated_by_the_default_estimate(ball_bar_scan,
+                                                                                                 tmp_path, capsys):
+    """The issue's real scan as the scanner leaves it: a Nikon folder (``.xtekct``, CT Pro's ``.ang``, one uint16
+    TIFF a view), the counts flat-corrected to ``WhiteLevel`` and the detector full at 90 % of the open beam, its
+    flats too, so that the background reads ``WhiteLevel`` flat; the stage logged as commanded."""
+    from ctpipe.io.nikon import read_xtekct
+    from ctpipe.io.scans import open_scan
+    from ctpipe.testing import write_nikon
+
+    scan, _ = ball_bar_scan
+    full = 0.9 * float(np.mean(scan.flats))
+    folder = write_nikon(tmp_path / "nikon", geometry=scan.geometry, nominal_angles_deg=scan.nominal_angles_deg,
+                         recorded_angles_deg=scan.nominal_angles_deg, intensities=np.minimum(scan.intensities, full),
+                         flats=np.minimum(scan.flats, full), darks=scan.darks, white_level=50000.0, angle_log="ang")
+    assert read_xtekct(folder / "scan.xtekct")["WhiteLevel"] == "50000.0"
+    # The open beam reads WhiteLevel exactly, so its line integrals read 0: flat.
+    assert np.mean(np.asarray(open_scan(folder).projections[0]) == 0) > 0.5
+    capsys.readouterr()
+    assert main(["estimate", str(folder), "--out", str(tmp_path / "out"), "--no-slices"]) == 0
+    said = capsys.readouterr()
+    assert "ctpipe: a ball phantom (" in said.err and "running the ball calibration" in said.err
+    assert "ball calibration, 7 balls followed through the views, the corrected angles kept" in said.out
+    report = json.loads((tmp_path / "out" / "result.json").read_text())
+    errors = view_errors_deg(np.array(report["estimated_deg"]), scan.true_angles_deg)
+    assert np.abs(view_errors_deg(scan.nominal_angles_deg, scan.true_angles_deg)).max() > 0.3
+    assert np.abs(errors).max() < 0.02
+    # The angle log written beside the results, put in the scan's folder, is read back as the corrected angles.
+    shutil.copy(tmp_path / "out" / "scan.ang", folder / "scan.ang")
+    np.testing.assert_allclose(open_scan(folder).recorded_angles_deg, report["estimated_deg"], atol=1e-4)
 
 
 def test_a_right_stage_and_an_offset_detector_give_the_nominal_angles_and_the_detector(tmp_path, capsys):
