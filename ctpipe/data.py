@@ -52,7 +52,8 @@ class Features:
     clipped_side : ndarray of shape (N, 2), float32, or None
         For discs whose rim a clipped background cuts (the ``beads`` detector): the mean, over
         the rays cast from the disc's centre, of the outward direction (x, y) of those whose
-        outside is the clip's plateau; 0 where none or all are. The fitted centre of a rim cut
+        outside is the clip's plateau; 0 where none or all are, or where the disc does not cross the clip's edge
+        (not flagged 3) or was placed inside the cut. The fitted centre of a rim cut
         ``d`` px deep there is pulled by about ``-2 d`` times it
         (:func:`ctpipe.solve.balls.calibrate_balls` fits ``d`` per ball). None for other detectors.
     centre_edge_px : ndarray of shape (N,), float32, or None
