@@ -325,7 +325,7 @@ def _inner_edge(spline: _SmoothedSpline, x0: float, y0: float, radius: float, di
 
 
 def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np.ndarray, clip: float,
-               rim_se: float, spline: "_SmoothedSpline | None" = None):
+               rim_se: float, spline: _SmoothedSpline):
     """``(x, y, radius, centre's standard error)`` of a solid ball's rim where a clip cut it, from the profile inside
     the cut, else None.
 
@@ -400,13 +400,12 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     floor = values <= clip + 1e-6
     reaches &= np.any(floor & (radii[None, :] <= (cut + _FLOOR_WITHIN_PX)[:, None]), axis=1)
     # Rays that never meet the clip (a holder above it, a neighbour) keep their rim whole: its steepest fall.
-    whole, whole_rim = np.zeros(len(direction), bool), np.full(len(direction), np.nan)
-    if spline is not None:
-        window = np.arange((1.0 - _WINDOW) * radius, (1.0 + _WINDOW) * radius + _EDGE_STEP_PX, _EDGE_STEP_PX)
-        whole_rim, usable, within = _steepest(spline, x0, y0, window, direction, rising=False)
-        whole = usable & within & ~floor.any(axis=1) & ~reaches
-        if whole.sum() < _MIN_WHOLE_RAYS:
-            whole[:] = False
+    whole, whole_rim = ~floor.any(axis=1) & ~reaches, np.full(len(direction), np.nan)
+    if whole.sum() >= _MIN_WHOLE_RAYS:      # (a rim cut all round has none: no steepest fall to look for)
+        whole_rim, usable, within = _steepest(spline, x0, y0, _rim_window(radius), direction, rising=False)
+        whole &= usable & within
+    if whole.sum() < _MIN_WHOLE_RAYS:
+        whole[:] = False
     if reaches.sum() < (_MIN_CUT_RAYS if whole.any() else _MIN_REACH * len(direction)) or \
             reaches.sum() + whole.sum() < _MIN_REACH * len(direction):
         return None
@@ -831,11 +830,16 @@ def _cubic_weights(t):  # pragma: no cover - numba
         t * t * t / 6.0
 
 
+def _rim_window(r: float) -> np.ndarray:
+    """The radii (px) along a ray where the rim of a disc of radius ``r`` is looked for: ``_WINDOW`` of it either side,
+    in ``_EDGE_STEP_PX``."""
+    return np.arange((1.0 - _WINDOW) * r, (1.0 + _WINDOW) * r + _EDGE_STEP_PX, _EDGE_STEP_PX)
+
+
 def _rim_circle(spline: _SmoothedSpline, cx: float, cy: float, r: float, direction: np.ndarray):
     """``((x0, y0, radius), rays that fit, centre's standard error)`` of the rim seen along rays from ``(cx, cy)``, or
     None (too few rays); ``spline`` a :class:`_SmoothedSpline`."""
-    radii = np.arange((1.0 - _WINDOW) * r, (1.0 + _WINDOW) * r + _EDGE_STEP_PX, _EDGE_STEP_PX)
-    rim, usable, _ = _steepest(spline, cx, cy, radii, direction, rising=False)
+    rim, usable, _ = _steepest(spline, cx, cy, _rim_window(r), direction, rising=False)
     if usable.sum() < 12:
         return None
     return _circle(np.column_stack([cx + direction[:, 0] * rim, cy + direction[:, 1] * rim])[usable])
