@@ -24,7 +24,8 @@ class BallCalibrationRefiner(Refiner):
     pairs the matcher and estimator made are not used (:mod:`ctpipe.solve.balls`). Without
     nominal angles it solves the pairs on the view graph, and says so. The corrected
     angles are returned only where they explain the balls better than the nominal angles beyond
-    noise (an F test of the reprojection errors), every view is fixed by two discs or more, no other
+    noise (an F test of the reprojection errors), every view is fixed by two discs or more (or by one clean disc
+    within which no other followed ball hides, named in the reason, since no other ball checks it), no other
     angle explains a view's discs as well with other balls on them, every view's standard
     error is within ``max_angle_se_deg``, and the balls agree on every view's angle (a jackknife
     over them); otherwise the nominal angles, with the reason

@@ -47,19 +47,23 @@ nothing is decided pair by pair:
    at the same height, pixels off) is looked for again among the leftover discs once the others
    have settled the angles (:data:`_READMIT_ERROR_RAD`), and the rounds run again with it. A disc
    pixels off its ball where the rest of its view and ball fit (two or three balls merged into one
-   disc) is left out of the rounds after (:func:`_leave_out_gross`). Where the projections drift (a source spot
-   that wanders as the tube warms, a detector that moves), every disc of a view is shifted alike: taken for angle
-   errors, a drift of 0.2-0.7 px left simulated views 0.01-0.12 deg off, or refused. So once the first round has
-   settled, the same adjustment with a shift ``(du, dv)`` per view is tried from its solution; where it explains the
-   balls better beyond noise (an F test at ``p_value``) and every view's shift is pinned to :data:`_MAX_SHIFT_SE_PX`,
-   the shifts are fitted from then on, in the verdict's fits too (their mean, and the columns' once-a-turn part,
-   which a common translation of the balls explains as well, held as gauges; as projection matching does).
+   disc) is left out of the rounds after (:func:`_leave_out_gross`), and so is a disc tenths of a pixel off within
+   which a followed ball with no disc of its own lies (the two found as one: :func:`_leave_out_blends`). A view's
+   angle is adjusted on two discs or more, or on one clean disc no followed ball hides within. Where the projections
+   drift (a source spot that wanders as the tube warms, a detector that moves), every disc of a view is shifted
+   alike: taken for angle errors, a drift of 0.2-0.7 px left simulated views 0.01-0.12 deg off, or refused. So once
+   the first round has settled, the same adjustment with a shift ``(du, dv)`` per view is tried from its solution;
+   where it explains the balls better beyond noise (an F test at ``p_value``) and every view's shift is pinned to
+   :data:`_MAX_SHIFT_SE_PX`, the shifts are fitted from then on, in the verdict's fits too (their mean, and the
+   columns' once-a-turn part, which a common translation of the balls explains as well, held as gauges; as projection
+   matching does).
 3. **A verdict from the balls themselves.** The same fit with the angles held at the nominal
    ones; the corrected angles are kept only where they explain the balls better beyond noise
    (an F test of the residuals, the angles' degrees of freedom against the rest), none moved
    further than the nominal angles' stated error allows, no view's discs lie a median of
    more than a pixel from their balls (:data:`_LOST_VIEW_PX`: its balls are not followed), every
-   view shows two discs or more of the followed balls (a view with fewer was never adjusted), no
+   view shows two discs or more of the followed balls, or one clean disc (a view with fewer was never adjusted; one
+   with one clean disc is named in the reason, its standard error scaled as the jackknife finds the others'), no
    other angle explains a view's discs as well with other balls on them (:func:`_ambiguous_views`),
    every view's standard error is within ``max_angle_se_deg``, and the balls agree on every view's
    angle: left out a ball at a time, the refits do not move it by a standard error beyond
@@ -118,7 +122,8 @@ class BallCalibration:
         The bundle adjustment's angles, whatever the verdict.
     angle_se_deg : ndarray of shape (V,)
         Standard error of every corrected angle (NaN where a view had too few balls), the common
-        turn, which nothing fixes, held.
+        turn, which nothing fixes, held; where one ball's disc alone pins a view, scaled by how far the other views'
+        jackknife exceeds their own (the median ratio, at least 1).
     kept : bool
         Whether the corrected angles are returned.
     reason : str
@@ -160,7 +165,8 @@ class BallCalibration:
         column below the disc's radius).
     left_out : int
         Discs assigned to a ball but left out of the adjustment as gross errors (:func:`_leave_out_gross`: two or
-        three balls merged into one disc, a disc merged with a holder), where the rest of their view and ball fit.
+        three balls merged into one disc, a disc merged with a holder), where the rest of their view and ball fit, or as
+        blends with a followed ball found in no disc of its own (:func:`_leave_out_blends`).
     assigned : list of ndarray
         Per view, the ball of each detection (-1: none).
     ball_cut_px : ndarray of shape (B,)
@@ -559,6 +565,53 @@ def _ambiguous_views(detections, assigned, balls, radii_mm, angles, nominal, err
     return ambiguous
 
 
+def _hidden_within(found: np.ndarray, labels: np.ndarray, balls, radii_mm, angle: float, geometry: Geometry,
+                   detector) -> np.ndarray:
+    """Per disc of one view (``found``, its balls ``labels``, -1 none): whether a followed ball with no disc of its own
+    in the view is projected within it (False for discs of no ball)."""
+    within = np.zeros(len(found), bool)
+    hidden = np.setdiff1d(np.arange(len(balls)), labels[labels >= 0])
+    if len(hidden) and np.any(labels >= 0):
+        uv = _project(balls[hidden], np.full(len(hidden), angle), geometry, *detector, radii_mm[hidden])
+        for k in np.flatnonzero(labels >= 0):
+            within[k] = bool(np.any(np.hypot(*(uv - found[k, :2]).T) < found[k, 2]))
+    return within
+
+
+def _leave_out_blends(gross: list, detections, assigned, off_px: np.ndarray, blend_px: float, view_of, ball_of,
+                      index_of, balls, radii_mm, angles, geometry, detector, min_views: int) -> int:
+    """Mark in ``gross`` the discs off their ball by more than ``blend_px`` within which a followed ball that has no
+    disc of its own in the view is projected (:func:`_hidden_within`): the detector found the two as one. Each is
+    marked where its view keeps another disc and its ball ``min_views``. Returns how many it marked.
+
+    Two balls nearly behind one another (their projections 6-40 px apart, 80 px across) can be found as one disc,
+    placed between them or on the nearer's rim bent by the farther's attenuation: within the assignment's reach and
+    size check, 0.8-4.7 px off the ball it is given to, and kept by :func:`_leave_out_gross` where it is below its 2 px
+    or one of two discs in its view. In simulated hardened scans of solid balls at 20 views
+    (``benchmarks/bench_ball_phantom_mixed.py --solid --saturation 0.9 --views 20``, seeds 1703 and 1871) such a disc
+    was the only other disc of a view with one good one, and the jackknife refused the scan (left out the good ball,
+    the view moved 0.08-0.6 deg). A ball hidden within a disc is not enough by itself: the detector places most of the
+    discs a hidden ball overlaps (flagged overlapping) within hundredths of a pixel, the pair 35-55 px apart.
+    """
+    by_view: dict = {}
+    for j in np.flatnonzero(off_px > blend_px):
+        by_view.setdefault(int(view_of[j]), []).append(j)
+    seen = np.bincount(ball_of, minlength=len(balls))
+    marked = 0
+    for v, rows in by_view.items():
+        labels = np.where(gross[v], -1, assigned[v])   # as the next round has them
+        within = _hidden_within(detections[v], labels, balls, radii_mm, angles[v], geometry, detector)
+        left = int(np.sum(labels >= 0))
+        for j in sorted(rows, key=lambda j: -off_px[j]):
+            k, b = int(index_of[j]), int(ball_of[j])
+            if within[k] and left > 1 and seen[b] > min_views:
+                gross[v][k] = True
+                left -= 1
+                seen[b] -= 1
+                marked += 1
+    return marked
+
+
 def _robust_spread_px(residual_px: np.ndarray) -> float:
     """The spread (px, one coordinate's standard deviation) of 2-D residuals (N, 2) from their median squared length.
 
@@ -643,6 +696,10 @@ def _se_weights(se_px: np.ndarray, ball_of: np.ndarray, n_balls: int) -> np.ndar
 #: spreads: a disc pulled by a clip edge is off by tenths of a pixel (0.46-0.88 px RMS for faint balls' discs
 #: across a clip edge, the discs' median a few hundredths) and still counts.
 _GROSS_SCALES, _GROSS_PX = 10.0, 2.0
+#: A disc off its ball by more than this many robust deviations, with a followed ball found in no disc of its own
+#: projected within it, is the two found as one (:func:`_leave_out_blends`): the gross errors' scales, without their
+#: floor.
+_BLEND_SCALES = _GROSS_SCALES
 
 
 def _flag_weights(residual_px: np.ndarray, flag: np.ndarray, gross_px: float = np.inf) -> np.ndarray:
@@ -997,8 +1054,8 @@ _JACKKNIFE_GROUPS = 10
 
 def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_views, fit_detector, scale_px,
                   loss, cut_px, shifts_px=None) -> tuple[np.ndarray, np.ndarray]:
-    """Each view's angle's standard error by the delete-a-group jackknife over the balls (deg; NaN where not free),
-    and how many refits adjusted it.
+    """Each view's angle's standard error by the delete-a-group jackknife over the balls (deg; NaN where not free or
+    where one ball's disc alone pins it), and how many refits adjusted it.
 
     The adjustment is made again with each group of balls left out, from its solution; each
     refit is put in the full fit's frame (their common turn, the median over the views both adjust, removed),
@@ -1028,7 +1085,10 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
         # good disc left out, a merged pair's disc left to pin it) would move every other view by its share.
         refits[k, free] = refit.angles[free] - np.median(refit.angles[free] - angles[free])
     se, n = np.full(V, np.nan), np.zeros(V, dtype=int)
+    balls_seen = np.bincount(discs.view_of, minlength=V)   # a ball's one disc a view
     for v in free_views:
+        if balls_seen[v] < 2:
+            continue   # one ball's: every refit that adjusts it keeps the same disc, and agrees by construction
         a = refits[:, v][np.isfinite(refits[:, v])]
         n[v] = len(a)
         if len(a) >= 2:
@@ -1152,6 +1212,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             assigned = _assign(placed, balls, radii_mm, angles, geometry, *detector, tol)
             for labels, left_out in zip(assigned, gross):
                 labels[left_out] = -1
+            # A view with one disc: is another followed ball hidden within it (found as one with it)?
+            hides = np.array([len(labels) > 0 and np.sum(labels >= 0) == 1 and bool(np.any(_hidden_within(
+                found, labels, balls, radii_mm, angles[view], geometry, detector))) for view, (found, labels)
+                in enumerate(zip(placed, assigned))])
             view_of, ball_of, observed, disc_px, flagged, side, edge, index_of = [], [], [], [], [], [], [], []
             disc_se = []
             for view, (found, labels) in enumerate(zip(detections, assigned)):
@@ -1166,9 +1230,13 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             flagged = np.clip(np.nan_to_num(np.array(flagged), nan=0.0), 0, _FLAG_KINDS - 1).astype(int)
             weight = flag_weight[flagged] * ball_weight[ball_of] * _se_weights(np.array(disc_se), ball_of, len(balls))
             counts = np.bincount(view_of, minlength=V)
-            # A view's angle is adjusted on two discs or more (one disc's two residuals pin it too loosely: the
-            # verdict refuses a correction with such a view).
-            free_views = np.flatnonzero(counts >= 2)
+            # A view's angle is adjusted on two discs or more, or on one where that disc is clean (no neighbour, clip
+            # or border on its rim), no followed ball hides within it, and the view's shift is not fitted (three
+            # unknowns). Nothing checks such a view but its disc's residuals and its standard error: the verdict
+            # names it.
+            sole = np.zeros(V, bool)
+            sole[view_of[flagged == _CLEAN_FLAG]] = True
+            free_views = np.flatnonzero((counts >= 2) | ((counts == 1) & sole & ~hides & (not shifting)))
             radii_mm = np.array([np.median(np.array(disc_px)[ball_of == b]) * pitch for b in range(len(balls))])
             z = np.array([np.median(np.sin(angles[view_of[ball_of == b]]) * balls[b, 0]
                                     + np.cos(angles[view_of[ball_of == b]]) * balls[b, 2]) for b in range(len(balls))])
@@ -1229,8 +1297,11 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             off_px = np.hypot(*unweighted.T)
             gross_px = max(_GROSS_PX, _GROSS_SCALES * 1.4826 * float(np.median(off_px)))
             flag_weight = _flag_weights(unweighted, flagged, gross_px)
-            if _leave_out_gross(gross, off_px, gross_px, view_of, ball_of, np.array(index_of, dtype=int),
-                                min_views) and done == rounds and again < rounds:
+            index_of = np.array(index_of, dtype=int)
+            marked = _leave_out_gross(gross, off_px, gross_px, view_of, ball_of, index_of, min_views)
+            marked += _leave_out_blends(gross, placed, assigned, off_px, _BLEND_SCALES * 1.4826 * float(np.median(
+                off_px)), view_of, ball_of, index_of, balls, radii_mm, angles, geometry, detector, min_views)
+            if marked and done == rounds and again < rounds:
                 done, again = done - 1, again + 1   # the adjustment is made again without the discs just left out
             loss = _SETTLED_LOSS
         if readmitted or not dropped:
@@ -1268,6 +1339,12 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         jack_se, jack_n = _jackknife_se(discs, radii_mm, angles, balls, detector, geometry, free_views=free_views,
                                         fit_detector=fit_detector, scale_px=scale_px, loss=fit_loss, cut_px=cut_px,
                                         shifts_px=view_shifts)
+    # A view one ball's disc pins has no jackknife: its error is taken as the others' are found, their jackknife over
+    # their Gauss-Newton error (the median ratio, at least 1), since a disc's bias is not in its view's residuals.
+    single = np.intersect1d(free_views, np.flatnonzero(counts == 1))
+    checked = np.flatnonzero((jack_n >= 2) & np.isfinite(jack_se) & (se > 0))
+    if len(single) and len(checked):
+        se[single] *= max(1.0, float(np.median(jack_se[checked] / se[checked])))
     # Beyond the allowed standard error by more than the jackknife's own spread: its variance is about chi-square
     # with one fewer degrees of freedom than the refits, so it exceeds the bar where that chi-square does at p_value.
     with np.errstate(invalid="ignore"):
@@ -1292,15 +1369,19 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     # two, both), not one garbage disc of two or four.
     miss_px = np.array([_lower_median(np.hypot(*unweighted[view_of == v].T)) for v in free_views])
     lost = np.flatnonzero(miss_px > max(_LOST_VIEW_PX, 20.0 * float(np.median(miss_px)))) if len(miss_px) else []
-    # A view with fewer than two discs of the followed balls was never adjusted: its angle is where the search or
-    # a round with balls since dropped left it, which the balls no longer support (a simulated scan of seven balls
-    # at three heights, most views' discs merged, ended two views 1.1 and 1.6 deg off so).
+    # A view with no disc of the followed balls, or one that is flagged or hides another ball, was never adjusted: its
+    # angle is where the search or a round with balls since dropped left it, which the balls no longer support (a
+    # simulated scan of seven balls at three heights, most views' discs merged, ended two views 1.1 and 1.6 deg off
+    # so).
     unfixed = np.setdiff1d(np.arange(V), free_views)
     if not math.isfinite(p):
         kept, reason = False, "too few balls in too few views to test the correction"
     elif len(unfixed):
-        kept, reason = False, (f"view {int(unfixed[0])} shows {int(counts[unfixed[0]])} disc(s) of the {len(balls)} "
-                               f"balls followed: the balls do not fix its angle ({len(unfixed)} view(s) so)")
+        view = int(unfixed[0])
+        kept, reason = False, (f"view {view} shows {int(counts[view])} disc(s) of the {len(balls)} balls followed: the "
+                               f"balls do not fix its angle ({len(unfixed)} view(s) so)"
+                               + ("; one disc pins a view only where it is clean and no other followed ball lies "
+                                  "within it" if counts[view] == 1 else ""))
     elif len(lost):
         worst = int(lost[np.argmax(miss_px[lost])])
         typical = float(np.median(miss_px))
@@ -1340,7 +1421,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                                f"p {p:.2g} takes the discs' errors as independent)")
     else:
         kept, reason = True, (f"the corrected angles explain the balls better: reprojection RMS {rms:.3f} px against "
-                              f"{nominal_rms:.3f} px with the nominal ones (F test p {p:.2g})")
+                              f"{nominal_rms:.3f} px with the nominal ones (F test p {p:.2g})"
+                              + (f"; view(s) {', '.join(str(int(v)) for v in single)} pinned by one clean disc each, "
+                                 f"which no other ball checks (standard error up to {np.max(se[single]):.4f} deg)"
+                                 if len(single) else ""))
     ball_rms = np.array([np.sqrt(np.mean(fit.residual[ball_of == b] ** 2)) if np.any(ball_of == b) else np.nan
                          for b in range(len(balls))])
     returned, returned_cov = (fit, cov) if kept else (nominal_fit, _covariance(nominal_fit) if fit_detector else None)
