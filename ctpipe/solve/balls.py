@@ -1234,9 +1234,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             # or border on its rim), no followed ball hides within it, and the view's shift is not fitted (three
             # unknowns). Nothing checks such a view but its disc's residuals and its standard error: the verdict
             # names it.
-            sole = np.zeros(V, bool)
-            sole[view_of[flagged == _CLEAN_FLAG]] = True
-            free_views = np.flatnonzero((counts >= 2) | ((counts == 1) & sole & ~hides & (not shifting)))
+            clean_in_view = np.zeros(V, bool)
+            clean_in_view[view_of[flagged == _CLEAN_FLAG]] = True
+            free_views = np.flatnonzero((counts >= 2) | ((counts == 1) & clean_in_view & ~hides & (not shifting)))
             radii_mm = np.array([np.median(np.array(disc_px)[ball_of == b]) * pitch for b in range(len(balls))])
             z = np.array([np.median(np.sin(angles[view_of[ball_of == b]]) * balls[b, 0]
                                     + np.cos(angles[view_of[ball_of == b]]) * balls[b, 2]) for b in range(len(balls))])
