@@ -529,6 +529,31 @@ def test_a_stationary_blob_on_the_axis_is_not_followed_as_a_ball():
     assert result.kept and np.abs(error).max() < 0.01
 
 
+def test_blends_are_left_out_only_where_the_views_other_discs_fit():
+    """A disc a pixel off with a followed ball hidden within it is left out where its view's other discs fit; in a
+    view still settling (every disc pixels off) nothing is, as the gross errors are not."""
+    from ctpipe.solve.balls import _leave_out_blends
+
+    balls = np.array([[8.0, -2.0, 3.0], [-9.0, 5.0, -4.0], [8.3, -2.0, 3.0]])   # the third 9 px from the first
+    radii, detector, angles = np.full(3, 2.5), np.array([999.5, GEOMETRY.v0_px, 0.0]), np.zeros(1)
+    uv = ellipse_centres(balls, radii, np.zeros(3), GEOMETRY, *detector)
+    assert np.hypot(*(uv[2] - uv[0])) < 20.0
+    found = [np.column_stack([uv[:2] + [[1.0, 0.0], [0.0, 0.0]], np.full(2, 70.0), np.zeros(2)])]
+    rows = dict(view_of=np.zeros(2, int), ball_of=np.array([0, 1]), index_of=np.array([0, 1]))
+
+    def left_out(off_px):
+        gross = [np.zeros(2, bool)]
+        marked = _leave_out_blends(gross, found, [np.array([0, 1])], np.asarray(off_px), 0.5, rows["view_of"],
+                                   rows["ball_of"], rows["index_of"], balls, radii, angles, GEOMETRY, detector, 0)
+        return marked, gross[0].tolist()
+
+    assert left_out([1.0, 0.01]) == (1, [True, False])
+    assert left_out([3.0, 2.5]) == (0, [False, False])      # settling: the other disc misses too
+    assert left_out([0.3, 0.01]) == (0, [False, False])     # within the blends' floor
+    found[0][0, :2] = uv[0] + [1.0, 100.0]                   # the third ball no longer within the disc
+    assert left_out([1.0, 0.01]) == (0, [False, False])
+
+
 def test_a_merged_pair_found_as_one_larger_disc_is_neither_ball():
     """Where two balls overlap, a detector may report one disc between them, a third larger, in place
     of both: near enough to either ball to be taken for it from the nominal angles, it bends the ball
