@@ -700,10 +700,6 @@ def _se_weights(se_px: np.ndarray, ball_of: np.ndarray, n_balls: int) -> np.ndar
 #: spreads: a disc pulled by a clip edge is off by tenths of a pixel (0.46-0.88 px RMS for faint balls' discs
 #: across a clip edge, the discs' median a few hundredths) and still counts.
 _GROSS_SCALES, _GROSS_PX = 10.0, 2.0
-#: A disc off its ball by more than this many robust deviations, with a followed ball found in no disc of its own
-#: projected within it, is the two found as one (:func:`_leave_out_blends`): the gross errors' scales, without their
-#: floor (the blends seen were 0.8-4.7 px off, where the discs' robust deviation was hundredths of a pixel).
-_BLEND_SCALES = _GROSS_SCALES
 
 
 def _flag_weights(residual_px: np.ndarray, flag: np.ndarray, gross_px: float = np.inf) -> np.ndarray:
@@ -1217,7 +1213,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             for labels, left_out in zip(assigned, gross):
                 labels[left_out] = -1
             # A view with one disc: is another followed ball hidden within it (found as one with it)?
-            hides = np.array([len(labels) > 0 and np.sum(labels >= 0) == 1 and bool(np.any(_hidden_within(
+            hides = np.array([np.sum(labels >= 0) == 1 and bool(np.any(_hidden_within(
                 found, labels, balls, radii_mm, angles[view], geometry, detector))) for view, (found, labels)
                 in enumerate(zip(placed, assigned))])
             view_of, ball_of, observed, disc_px, flagged, side, edge, index_of = [], [], [], [], [], [], [], []
@@ -1299,12 +1295,15 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             scale_px = max(3.0 * 1.4826 * float(np.median(np.abs(fit.residual))), 0.1)
             ball_weight = _ball_weights(unweighted, ball_of, len(balls))
             off_px = np.hypot(*unweighted.T)
-            gross_px = max(_GROSS_PX, _GROSS_SCALES * 1.4826 * float(np.median(off_px)))
+            # The gross errors' bar; without its floor, the blends' (:func:`_leave_out_blends`: those seen were
+            # 0.8-4.7 px off, where the discs' robust deviation was hundredths of a pixel).
+            blend_px = _GROSS_SCALES * 1.4826 * float(np.median(off_px))
+            gross_px = max(_GROSS_PX, blend_px)
             flag_weight = _flag_weights(unweighted, flagged, gross_px)
             index_of = np.array(index_of, dtype=int)
             marked = _leave_out_gross(gross, off_px, gross_px, view_of, ball_of, index_of, min_views)
-            marked += _leave_out_blends(gross, placed, assigned, off_px, _BLEND_SCALES * 1.4826 * float(np.median(
-                off_px)), view_of, ball_of, index_of, balls, radii_mm, angles, geometry, detector, min_views)
+            marked += _leave_out_blends(gross, placed, assigned, off_px, blend_px, view_of, ball_of, index_of, balls,
+                                        radii_mm, angles, geometry, detector, min_views)
             if marked and done == rounds and again < rounds:
                 done, again = done - 1, again + 1   # the adjustment is made again without the discs just left out
             loss = _SETTLED_LOSS
