@@ -739,15 +739,18 @@ def _end_now(code: int) -> None:
     a simulation in flight can take minutes, and a run that is stopped must stop. What they were
     writing and had not committed is removed first (:func:`ctpipe.io.outputs.discard_pending`),
     so every output is as it was before the run, or wholly the new one; child processes (the
-    worker pools of ``experiment synthetic``, a LocalCluster's workers) are ended with it.
+    worker pools of ``experiment synthetic``, a LocalCluster's workers, the ball finder's
+    processes) are ended with it.
     """
     import multiprocessing
 
+    from ctpipe.execution import end_worker_processes
     from ctpipe.io.outputs import discard_pending
 
     discard_pending()
     for child in multiprocessing.active_children():
         child.kill()   # SIGTERM would wait, as here, for a long compiled call to return
+    end_worker_processes()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)

@@ -5,7 +5,9 @@ pairs) around one central solve. :class:`Pipeline <ctpipe.pipeline.Pipeline>` ha
 tasks to an executor and never cares where they run:
 
 - :class:`ThreadExecutor`, the default: a thread pool in this process. OpenCV and numba
-  release the GIL, so threads use every core without copying an image.
+  release the GIL, so threads use every core without copying an image. A detector whose work
+  holds the GIL (:attr:`ctpipe.stages.Detector.holds_gil`: the ball finder) detects large views
+  on a :class:`ProcessPool` of fresh processes instead, one per core.
 - :class:`DaskExecutor`: the workers of a ``dask.distributed`` cluster, a
   ``LocalCluster`` on this machine or a scheduler at an address (SLURM/PBS through
   dask-jobqueue, Kubernetes). Stages are pickled and shipped with each task; a scan opened
@@ -33,9 +35,12 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import subprocess
+import sys
 import time
 import uuid
 import warnings
+import weakref
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
 from typing import Any
@@ -43,7 +48,8 @@ from typing import Any
 from ctpipe._shared.resources import available_cores
 from ctpipe.errors import ClusterError, InputError
 
-__all__ = ["Executor", "ThreadExecutor", "DaskExecutor", "available_cores", "INSTALL_DASK"]
+__all__ = ["Executor", "ThreadExecutor", "DaskExecutor", "ProcessPool", "WorkerLost", "end_worker_processes",
+           "available_cores", "INSTALL_DASK"]
 
 #: The one line that tells how to get the Dask backend.
 INSTALL_DASK = "pip install 'ctpipe[dask]'"
@@ -181,6 +187,169 @@ class ThreadExecutor(Executor):
         # Ctrl-C, SIGTERM or an error: cancel what has not started and leave running tasks behind,
         # instead of waiting minutes for a detection to end (the program exits without them).
         self.close(wait=exc_type is None)
+
+
+#: Threads of BLAS, OpenMP and numba each worker process may use: one (as many processes as cores).
+_SINGLE_THREADED = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+#: The worker processes of the pools still open, which an interrupted ``ctpipe`` command ends
+#: (:func:`end_worker_processes`).
+_LIVE_POOLS: "weakref.WeakSet[ProcessPool]" = weakref.WeakSet()
+
+
+class WorkerLost(RuntimeError):
+    """A worker process of a :class:`ProcessPool` could not be started, or ended mid-task (killed, out of memory);
+    ``done`` holds ``{index: result}`` of the tasks that finished."""
+
+    def __init__(self, message: str, done: dict | None = None) -> None:
+        super().__init__(message)
+        self.done = {} if done is None else done
+
+
+class ProcessPool:
+    """Fresh Python processes, each running one task at a time: for tasks that hold the GIL.
+
+    Threads share one interpreter lock. A task that spends its time in Python and in numpy's small
+    calls runs no faster on two threads than on one: the ball finder
+    (:class:`ctpipe.builtin.beads.BeadDetector`) holds the lock for about 70 % of its time, and nine
+    views of a 2000^2 ball scan took 15.1 s on two threads against 17.5 s on one (2 cores; its
+    fits' numba kernels release the lock, the rest does not). Each process has its own.
+
+    The processes are started as ``python -c`` running :func:`ctpipe._shared.worker.serve`, not
+    through :mod:`multiprocessing`, whose children import the caller's main script again (a user's
+    script without an ``if __name__ == "__main__":`` guard would run its own top level again in
+    every child, as the :mod:`multiprocessing` documentation warns). They find the modules this
+    process found (its ``sys.path``), use one thread each for BLAS, OpenMP and numba (as many
+    processes as cores), and end when the pool closes its pipes (or is closed, or this process
+    dies: their reading end sees the end of file). Tasks and their results travel pickled through
+    the pipes: a function importable by name, its arguments, and what it returns; the warnings a
+    task raises are raised again here, under this process's filters, and what it prints goes to
+    standard error.
+
+    Parameters
+    ----------
+    workers : int
+        Processes to start (at the first :meth:`map`).
+    """
+
+    def __init__(self, workers: int) -> None:
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise InputError(f"workers: must be a positive integer, got {workers!r}")
+        self.workers = workers
+        self._processes: list[tuple[subprocess.Popen, Any, Any]] = []
+        _LIVE_POOLS.add(self)
+
+    def _start(self) -> None:
+        env = dict(os.environ, **{name: "1" for name in _SINGLE_THREADED})
+        env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+        code = "import sys; from ctpipe._shared.worker import serve; serve(int(sys.argv[1]), int(sys.argv[2]))"
+        for _ in range(self.workers - len(self._processes)):
+            task_r, task_w = os.pipe()
+            reply_r, reply_w = os.pipe()
+            try:
+                # What a task prints goes to this process's standard error: its output stays the command's own.
+                process = subprocess.Popen([sys.executable, "-c", code, str(task_r), str(reply_w)],
+                                           pass_fds=(task_r, reply_w), env=env, stdin=subprocess.DEVNULL, stdout=2)
+            except OSError as exc:
+                for fd in (task_r, task_w, reply_r, reply_w):
+                    os.close(fd)
+                raise WorkerLost(f"a worker process could not be started: {exc}") from exc
+            os.close(task_r)
+            os.close(reply_w)
+            self._processes.append((process, os.fdopen(task_w, "wb"), os.fdopen(reply_r, "rb")))
+
+    def map(self, fn: Callable, arguments: Sequence[tuple], *,
+            progress: Callable[[int], None] | None = None) -> list:
+        """``[fn(*args) for args in arguments]``, run on the worker processes, in order.
+
+        The first task that raises stops the others from starting, and its exception is raised
+        here. ``progress(1)`` is called in this thread as each task ends. Raises
+        :class:`WorkerLost` where a process cannot be started or ends mid-task, with the results
+        of the tasks that finished.
+        """
+        import pickle
+        import queue
+        import threading
+
+        from ctpipe._shared.worker import receive, send
+
+        self._start()
+        todo = queue.SimpleQueue()
+        for index in range(len(arguments)):
+            todo.put(index)
+        replies = queue.SimpleQueue()
+        stop = threading.Event()
+
+        def feed(inbox, outbox) -> None:
+            while not stop.is_set():
+                try:
+                    index = todo.get_nowait()
+                except queue.Empty:
+                    return
+                try:
+                    send(inbox, pickle.dumps((fn, arguments[index]), protocol=pickle.HIGHEST_PROTOCOL))
+                    ok, value, raised = pickle.loads(receive(outbox))
+                except (OSError, EOFError, pickle.UnpicklingError) as exc:
+                    replies.put((index, None, exc, []))
+                    return
+                replies.put((index, ok, value, raised))
+
+        feeders = [threading.Thread(target=feed, args=(inbox, outbox), name="ctpipe-process", daemon=True)
+                   for _, inbox, outbox in self._processes]
+        for feeder in feeders:
+            feeder.start()
+        done: dict[int, Any] = {}
+        try:
+            while len(done) < len(arguments):
+                try:
+                    index, ok, value, raised = replies.get(timeout=0.5)
+                except queue.Empty:
+                    if not any(feeder.is_alive() for feeder in feeders):
+                        raise WorkerLost("the worker processes ended before their tasks did", done)
+                    continue
+                if ok is None:
+                    raise WorkerLost(f"a worker process ended mid-task ({type(value).__name__}: {value})",
+                                     done) from value
+                for message, category in raised:
+                    warnings.warn(message, category, stacklevel=2)
+                if not ok:
+                    raise value
+                done[index] = value
+                if progress is not None:
+                    progress(1)
+        except BaseException:
+            stop.set()
+            self.close()
+            raise
+        return [done[index] for index in range(len(arguments))]
+
+    def close(self) -> None:
+        """End the processes: their pipes closed, any still running a task killed."""
+        processes, self._processes = self._processes, []
+        for process, inbox, outbox in processes:
+            for stream in (inbox, outbox):
+                with contextlib.suppress(OSError):
+                    stream.close()
+            if process.poll() is None:
+                try:
+                    process.wait(timeout=0.5)   # an idle worker reads the end of file and returns
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait()
+
+    def __enter__(self) -> "ProcessPool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def end_worker_processes() -> None:
+    """Kill the processes of every open :class:`ProcessPool` at once (an interrupted ``ctpipe`` command)."""
+    for pool in list(_LIVE_POOLS):
+        for process, _, _ in pool._processes:
+            with contextlib.suppress(OSError):
+                process.kill()
 
 
 def _resolved(value: Any) -> Any:

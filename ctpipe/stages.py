@@ -263,6 +263,11 @@ class Detector(Stage):
     #: keypoint detectors: yes; a ball finder fitting sub-pixel discs: no). A pipeline with
     #: ``preprocess.detect_max_px`` detects on such a copy when the detector is larger.
     working_resolution: ClassVar[bool] = False
+    #: Whether :meth:`detect` spends most of its time holding the GIL (Python and numpy's small
+    #: calls), so that threads do not run it in parallel. A pipeline on threads then detects views
+    #: of a megapixel or more on worker processes, one per core (:class:`ctpipe.execution.ProcessPool`);
+    #: the detector and its results must pickle, and its class be importable by name.
+    holds_gil: ClassVar[bool] = False
 
     def detect(self, image: np.ndarray):  # pragma: no cover - interface
         """Return the :class:`~ctpipe.data.Features` of ``image`` (2-D, uint8 or float)."""

@@ -2,17 +2,25 @@
 
 from __future__ import annotations
 
+import math
+import operator
+import os
 import pickle
 import re
+import subprocess
 import sys
 import threading
 import time
+import warnings
 
 import numpy as np
 import pytest
 
+from bead_rendering import render_beads
 from ctpipe.errors import InputError
-from ctpipe.execution import INSTALL_DASK, DaskExecutor, ThreadExecutor
+from ctpipe.execution import (INSTALL_DASK, DaskExecutor, ProcessPool, ThreadExecutor, WorkerLost,
+                              end_worker_processes)
+from ctpipe.geometry import Geometry
 from ctpipe.io import StackReference, ViewStack, open_scan
 from ctpipe.pipeline import Pipeline
 
@@ -23,6 +31,16 @@ SURF_PIPELINE = {
     "estimator": {"name": "ransac-1pt", "sampson_threshold": 3.0e-3},
     "refiner": {"name": "bundle-adjustment"},
     "pairs": {"baselines": [1, 2]},
+}
+
+#: The ball finder (which holds the GIL) before a pair stage that needs nothing of it.
+BEADS_PIPELINE = {
+    "detector": {"name": "beads"},
+    "matcher": {"name": "all-pairs", "max_row_shift_px": 30.0},
+    "estimator": {"name": "ransac-1pt", "hypotheses": "all", "min_consensus": 0.0, "one_to_one": True},
+    "refiner": {"name": "bundle-adjustment"},
+    "pairs": {"baselines": [1]},
+    "preprocess": {"static_background": "off"},
 }
 
 
@@ -95,6 +113,96 @@ def test_the_thread_count_does_not_change_the_angles(small_scan_folder):
     pipeline = Pipeline.from_config(SURF_PIPELINE)
     with ThreadExecutor(1) as one, ThreadExecutor(3) as three:
         assert_same_result(_run(pipeline, scan, one), _run(pipeline, scan, three))
+
+
+# ------------------------------------------------------------------------------------- processes
+
+
+def test_a_process_pool_runs_tasks_in_other_processes_in_order_and_reports_progress():
+    seen = []
+    with ProcessPool(2) as pool:
+        assert pool.map(math.hypot, [(3.0, 4.0), (5.0, 12.0), (8.0, 15.0)], progress=seen.append) == [5.0, 13.0, 17.0]
+        pids = pool.map(os.getpid, [()] * 4)
+    assert seen == [1, 1, 1]
+    assert os.getpid() not in pids and 1 <= len(set(pids)) <= 2
+
+
+def test_a_failing_process_task_raises_its_own_error_and_the_pool_ends_its_processes():
+    pool = ProcessPool(2)
+    with pytest.raises(ZeroDivisionError):
+        pool.map(operator.truediv, [(1.0, 2.0), (1.0, 0.0), (3.0, 4.0)])
+    assert pool._processes == []
+
+
+def test_warnings_a_process_task_raises_are_raised_here():
+    with ProcessPool(1) as pool, pytest.warns(UserWarning, match="careful"):
+        assert pool.map(warnings.warn, [("careful", UserWarning)]) == [None]
+
+
+def test_a_worker_process_that_dies_mid_task_is_named_with_the_tasks_done():
+    with ProcessPool(1) as pool, pytest.raises(WorkerLost, match="ended mid-task") as lost:
+        pool.map(os._exit, [(3,)])
+    assert lost.value.done == {}
+
+
+def test_end_worker_processes_kills_the_open_pools_processes():
+    pool = ProcessPool(2)
+    pool._start()
+    processes = [process for process, _, _ in pool._processes]
+    end_worker_processes()
+    assert all(process.wait(timeout=10) != 0 for process in processes)
+    pool.close()
+
+
+def test_a_script_without_a_main_guard_is_not_run_again_in_the_worker_processes(tmp_path):
+    script = tmp_path / "unguarded.py"
+    script.write_text("import os\nfrom ctpipe.execution import ProcessPool\nprint('top level ran', flush=True)\n"
+                      "with ProcessPool(2) as pool:\n    print(len(set(pool.map(os.getpid, [()] * 4))) >= 1)\n"
+                      "    pool.map(print, [('printed by a worker',)])\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.count("top level ran") == 1 and "True" in out.stdout
+    # What a task prints stays out of the command's own output.
+    assert "printed by a worker" in out.stderr and "printed by a worker" not in out.stdout
+
+
+@pytest.fixture(scope="module")
+def ball_views():
+    """Three 1024^2 views of six balls: a megapixel each, so the ball finder runs on processes."""
+    geometry = Geometry(source_to_object_mm=150.0, source_to_detector_mm=600.0, detector_cols=1024,
+                        detector_rows=1024, pixel_pitch_u_mm=0.2, pixel_pitch_v_mm=0.2)
+    rng = np.random.default_rng(11)
+    centres = np.column_stack([rng.uniform(-15, 15, 6), rng.uniform(-15, 15, 6), rng.uniform(-15, 15, 6)])
+    return render_beads(geometry, [0.0, 30.0, 60.0], centres, np.full(6, 2.0)), geometry
+
+
+def test_the_ball_finder_detects_large_views_on_processes_as_on_threads(ball_views, monkeypatch):
+    projections, geometry = ball_views
+    calls = []
+    real_map = ProcessPool.map
+    monkeypatch.setattr(ProcessPool, "map", lambda self, *a, **k: calls.append(self.workers) or real_map(self, *a, **k))
+    pipeline = Pipeline.from_config(BEADS_PIPELINE)
+    with ThreadExecutor(1) as one, ThreadExecutor(2) as two:
+        on_threads = pipeline.observe(projections, geometry, executor=one)
+        on_processes = pipeline.observe(projections, geometry, executor=two)
+    assert calls == [2]
+    assert sum(len(f.xy) for f in on_threads.features) >= 15
+    for a, b in zip(on_threads.features, on_processes.features):
+        np.testing.assert_array_equal(a.xy, b.xy)
+        np.testing.assert_array_equal(a.size, b.size)
+
+
+def test_where_the_processes_cannot_start_the_views_are_detected_on_threads_with_a_warning(ball_views,
+                                                                                          monkeypatch):
+    projections, geometry = ball_views
+    pipeline = Pipeline.from_config(BEADS_PIPELINE)
+    with ThreadExecutor(1) as one:
+        expected = pipeline.observe(projections[:2], geometry, executor=one)
+    monkeypatch.setattr(sys, "executable", "/nonexistent/python")
+    with ThreadExecutor(2) as two, pytest.warns(RuntimeWarning, match="could not be started.*on threads"):
+        got = pipeline.observe(projections[:2], geometry, executor=two)
+    for a, b in zip(expected.features, got.features):
+        np.testing.assert_array_equal(a.xy, b.xy)
 
 
 # ------------------------------------------------------------------------------ scans by name
