@@ -264,8 +264,8 @@ class ProcessPool:
 
         The first task that raises stops the others from starting, and its exception is raised
         here. ``progress(1)`` is called in this thread as each task ends. Raises
-        :class:`WorkerLost` where a process cannot be started or ends mid-task, with the results
-        of the tasks that finished.
+        :class:`WorkerLost` where a process cannot be started, a task cannot be sent to one (it does
+        not pickle) or a process ends mid-task, with the results of the tasks that finished.
         """
         import pickle
         import queue
@@ -281,16 +281,27 @@ class ProcessPool:
         stop = threading.Event()
 
         def feed(inbox, outbox) -> None:
+            # Each reply: (index, ok, value, warnings raised); ok None where the process, not the task, failed.
             while not stop.is_set():
                 try:
                     index = todo.get_nowait()
                 except queue.Empty:
                     return
                 try:
-                    send(inbox, pickle.dumps((fn, arguments[index]), protocol=pickle.HIGHEST_PROTOCOL))
+                    args = arguments[index]
+                except Exception as exc:   # making the task's arguments (reading its view) failed: its own error
+                    replies.put((index, False, exc, []))
+                    return
+                try:
+                    task = pickle.dumps((fn, args), protocol=pickle.HIGHEST_PROTOCOL)
+                except Exception as exc:
+                    replies.put((index, None, _lost(f"task {index} could not be sent to a worker process", exc), []))
+                    return
+                try:
+                    send(inbox, task)
                     ok, value, raised = pickle.loads(receive(outbox))
-                except (OSError, EOFError, pickle.UnpicklingError) as exc:
-                    replies.put((index, None, exc, []))
+                except Exception as exc:   # a broken pipe, the end of file, a reply that cannot be read
+                    replies.put((index, None, _lost("a worker process ended mid-task", exc), []))
                     return
                 replies.put((index, ok, value, raised))
 
@@ -308,8 +319,7 @@ class ProcessPool:
                         raise WorkerLost("the worker processes ended before their tasks did", done)
                     continue
                 if ok is None:
-                    raise WorkerLost(f"a worker process ended mid-task ({type(value).__name__}: {value})",
-                                     done) from value
+                    raise WorkerLost(str(value), done) from value.__cause__
                 for message, category in raised:
                     warnings.warn(message, category, stacklevel=2)
                 if not ok:
@@ -342,6 +352,13 @@ class ProcessPool:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _lost(what: str, cause: BaseException) -> WorkerLost:
+    """``WorkerLost`` saying ``what`` and its cause, the cause attached (a feeder thread's, raised in the caller's)."""
+    lost = WorkerLost(f"{what} ({type(cause).__name__}: {cause})")
+    lost.__cause__ = cause
+    return lost
 
 
 def end_worker_processes() -> None:

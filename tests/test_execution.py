@@ -145,6 +145,12 @@ def test_a_worker_process_that_dies_mid_task_is_named_with_the_tasks_done():
     assert lost.value.done == {}
 
 
+def test_a_task_that_does_not_pickle_is_named_with_the_tasks_done():
+    with ProcessPool(1) as pool, pytest.raises(WorkerLost, match="task 1 could not be sent") as lost:
+        pool.map(operator.neg, [(1.0,), (threading.Lock(),)])
+    assert lost.value.done == {0: -1.0}
+
+
 def test_end_worker_processes_kills_the_open_pools_processes():
     pool = ProcessPool(2)
     pool._start()
