@@ -17,12 +17,14 @@ import numpy as np
 import pytest
 
 from bead_rendering import render_beads
+from ctpipe.builtin.beads import BeadDetector
+from ctpipe.builtin.surf import SurfDetector
 from ctpipe.errors import InputError
-from ctpipe.execution import (INSTALL_DASK, DaskExecutor, ProcessPool, ThreadExecutor, WorkerLost,
+from ctpipe.execution import (INSTALL_DASK, DaskExecutor, Executor, ProcessPool, ThreadExecutor, WorkerLost,
                               end_worker_processes)
 from ctpipe.geometry import Geometry
 from ctpipe.io import StackReference, ViewStack, open_scan
-from ctpipe.pipeline import Pipeline
+from ctpipe.pipeline import Pipeline, _detect_on_processes
 
 #: A features-only pipeline on ctpipe's own SURF (numba kernels), so both detector families are compared.
 SURF_PIPELINE = {
@@ -196,6 +198,27 @@ def test_the_ball_finder_detects_large_views_on_processes_as_on_threads(ball_vie
     for a, b in zip(on_threads.features, on_processes.features):
         np.testing.assert_array_equal(a.xy, b.xy)
         np.testing.assert_array_equal(a.size, b.size)
+
+
+class _Elsewhere(Executor):
+    """An executor whose tasks run in other processes already (as a Dask cluster's)."""
+
+    workers = 4
+
+
+@pytest.mark.parametrize("detector, executor, shape, factor, views, expected", [
+    (BeadDetector(), ThreadExecutor(2), (1024, 1024), 1, 3, True),
+    (BeadDetector(), ThreadExecutor(2), (2048, 2048), 2, 3, True),     # binned to a megapixel
+    (BeadDetector(), ThreadExecutor(2), (2048, 2048), 4, 3, False),    # binned below it
+    (BeadDetector(), ThreadExecutor(2), (1000, 1000), 1, 3, False),    # under a megapixel: starting costs more
+    (BeadDetector(), ThreadExecutor(1), (1024, 1024), 1, 3, False),    # one worker: nothing to run beside
+    (BeadDetector(), ThreadExecutor(2), (1024, 1024), 1, 1, False),    # one view
+    (BeadDetector(), _Elsewhere(), (2048, 2048), 1, 3, False),         # on a cluster's processes already
+    (SurfDetector(), ThreadExecutor(2), (2048, 2048), 1, 3, False),    # numba kernels that let go of the GIL
+])
+def test_only_a_detector_that_holds_the_gil_goes_to_processes_and_only_on_large_views(detector, executor, shape,
+                                                                                       factor, views, expected):
+    assert _detect_on_processes(detector, executor, shape, factor, views) is expected
 
 
 def test_where_the_processes_cannot_start_the_views_are_detected_on_threads_with_a_warning(ball_views,
