@@ -232,6 +232,10 @@ class ProcessPool:
         Processes to start (at the first :meth:`map`).
     """
 
+    #: Whether processes can be started here: the pipes are handed to them by descriptor (``pass_fds``), which
+    #: POSIX systems (Linux, macOS) allow and Windows does not; there a pipeline detects on threads.
+    supported = os.name == "posix"
+
     def __init__(self, workers: int) -> None:
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise InputError(f"workers: must be a positive integer, got {workers!r}")

@@ -956,10 +956,13 @@ _PROCESS_MIN_PIXELS = 1 << 20
 def _detect_on_processes(detector: Detector, run_on: Executor, shape: tuple[int, int], factor: int,
                          n_views: int) -> bool:
     """Whether to detect on worker processes rather than the executor's threads: a detector that holds the GIL, on
-    threads of this process (a cluster's workers are processes already), several views of a megapixel or more."""
+    threads of this process (a cluster's workers are processes already), several views of a megapixel or more, where
+    processes can be started (:attr:`ctpipe.execution.ProcessPool.supported`)."""
+    from ctpipe.execution import ProcessPool
+
     rows, cols = shape
-    return (detector.holds_gil and isinstance(run_on, ThreadExecutor) and run_on.workers > 1 and n_views > 1
-            and (rows // factor) * (cols // factor) >= _PROCESS_MIN_PIXELS)
+    return (detector.holds_gil and ProcessPool.supported and isinstance(run_on, ThreadExecutor) and run_on.workers > 1
+            and n_views > 1 and (rows // factor) * (cols // factor) >= _PROCESS_MIN_PIXELS)
 
 
 class _ViewTasks(Sequence):

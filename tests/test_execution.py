@@ -221,6 +221,11 @@ def test_only_a_detector_that_holds_the_gil_goes_to_processes_and_only_on_large_
     assert _detect_on_processes(detector, executor, shape, factor, views) is expected
 
 
+def test_where_processes_cannot_be_started_the_ball_finder_stays_on_threads(monkeypatch):
+    monkeypatch.setattr(ProcessPool, "supported", False)   # Windows: no pipes handed over by descriptor
+    assert not _detect_on_processes(BeadDetector(), ThreadExecutor(2), (2048, 2048), 1, 3)
+
+
 def test_where_the_processes_cannot_start_the_views_are_detected_on_threads_with_a_warning(ball_views,
                                                                                           monkeypatch):
     projections, geometry = ball_views
