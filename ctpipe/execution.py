@@ -269,7 +269,8 @@ class ProcessPool:
         The first task that raises stops the others from starting, and its exception is raised
         here. ``progress(1)`` is called in this thread as each task ends. Raises
         :class:`WorkerLost` where a process cannot be started, a task cannot be sent to one (it does
-        not pickle) or a process ends mid-task, with the results of the tasks that finished.
+        not pickle, or the process cannot import what it holds) or a process ends mid-task, with the
+        results of the tasks that finished.
         """
         import pickle
         import queue
@@ -307,6 +308,8 @@ class ProcessPool:
                 except Exception as exc:   # a broken pipe, the end of file, a reply that cannot be read
                     replies.put((index, None, _lost("a worker process ended mid-task", exc), []))
                     return
+                if ok is None:   # the process could not unpickle the task (a class it cannot import)
+                    value = _lost(f"task {index} could not be read in a worker process", value)
                 replies.put((index, ok, value, raised))
 
         feeders = [threading.Thread(target=feed, args=(inbox, outbox), name="ctpipe-process", daemon=True)

@@ -153,6 +153,28 @@ def test_a_task_that_does_not_pickle_is_named_with_the_tasks_done():
     assert lost.value.done == {0: -1.0}
 
 
+def test_a_task_a_worker_process_cannot_import_is_named_and_the_pool_runs_again(monkeypatch):
+    nowhere = type("Nowhere", (), {"__module__": "__main__", "__neg__": lambda self: -1.0})
+    monkeypatch.setattr(sys.modules["__main__"], "Nowhere", nowhere, raising=False)   # pickles here, not there
+    with ProcessPool(1) as pool:
+        with pytest.raises(WorkerLost, match="task 0 could not be read in a worker process.*Nowhere"):
+            pool.map(operator.neg, [(nowhere(),)])
+        assert pool.map(operator.neg, [(2.0,)]) == [-2.0]
+
+
+def _warn_many(times: int) -> int:
+    """A task for the worker processes (this module is importable there: they get this process's ``sys.path``)."""
+    for _ in range(times):
+        warnings.warn("the same warning", UserWarning)
+    return times
+
+
+def test_a_warning_raised_many_times_by_a_process_task_comes_back_once(recwarn):
+    with ProcessPool(1) as pool:
+        assert pool.map(_warn_many, [(500,)]) == [500]
+    assert sum(str(w.message) == "the same warning" for w in recwarn) == 1
+
+
 def test_end_worker_processes_kills_the_open_pools_processes():
     pool = ProcessPool(2)
     pool._start()

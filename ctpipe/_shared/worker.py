@@ -3,8 +3,9 @@
 Started as ``python -c "...serve(R, W)"`` with two pipe ends: tasks arrive on ``R``, replies leave on ``W``, each a
 pickle behind its length (8 bytes, little-endian). A task is ``(fn, args)``; the reply ``(True, fn(*args),
 warnings)``, or ``(False, exception, warnings)`` where it raised (an exception that cannot be pickled goes back as a
-``RuntimeError`` holding its traceback); ``warnings`` lists the ``(message, category)`` of those the task raised,
-which the parent raises again under its own filters. The loop ends when the parent closes ``R`` (or dies: the same
+``RuntimeError`` holding its traceback), or ``(None, error, [])`` where the task itself could not be unpickled here;
+``warnings`` lists the ``(message, category)`` of those the task raised, each once, which the parent raises again under
+its own filters. The loop ends when the parent closes ``R`` (or dies: the same
 end of file), so no worker outlives the run that started it.
 """
 
@@ -49,14 +50,19 @@ def serve(read_fd: int, write_fd: int) -> None:
                 task = receive(inbox)
             except EOFError:
                 return
+            try:
+                fn, args = pickle.loads(task)
+            except Exception as exc:   # not the task's error: a class this process cannot import, say
+                send(outbox, pickle.dumps((None, RuntimeError(f"{type(exc).__name__}: {exc}"), [])))
+                continue
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")   # the parent's filters decide, as for a task on its threads
                 try:
-                    fn, args = pickle.loads(task)
                     reply = (True, fn(*args))
                 except Exception as exc:   # the task's own error: the parent raises it
                     reply = (False, exc)
-            raised = [(str(w.message), w.category) for w in caught]
+            # Each warning once: a numpy warning raised per element would otherwise come back thousands of times.
+            raised = list(dict.fromkeys((str(w.message), w.category) for w in caught))
             try:
                 payload = pickle.dumps(reply + (raised,), protocol=pickle.HIGHEST_PROTOCOL)
             except Exception:
