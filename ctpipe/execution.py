@@ -35,8 +35,11 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import pickle
+import queue
 import subprocess
 import sys
+import threading
 import time
 import uuid
 import warnings
@@ -46,6 +49,7 @@ from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
 from typing import Any
 
 from ctpipe._shared.resources import available_cores
+from ctpipe._shared.worker import receive, send
 from ctpipe.errors import ClusterError, InputError
 
 __all__ = ["Executor", "ThreadExecutor", "DaskExecutor", "ProcessPool", "WorkerLost", "end_worker_processes",
@@ -272,12 +276,6 @@ class ProcessPool:
         not pickle, or the process cannot import what it holds) or a process ends mid-task, with the
         results of the tasks that finished.
         """
-        import pickle
-        import queue
-        import threading
-
-        from ctpipe._shared.worker import receive, send
-
         self._start()
         todo = queue.SimpleQueue()
         for index in range(len(arguments)):

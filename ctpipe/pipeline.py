@@ -6,6 +6,7 @@ import contextlib
 import dataclasses
 import math
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +20,7 @@ from ctpipe._shared.resources import release_free_memory
 from ctpipe.config import PipelineConfig, StageSpec, build_stage, load_yaml, parse_geometry, parse_pipeline
 from ctpipe.data import Features, ScanObservations, ScanSolution
 from ctpipe.errors import EstimationError, InputError
-from ctpipe.execution import Executor, ThreadExecutor, one_blas_thread_per_task
+from ctpipe.execution import Executor, ProcessPool, ThreadExecutor, WorkerLost, one_blas_thread_per_task
 from ctpipe.geometry import Geometry
 from ctpipe.images import check_image
 from ctpipe.io.corrected import cone_vectors, scanner_frame_deg
@@ -755,14 +756,15 @@ class Pipeline:
             background = None if views is None else run_on.submit(_median_background, source, views,
                                                                    name="background")
             factor = self.detect_binning(geometry.shape)
-            if _detect_on_processes(self.detector, run_on, geometry.shape, factor, n_views):
-                detected = _detected_on_processes(self.detector, run_on, projections, source, background, factor,
-                                                  progress)
-                features = tuple(detected)
-            else:
-                detected = [run_on.submit(_detect_view, self.detector, source, background, index, factor,
-                                          name="detect") for index in range(n_views)]
-                features = tuple(run_on.gather(detected, progress=progress))
+            done = (_detected_on_processes(self.detector, run_on, projections, source, background, factor, progress)
+                    if _detect_on_processes(self.detector, run_on, geometry.shape, factor, n_views) else {})
+            # The views not detected on processes (all of them, but where a detector holds the GIL) as the executor's
+            # tasks: on a cluster each view's features stay on its worker, a handle each.
+            handles = {index: run_on.submit(_detect_view, self.detector, source, background, index, factor,
+                                            name="detect") for index in range(n_views) if index not in done}
+            done.update(zip(handles, run_on.gather(list(handles.values()), progress=progress)))
+            detected = [handles.get(index, done[index]) for index in range(n_views)]
+            features = tuple(done[index] for index in range(n_views))
             timings["detect"] = time.perf_counter() - start
 
             # Chunks of pairs, a few per worker; each task gets the features of its own views only.
@@ -958,8 +960,6 @@ def _detect_on_processes(detector: Detector, run_on: Executor, shape: tuple[int,
     """Whether to detect on worker processes rather than the executor's threads: a detector that holds the GIL, on
     threads of this process (a cluster's workers are processes already), several views of a megapixel or more, where
     processes can be started (:attr:`ctpipe.execution.ProcessPool.supported`)."""
-    from ctpipe.execution import ProcessPool
-
     rows, cols = shape
     return (detector.holds_gil and ProcessPool.supported and isinstance(run_on, ThreadExecutor) and run_on.workers > 1
             and n_views > 1 and (rows // factor) * (cols // factor) >= _PROCESS_MIN_PIXELS)
@@ -983,28 +983,19 @@ class _ViewTasks(Sequence):
 
 
 def _detected_on_processes(detector: Detector, run_on: ThreadExecutor, projections, source, background, factor: int,
-                           progress) -> list[Features]:
-    """Every view's features, detected on a :class:`~ctpipe.execution.ProcessPool` of ``run_on.workers`` processes;
-    where the processes cannot run (not started, or lost mid-task), the views left are detected on ``run_on``'s
-    threads, with a warning that says why."""
-    import warnings
-
-    from ctpipe.execution import ProcessPool, WorkerLost
-
+                           progress) -> dict[int, Features]:
+    """``{view: features}`` detected on a :class:`~ctpipe.execution.ProcessPool` of ``run_on.workers`` processes:
+    every view, or where the processes cannot run (not started, a task they cannot take, one lost mid-task) those
+    done, with a warning that says why (the caller detects the views left on ``run_on``'s threads)."""
     if background is not None:
         background, = run_on.gather([background])
     tasks = _ViewTasks(detector, projections, source, background, factor)
     try:
         with ProcessPool(run_on.workers) as pool:
-            return pool.map(_detect_view, tasks, progress=progress)
+            return dict(enumerate(pool.map(_detect_view, tasks, progress=progress)))
     except WorkerLost as lost:
         warnings.warn(f"{lost}; detecting the views left on threads", RuntimeWarning, stacklevel=3)
-        done = lost.done
-    left = [index for index in range(len(tasks)) if index not in done]
-    handles = [run_on.submit(_detect_view, detector, source, background, index, factor, name="detect")
-               for index in left]
-    done.update(zip(left, run_on.gather(handles, progress=progress)))
-    return [done[index] for index in range(len(tasks))]
+        return dict(lost.done)
 
 
 def _match_pairs(matcher: Matcher, geometry: Geometry, features: list[Features], pairs: np.ndarray) -> list:

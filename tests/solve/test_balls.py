@@ -549,7 +549,7 @@ def test_blends_are_left_out_only_where_the_views_other_discs_fit():
 
     assert left_out([1.0, 0.01]) == (1, [True, False])
     assert left_out([3.0, 2.5]) == (0, [False, False])      # settling: the other disc misses too
-    assert left_out([0.3, 0.01]) == (0, [False, False])     # within the blends' floor
+    assert left_out([0.3, 0.01]) == (0, [False, False])     # under the blends' bar (0.5 px here)
     found[0][0, :2] = uv[0] + [1.0, 100.0]                   # the third ball no longer within the disc
     assert left_out([1.0, 0.01]) == (0, [False, False])
 
