@@ -8,6 +8,8 @@ stages of ``configs/calibration-beads.yaml`` on an issue-34 ball scan (seven sol
 (the peer: the pipeline's detection as it was, ``ThreadExecutor`` threads), for ``--repeats``
 rounds, and prints each round's seconds, their ratio and whether the two found the same balls to
 the last bit. The first round includes starting the processes and loading numba's cache in each.
+Last, the peak resident memory of the largest worker process and of this one (which holds the
+scan, and detects on threads): what each further core's process costs.
 
     python benchmarks/bench_ball_detection_processes.py [--views 36] [--seed 2001] [--repeats 2] [--workers N]
 """
@@ -15,6 +17,7 @@ the last bit. The first round includes starting the processes and loading numba'
 from __future__ import annotations
 
 import argparse
+import resource
 import time
 
 import numpy as np
@@ -61,6 +64,11 @@ def main(argv=None) -> int:
         print(f"round {round_ + 1}: detect on processes {processes_s:.1f} s, on threads {threads_s:.1f} s "
               f"({threads_s / processes_s:.2f}x); {balls} discs, {balls / args.views:.1f} a view")
     print(f"the same discs on processes and on threads, to the last bit: {'yes' if same else 'NO'}")
+    # Linux gives ru_maxrss in KiB; the pools' processes are waited for when each run closes its pool.
+    worker_mib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    own_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"peak resident memory: the largest worker process {worker_mib:.0f} MiB; this process (the scan, "
+          f"{scan.projections.nbytes / 2 ** 20:.0f} MiB of it, and the threads' detection) {own_mib:.0f} MiB")
     return 0 if same else 1
 
 
