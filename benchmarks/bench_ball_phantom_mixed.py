@@ -19,7 +19,7 @@ transform on the same views, :func:`hough_peer`: this machine's speed varies fro
 balls followed and seen per ball, every view's error
 against the truth (after the common offset), the largest and the RMS, and the fitted detector
 against the true one (axis column in pixels, tilt in degrees, the camera convention of
-:mod:`ctpipe.solve.balls`: the simulator's ``tilt_deg`` with the opposite sign) and how deep the
+:mod:`ctpipe.solve.balls`: the simulator's ``tilt_deg`` with the opposite sign; where not given, why) and how deep the
 clip cuts each ball's rim as the calibration fitted it (null: no disc of that ball cut on one side). Exits with 1
 when a view is beyond ``--bar-deg`` (0.01, the issue's) or the geometry beyond 0.1 px / 0.01 deg.
 
@@ -320,8 +320,10 @@ def main(argv=None) -> int:
               f"{result.timings_s['detect'] / peer_s:.1f}x")
         print(f"  per-view error (deg): max {largest:.4f}, RMS {rms:.4f}; "
               f"{np.array2string(errors, precision=4, max_line_width=150, suppress_small=True)}")
-        print(f"  detector: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it; reprojection "
-              f"RMS {balls.get('rms_px', np.nan):.3f} px (nominal angles {balls.get('nominal_rms_px', np.nan):.3f}); "
+        given = "" if balls.get("detector_kept") else f" (NOT given: {balls.get('detector_reason')})"
+        print(f"  detector{given}: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it; "
+              f"reprojection RMS {balls.get('rms_px', np.nan):.3f} px (nominal angles "
+              f"{balls.get('nominal_rms_px', np.nan):.3f}); "
               f"rims cut by the clip (px, per ball): {balls.get('ball_cut_px')}")
         shifts = balls.get("view_shifts_px")
         if drift or shifts is not None:

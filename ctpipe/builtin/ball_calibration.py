@@ -31,11 +31,13 @@ class BallCalibrationRefiner(Refiner):
     over them); otherwise the nominal angles, with the reason
     in ``info["balls"]["reason"]``. The axis column, the principal row and the detector tilt
     fitted with the returned angles are the refined geometry (``geometry_vectors.csv``, the
-    summary) where the corrected angles are kept, and with the nominal angles where those explain
-    the balls as well and the fitted detector explains them better than the scan's beyond noise
-    (``info["balls"]["detector_reason"]``). Where the balls show the views' projections shifting each its own way (a
-    source spot or a detector that drifts), each view's shift is fitted with its angle
-    (``info["balls"]["view_shifts_px"]``), so that the drift is not taken for angle errors.
+    summary) where the corrected angles are kept, with the nominal angles where those explain
+    the balls as well and the fitted detector explains them better than the scan's beyond noise,
+    and with the corrected angles, not returned, where those are refused for some views alone and
+    the balls agree on the detector (``info["balls"]["detector_reason"]``). Where the balls show
+    the views' projections shifting each its own way (a source spot or a detector that drifts),
+    each view's shift is fitted with its angle (``info["balls"]["view_shifts_px"]``), so that the
+    drift is not taken for angle errors.
     """
 
     max_error_deg: float = param(2.0, doc="largest error a nominal angle may have: where balls are looked for, and "

@@ -119,7 +119,7 @@ def test_balls_that_disagree_on_a_view_beyond_the_allowed_error_return_the_nomin
         se, n = np.full(16, np.nan), np.zeros(16, dtype=int)
         se[free_views], n[free_views] = 0.001, 6
         se[7] = factor * 0.02
-        return se, n
+        return se, n, np.full(3, np.nan), 0
 
     monkeypatch.setattr(module, "_jackknife_se", jackknife)
     nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
@@ -130,6 +130,37 @@ def test_balls_that_disagree_on_a_view_beyond_the_allowed_error_return_the_nomin
         assert found.reason.startswith("the balls disagree on view 7's angle: left out one at a time, they move it by "
                                        "a standard error of 0.060 deg, beyond the 0.02 deg allowed")
         np.testing.assert_array_equal(found.angles_deg, nominal)
+
+
+@pytest.mark.parametrize("detector_spread", [None, (0.2, 0.01, 1e-4)])
+def test_angles_refused_on_one_view_still_give_the_detector_the_corrected_angles_fit(monkeypatch, detector_spread):
+    """The balls disagree on one view (its jackknife made three times the bar), so the nominal angles come back, off
+    by the stage's error; the detector fitted with the corrected angles, which every view pins, is still given, where
+    the balls agree on it (their own jackknife), and not where they do not (the axis column's made 0.2 px)."""
+    from ctpipe.solve import balls as module
+
+    real = module._jackknife_se
+
+    def jackknife(*args, **kwargs):
+        se, n, detector_se, refits = real(*args, **kwargs)
+        se[7] = 3.0 * 0.02
+        return se, n, detector_se if detector_spread is None else np.array(detector_spread), refits
+
+    monkeypatch.setattr(module, "_jackknife_se", jackknife)
+    nominal = np.linspace(0.0, 360.0, 16, endpoint=False)
+    truth = nominal + np.random.default_rng(3).uniform(-1.0, 1.0, 16)
+    found = calibrate_balls(_detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=3), GEOMETRY, nominal)
+    assert not found.kept and found.reason.startswith("the balls disagree on view 7's angle")
+    np.testing.assert_array_equal(found.angles_deg, nominal)
+    if detector_spread is None:
+        assert found.detector_kept and found.to_dict()["detector_kept"] is True
+        assert found.detector_reason.startswith("fitted with the corrected angles, which are not returned")
+        assert found.u0_px == pytest.approx(1001.0, abs=0.02) and found.tilt_deg == pytest.approx(0.3, abs=0.002)
+        assert np.all(found.detector_se < module._MAX_DETECTOR_SE)
+    else:
+        assert not found.detector_kept
+        assert found.detector_reason.startswith("not given: fitted with the corrected angles, which are not returned")
+        assert "its axis column beyond" in found.detector_reason
 
 
 def _cached_discs(name):
