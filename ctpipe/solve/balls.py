@@ -1456,15 +1456,17 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                                  np.array([geometry.u0_px, geometry.v0_px, 0.0]), geometry, free_views=free_views,
                                  fit_angles=False, fit_detector=False, scale_px=scale_px, loss=fit_loss,
                                  cut_px=nominal_fit.cut_px, shifts_px=nominal_fit.shifts_px))
-    detector, detector_cov = returned.detector, returned_cov
+    detector_fit, detector_cov = returned, returned_cov
     if one_view and fit_detector and not nominal_as_good and p < p_value:
         detector_kept, detector_reason = _refused_angles_detector(_detector_se(cov), detector_jack_se, detector_jack_n,
                                                                   p_value)
         if detector_kept:
-            detector, detector_cov = fit.detector, cov
-    # The shifts go out where every view is fixed and each shift pinned: into the geometry a user reconstructs with.
-    pinned = returned.shifts_px is not None and _shift_se_px(returned, returned_cov) <= _MAX_SHIFT_SE_PX
-    shifts_out = returned.shifts_px.copy() if pinned and not len(unfixed) and not len(lost) else None
+            detector_fit, detector_cov = fit, cov
+    detector = detector_fit.detector
+    # The shifts go out where every view is fixed and each shift pinned: into the geometry a user reconstructs with,
+    # fitted with its detector.
+    pinned = detector_fit.shifts_px is not None and _shift_se_px(detector_fit, detector_cov) <= _MAX_SHIFT_SE_PX
+    shifts_out = detector_fit.shifts_px.copy() if pinned and not len(unfixed) and not len(lost) else None
     return BallCalibration(angles_deg=corrected if kept else nominal.copy(), corrected_deg=corrected,
                            angle_se_deg=se, kept=kept, reason=reason, balls_mm=balls, u0_px=float(detector[0]),
                            v0_px=float(detector[1]), tilt_deg=math.degrees(detector[2]), rms_px=rms,
@@ -1565,7 +1567,7 @@ def _refused_angles_detector(fit_se: np.ndarray, jackknife_se: np.ndarray, refit
                              p_value: float) -> tuple[bool, str]:
     """Whether the detector fitted with the corrected angles is given though the angles are not, and why.
 
-    Where the corrected angles are refused for some views' alone (a view its balls barely pin, or on which they
+    Where the corrected angles are refused for some views alone (a view its balls barely pin, or on which they
     disagree), the balls still follow, the correction explains them beyond noise, and the detector is fitted on every
     view: one view's angle moves it little, and the nominal angles, off by the stage's error, would move it more (a
     simulated 36-view hardened scan, seed 2105 of ``benchmarks/bench_ball_phantom_mixed.py``: the axis column 0.26 px
