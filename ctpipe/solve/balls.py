@@ -1092,7 +1092,7 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
         # good disc left out, a merged pair's disc left to pin it) would move every other view by its share.
         refits[k, free] = refit.angles[free] - np.median(refit.angles[free] - angles[free])
         if fit_detector:
-            detectors[k] = refit.detector * np.array([1.0, 1.0, math.degrees(1.0)])
+            detectors[k] = refit.detector * _DETECTOR_UNITS
     se, n = np.full(V, np.nan), np.zeros(V, dtype=int)
     balls_seen = np.bincount(discs.view_of, minlength=V)   # a ball's one disc a view
     for v in free_views:
@@ -1177,8 +1177,6 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         (False), or from the first round on (True: on 31 cached drift-free scans it refused 10 and kept four more
         0.0106-0.0165 deg off, against none refused and those four within 0.0049-0.0086 with None).
     """
-    from scipy import stats
-
     nominal = np.asarray(nominal_angles_deg, dtype=np.float64)
     V = len(nominal)
     if len(detections) != V:
@@ -1363,11 +1361,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     checked = np.flatnonzero((jack_n >= 2) & np.isfinite(jack_se) & (se > 0))
     if len(single) and len(checked):
         se[single] *= max(1.0, float(np.median(jack_se[checked] / se[checked])))
-    # Beyond the allowed standard error by more than the jackknife's own spread: its variance is about chi-square
-    # with one fewer degrees of freedom than the refits, so it exceeds the bar where that chi-square does at p_value.
-    with np.errstate(invalid="ignore"):
-        disagree = np.flatnonzero((jack_n >= 2) & ((jack_n - 1) * (jack_se / max_angle_se_deg) ** 2
-                                                   > stats.chi2.isf(p_value, np.maximum(jack_n - 1, 1))))
+    disagree = np.flatnonzero((jack_n >= 2) & _beyond_allowed(jack_se, jack_n, max_angle_se_deg, p_value))
     corrected = np.rad2deg(angles)
     change = corrected - nominal
     # A common turn is no correction: the views' corrections less the common turn that makes the
@@ -1557,6 +1551,22 @@ def _covariance(fit: _Fit) -> np.ndarray | None:
         return None
 
 
+#: A fitted detector ``(u0, v0, tilt)`` (px, px, rad) times this is in the units it is reported in (px, px, deg).
+_DETECTOR_UNITS = np.array([1.0, 1.0, math.degrees(1.0)])
+
+
+def _beyond_allowed(jackknife_se, refits, allowed, p_value: float) -> np.ndarray:
+    """Where a jackknife's standard error over ``refits`` refits is beyond ``allowed`` by more than its own spread: its
+    variance is about chi-square with one fewer degrees of freedom than the refits, so it exceeds the bar where that
+    chi-square does at ``p_value``. False where the standard error is NaN."""
+    from scipy import stats
+
+    refits = np.asarray(refits)
+    with np.errstate(invalid="ignore"):
+        return (refits - 1) * (np.asarray(jackknife_se) / allowed) ** 2 > stats.chi2.isf(p_value,
+                                                                                        np.maximum(refits - 1, 1))
+
+
 #: The most a detector fitted with angles that are not returned may be unsure of (px for the axis column and the
 #: principal row, deg for the tilt; a standard error): half what issue 34 asks the geometry to be within (0.1 px,
 #: 0.01 deg), so that it is within that at two standard errors.
@@ -1573,16 +1583,13 @@ def _refused_angles_detector(fit_se: np.ndarray, jackknife_se: np.ndarray, refit
     simulated 36-view hardened scan, seed 2105 of ``benchmarks/bench_ball_phantom_mixed.py``: the axis column 0.26 px
     off with them). It is given where its standard errors, by the residuals (``fit_se``) and by the jackknife over the
     balls (``jackknife_se`` over ``refits``), are within :data:`_MAX_DETECTOR_SE`, the jackknife's by the views' own
-    test (beyond it by more than its own spread at ``p_value``: :func:`_jackknife_se`).
+    test (:func:`_beyond_allowed`).
     """
-    from scipy import stats
-
     names = ("axis column", "principal row", "tilt")
     spread = np.fmax(fit_se, jackknife_se)
     if refits < 2 or not np.all(np.isfinite(spread)):
         return False, "not given: the detector fitted with the corrected angles, which are not returned, is not checked"
-    beyond = (fit_se > _MAX_DETECTOR_SE) | (
-        (refits - 1) * (jackknife_se / _MAX_DETECTOR_SE) ** 2 > stats.chi2.isf(p_value, refits - 1))
+    beyond = (fit_se > _MAX_DETECTOR_SE) | _beyond_allowed(jackknife_se, refits, _MAX_DETECTOR_SE, p_value)
     said = (f"the balls fix its axis column to {spread[0]:.3f} px, its principal row to {spread[1]:.3f} px and its "
             f"tilt to {spread[2]:.4f} deg (the larger of the fit's and the jackknife's standard errors over "
             f"{refits} refits)")
@@ -1600,7 +1607,7 @@ def _detector_se(cov: np.ndarray | None) -> np.ndarray:
     ``cov`` (:func:`_covariance`); NaN without one."""
     if cov is None:
         return np.full(3, np.nan)
-    return np.sqrt(np.clip(np.diag(cov)[-3:], 0.0, None)) * np.array([1.0, 1.0, math.degrees(1.0)])
+    return np.sqrt(np.clip(np.diag(cov)[-3:], 0.0, None)) * _DETECTOR_UNITS
 
 
 def _beyond_disagreement(change_deg: np.ndarray, spread_deg: np.ndarray,
