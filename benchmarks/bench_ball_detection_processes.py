@@ -42,9 +42,11 @@ class ChildrenMemory(threading.Thread):
         self._done = threading.Event()
 
     def run(self) -> None:
+        if not os.path.isdir("/proc"):
+            return
         me = str(os.getpid())
         while not self._done.wait(0.2):
-            for pid in (name for name in os.listdir("/proc") if name.isdigit()) if os.path.isdir("/proc") else ():
+            for pid in filter(str.isdigit, os.listdir("/proc")):
                 try:
                     with open(f"/proc/{pid}/status") as status:
                         fields = dict(line.split(":", 1) for line in status if ":" in line)
