@@ -184,9 +184,9 @@ def test_angles_refused_on_one_view_still_write_the_detector_the_corrected_angle
     real = balls._jackknife_se
 
     def jackknife(*args, **kwargs):
-        se, n, detector_se, refits = real(*args, **kwargs)
+        se, n, detector_se, refits, rests = real(*args, **kwargs)
         se[5] = 0.06
-        return se, n, detector_se, refits
+        return se, n, detector_se, refits, rests
 
     monkeypatch.setattr(balls, "_jackknife_se", jackknife)
     said = _estimate_with_an_offset_detector(tmp_path, capsys)

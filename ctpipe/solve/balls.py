@@ -71,8 +71,12 @@ nothing is decided pair by pair:
    two scans whose background was clipped at 80 % of the open beam, rims cut unevenly by what the
    clip hides behind them, views 0.03 and 0.07 deg off had standard errors of 0.016 deg at most;
    the jackknife refuses both. It does not catch a bias the balls of a view share:
-   ``docs/calibration-phantoms.md``, "A harsh clip"). Last, the corrections must stand out from
-   what the balls disagree on (:func:`_beyond_disagreement`): the F test takes the residuals as
+   ``docs/calibration-phantoms.md``, "A harsh clip"). A view whose other discs fix it no better than
+   ``max_angle_se_deg`` without one ball's rests on that ball's disc, which nothing checks: that disc
+   must be clean or overlap another only, with no followed ball hidden within it (:func:`_resting_views`), its
+   standard error is scaled as a view of one disc's, and the reason names it; a refit whose discs fix the view ten
+   times more loosely still (:data:`_UNCOUNTED_TIMES`) is not counted in its jackknife. Last, the corrections must
+   stand out from what the balls disagree on (:func:`_beyond_disagreement`): the F test takes the residuals as
    independent, and the discs of hardened or coated balls share biases of hundredths of a pixel
    that the angles absorb. Told the true angles as nominal, 10 of 19 cached simulated scans kept
    corrections 0.002-0.015 deg off them (F test p 1e-4 to 1e-17), each within its views' jackknife
@@ -1056,12 +1060,21 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
 #: groups, balls dealt into this many groups beyond (a bead cloud of 30).
 _JACKKNIFE_GROUPS = 10
 
+#: A jackknife refit whose discs left in a view fix its angle to no better than this many times the error allowed is
+#: not counted for that view (:func:`_jackknife_se`). Between the two lie the refits that still test the discs they
+#: left out: on the scans this was judged on (simulated; hardened solid 1723, 1934, 2002, 2105, the coated harsh-clip
+#: scan of ``tests/solve/data``), the discs left fixed such views to 0.024-0.033 deg, where the jackknife catches a
+#: biased disc (a coated view 0.066 deg off), or to 0.45-3.0 deg, where its moves (0.07-0.14 deg) were noise.
+_UNCOUNTED_TIMES = 10.0
+
 
 def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_views, fit_detector, scale_px,
-                  loss, cut_px, shifts_px=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+                  loss, cut_px, shifts_px=None, se_deg=None,
+                  allowed_deg: float = np.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray]:
     """Each view's angle's standard error by the delete-a-group jackknife over the balls (deg; NaN where not free or
     where one ball's disc alone pins it), and how many refits adjusted it; then the fitted detector's (u0 px, v0 px,
-    tilt deg; NaN where it is not fitted) by the same refits, and how many there were.
+    tilt deg; NaN where it is not fitted) by the same refits, and how many there were; then, per group and view,
+    whether the view rests on that group's discs (``(G, V)``).
 
     The adjustment is made again with each group of balls left out, from its solution; each
     refit is put in the full fit's frame (their common turn, the median over the views both adjust, removed),
@@ -1069,11 +1082,28 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
     its standard error (Efron and Tibshirani, "An Introduction to the Bootstrap", 1993, ch. 11).
     Where balls are biased each in its own way, as a clip cutting their rims unevenly, their
     angles disagree beyond what the residuals' spread says, and this shows it.
+
+    Where a group holds all but a share ``s`` of a view's information (:func:`_kept_information`), the discs left fix
+    the angle to ``se_deg / sqrt(s)`` only. Beyond ``allowed_deg``, the view rests on that group's discs, which
+    nothing checks to what is allowed: the caller holds them to what a view of one disc is held to. Beyond
+    :data:`_UNCOUNTED_TIMES` that, the refit is not counted for the view: its move is the weak discs' noise. On a
+    simulated hardened scan of 36 views (solid 2002) one ball held all but 0.0001 of a view's information, and
+    without it the view's two other balls (each across a clip's edge in many views) fixed it to 0.5 deg and moved it
+    0.139 deg, a jackknife standard error of 0.119 deg for a view 0.002 deg off, and the scan was refused.
+    (Hinkley, "Jackknifing in unbalanced situations", Technometrics 19, 1977, weighs each part left out by its
+    leverage for the same reason.)
     """
     B, V = len(balls), len(angles)
-    groups = np.arange(B) % min(B, _JACKKNIFE_GROUPS)
+    groups = _jackknife_groups(B)
     G = int(groups.max()) + 1
     refits = np.full((G, V), np.nan)
+    others_deg = np.zeros((G, V))     # how well each refit's discs alone fix each view's angle (deg)
+    if se_deg is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            others_deg = np.asarray(se_deg)[None, :] / np.sqrt(_kept_information(
+                discs, groups, G, radii_mm, angles, balls, detector, geometry))
+    rests = others_deg > allowed_deg
+    uncounted = others_deg > _UNCOUNTED_TIMES * allowed_deg
     detectors = np.full((G, 3), np.nan)
     for k in range(G):
         keep_ball = groups != k
@@ -1091,6 +1121,7 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
         # The refit's common turn by the median: its gauge holds the views' mean, so a view the refit loses (its one
         # good disc left out, a merged pair's disc left to pin it) would move every other view by its share.
         refits[k, free] = refit.angles[free] - np.median(refit.angles[free] - angles[free])
+        refits[k, uncounted[k]] = np.nan
         if fit_detector:
             detectors[k] = refit.detector * _DETECTOR_UNITS
     se, n = np.full(V, np.nan), np.zeros(V, dtype=int)
@@ -1107,7 +1138,71 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
     if len(refitted) >= 2:
         detector_se = np.sqrt((len(refitted) - 1) / len(refitted) * np.sum((refitted - refitted.mean(axis=0)) ** 2,
                                                                            axis=0))
-    return se, n, detector_se, len(refitted)
+    rests &= (np.isin(np.arange(V), free_views) & (balls_seen >= 2))[None, :]
+    return se, n, detector_se, len(refitted), rests
+
+
+def _jackknife_groups(n_balls: int) -> np.ndarray:
+    """The jackknife's group of each ball: its own up to :data:`_JACKKNIFE_GROUPS` balls, dealt into that many
+    beyond."""
+    return np.arange(n_balls) % min(n_balls, _JACKKNIFE_GROUPS)
+
+
+#: The flags of a disc a view may rest on: clean, or overlapping another disc (placed by the rim fit within a few
+#: hundredths of a pixel, as a clean one: on two simulated hardened scans of 36 views, solid 1934 and 2002, the
+#: followed balls' overlapping discs were 0.023-0.038 px RMS from their true ellipse centres and the clean ones
+#: 0.012-0.023, but for the two balls whose rims cross the clip's edge in many views); not one cut by the border or
+#: across the clip's edge (tenths of a pixel).
+_RESTING_FLAGS = (_CLEAN_FLAG, 1)
+
+#: What a disc's flag says of it, where a view rests on that disc alone.
+_FLAG_SAYS = {1: "overlaps another disc", 2: "is cut by the border", 3: "has its rim across a clip's edge"}
+
+
+def _resting_views(rests: np.ndarray, discs: _Discs, flagged: np.ndarray, index_of: np.ndarray, placed, assigned,
+                   balls, radii_mm, angles, geometry: Geometry, detector) -> tuple[np.ndarray, dict]:
+    """The views that rest on one group's discs (``rests``, from :func:`_jackknife_se`) where each of those is clean
+    or overlaps another disc only (:data:`_RESTING_FLAGS`) and no followed ball hides within it
+    (:func:`_hidden_within`), and, for the others, ``{view: (ball, what is wrong with its disc)}``: near the rule a
+    view of one disc is held to, which asks for a clean disc (one overlapping something no ball followed explains)."""
+    groups = _jackknife_groups(len(balls))
+    resting, unclean = [], {}
+    for v in np.flatnonzero(rests.any(axis=0)):
+        mine = np.flatnonzero((discs.view_of == v) & rests[groups[discs.ball_of], v])
+        hidden = _hidden_within(placed[v], assigned[v], balls, radii_mm, angles[v], geometry, detector)
+        faults = [(int(discs.ball_of[j]), "hides another followed ball" if hidden[index_of[j]] else
+                   _FLAG_SAYS.get(int(flagged[j]), "is flagged")) for j in mine
+                  if hidden[index_of[j]] or flagged[j] not in _RESTING_FLAGS]
+        if faults:
+            unclean[int(v)] = faults[0]
+        else:
+            resting.append(int(v))
+    return np.array(resting, dtype=int), unclean
+
+
+def _kept_information(discs: _Discs, groups: np.ndarray, G: int, radii_mm, angles, balls, detector,
+                      geometry: Geometry) -> np.ndarray:
+    """Per group of balls and view, the share of the view's angle's information its discs but that group's hold
+    (``(G, V)``; 1 where the view has none): each disc's squared slope on its view's angle (px per rad, the other
+    unknowns held) times its weight squared. The weights are the discs' own (their ball's spread, their flag's,
+    their standard error's), not the robust loss's: a disc the loss weighs down because it disagrees with the view's
+    others would make the view look as if it rested on them, and the jackknife would stop checking it where it
+    should look hardest. (On the scans :data:`_UNCOUNTED_TIMES` was judged on, either gives the same verdicts.)"""
+    V = len(angles)
+    share = np.ones((G, V))
+    if not len(discs.xy):
+        return share
+    step = 1e-6
+    size = radii_mm[discs.ball_of] * discs.edge
+    slope = (ellipse_centres(balls[discs.ball_of], size, angles[discs.view_of] + step, geometry, *detector)
+             - ellipse_centres(balls[discs.ball_of], size, angles[discs.view_of], geometry, *detector)) / step
+    info = np.sum(slope ** 2, axis=1) * discs.weight ** 2
+    total = np.bincount(discs.view_of, info, minlength=V)
+    for k in range(G):
+        left = groups[discs.ball_of] != k
+        kept = np.bincount(discs.view_of[left], info[left], minlength=V)
+        share[k] = np.divide(kept, total, out=np.ones(V), where=total > 0)
+    return share
 
 
 def _edge_ratio(row: np.ndarray) -> float:
@@ -1351,14 +1446,21 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     # bias a ball's discs share (a rim the clip cuts less where something below the clip lies behind it) is not.
     jack_se, jack_n = np.full(V, np.nan), np.zeros(V, dtype=int)
     detector_jack_se, detector_jack_n = np.full(3, np.nan), 0
+    rests = np.zeros((1, V), bool)
     if len(free_views) and extra > 0:
-        jack_se, jack_n, detector_jack_se, detector_jack_n = _jackknife_se(
+        jack_se, jack_n, detector_jack_se, detector_jack_n, rests = _jackknife_se(
             discs, radii_mm, angles, balls, detector, geometry, free_views=free_views, fit_detector=fit_detector,
-            scale_px=scale_px, loss=fit_loss, cut_px=cut_px, shifts_px=view_shifts)
+            scale_px=scale_px, loss=fit_loss, cut_px=cut_px, shifts_px=view_shifts, se_deg=se,
+            allowed_deg=max_angle_se_deg)
+    # A view resting on one ball's disc (the other balls' discs in it do not fix it): as a view of one disc, that disc
+    # must be whole (clean, or overlapping another), with no other followed ball within it.
+    resting, unclean = _resting_views(rests, discs, np.asarray(flagged), np.asarray(index_of), placed, assigned,
+                                      balls, radii_mm, angles, geometry, detector)
     # A view one ball's disc pins has no jackknife: its error is taken as the others' are found, their jackknife over
     # their Gauss-Newton error (the median ratio, at least 1), since a disc's bias is not in its view's residuals.
-    single = np.intersect1d(free_views, np.flatnonzero(counts == 1))
-    checked = np.flatnonzero((jack_n >= 2) & np.isfinite(jack_se) & (se > 0))
+    lone = np.intersect1d(free_views, np.flatnonzero(counts == 1))
+    single = np.union1d(lone, resting)
+    checked = np.setdiff1d(np.flatnonzero((jack_n >= 2) & np.isfinite(jack_se) & (se > 0)), resting)
     if len(single) and len(checked):
         se[single] *= max(1.0, float(np.median(jack_se[checked] / se[checked])))
     disagree = np.flatnonzero((jack_n >= 2) & _beyond_allowed(jack_se, jack_n, max_angle_se_deg, p_value))
@@ -1415,6 +1517,12 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         kept, reason = False, (f"the balls disagree on view {view}'s angle: left out one at a time, they move it by a "
                                f"standard error of {jack_se[view]:.3f} deg, beyond the {max_angle_se_deg:g} deg "
                                f"allowed (chi-square p < {p_value:g}; {len(disagree)} view(s) so)")
+    elif unclean:
+        view, (ball, why) = next(iter(unclean.items()))
+        one_view = True
+        kept, reason = False, (f"view {view}'s angle rests on one disc, ball {ball}'s, which {why}: the view's other "
+                               f"discs do not fix it to {max_angle_se_deg:g} deg, and nothing checks that disc "
+                               f"({len(unclean)} view(s) so)")
     # Every view is free here (the unfixed ones were refused above).
     elif ambiguous := _ambiguous_views(_shifted(detections, shifts), assigned, balls, radii_mm, angles, theta0,
                                        error_rad, geometry, detector):
@@ -1437,9 +1545,12 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     else:
         kept, reason = True, (f"the corrected angles explain the balls better: reprojection RMS {rms:.3f} px against "
                               f"{nominal_rms:.3f} px with the nominal ones (F test p {p:.2g})"
-                              + (f"; view(s) {', '.join(str(int(v)) for v in single)} pinned by one clean disc each, "
-                                 f"which no other ball checks (standard error up to {np.max(se[single]):.4f} deg)"
-                                 if len(single) else ""))
+                              + (f"; view(s) {', '.join(str(int(v)) for v in lone)} pinned by one clean disc each, "
+                                 f"which no other ball checks (standard error up to {np.max(se[lone]):.4f} deg)"
+                                 if len(lone) else "")
+                              + (f"; view(s) {', '.join(str(int(v)) for v in resting)} resting on one disc each, which "
+                                 f"their other discs fix no better than {max_angle_se_deg:g} deg (standard error up to "
+                                 f"{np.max(se[resting]):.4f} deg)" if len(resting) else ""))
     ball_rms = np.array([np.sqrt(np.mean(fit.residual[ball_of == b] ** 2)) if np.any(ball_of == b) else np.nan
                          for b in range(len(balls))])
     returned, returned_cov = (fit, cov) if kept else (nominal_fit, _covariance(nominal_fit) if fit_detector else None)
