@@ -1084,8 +1084,9 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
     angles disagree beyond what the residuals' spread says, and this shows it.
 
     Where a group holds all but a share ``s`` of a view's information (:func:`_kept_information`), the discs left fix
-    the angle to ``se_deg / sqrt(s)`` only. Beyond ``allowed_deg``, the view rests on that group's discs, which
-    nothing checks to what is allowed: the caller holds them to what a view of one disc is held to. Beyond
+    the angle to ``se_deg / sqrt(s)`` only. Beyond ``allowed_deg``, or where the refit cannot adjust the view at all
+    (with the views' own shifts, a view of two discs left one), the view rests on that group's discs, which nothing
+    checks to what is allowed: the caller holds them to what a view of one disc is held to. Beyond
     :data:`_UNCOUNTED_TIMES` that, the refit is not counted for the view: its move is the weak discs' noise. On a
     simulated hardened scan of 36 views (solid 2002) one ball held all but 0.0001 of a view's information, and
     without it the view's two other balls (each across a clip's edge in many views) fixed it to 0.5 deg and moved it
@@ -1113,6 +1114,8 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
         counts = np.bincount(left.view_of, minlength=V)
         # A view keeps its angle on one disc left; with its own shift too it needs two (three unknowns).
         free = np.intersect1d(free_views, np.flatnonzero(counts >= (1 if shifts_px is None else 2)))
+        # A view the refit cannot adjust at all (its discs left too few for its unknowns) rests on the group's.
+        rests[k, np.setdiff1d(free_views, free)] = True
         if len(free) < 2:
             continue
         refit = _adjust(left, radii_mm[keep_ball], angles, balls[keep_ball], detector, geometry, free_views=free,
@@ -1520,9 +1523,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     elif unclean:
         view, (ball, why) = next(iter(unclean.items()))
         one_view = True
-        kept, reason = False, (f"view {view}'s angle rests on one disc, ball {ball}'s, which {why}: the view's other "
-                               f"discs do not fix it to {max_angle_se_deg:g} deg, and nothing checks that disc "
-                               f"({len(unclean)} view(s) so)")
+        kept, reason = False, (f"view {view}'s angle rests on ball {ball}'s disc, which {why}: without it the view's "
+                               f"other discs do not fix the angle to {max_angle_se_deg:g} deg, and nothing checks "
+                               f"that disc ({len(unclean)} view(s) so)")
     # Every view is free here (the unfixed ones were refused above).
     elif ambiguous := _ambiguous_views(_shifted(detections, shifts), assigned, balls, radii_mm, angles, theta0,
                                        error_rad, geometry, detector):
@@ -1548,8 +1551,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                               + (f"; view(s) {', '.join(str(int(v)) for v in lone)} pinned by one clean disc each, "
                                  f"which no other ball checks (standard error up to {np.max(se[lone]):.4f} deg)"
                                  if len(lone) else "")
-                              + (f"; view(s) {', '.join(str(int(v)) for v in resting)} resting on one disc each, which "
-                                 f"their other discs fix no better than {max_angle_se_deg:g} deg (standard error up to "
+                              + (f"; view(s) {', '.join(str(int(v)) for v in resting)} resting on a disc that their "
+                                 f"other discs do not check to {max_angle_se_deg:g} deg (standard error up to "
                                  f"{np.max(se[resting]):.4f} deg)" if len(resting) else ""))
     ball_rms = np.array([np.sqrt(np.mean(fit.residual[ball_of == b] ** 2)) if np.any(ball_of == b) else np.nan
                          for b in range(len(balls))])

@@ -925,10 +925,31 @@ def test_a_view_one_refit_loses_does_not_move_the_others_jackknife():
     detections[7][1, :2] += [4.0, 0.0]
     found = calibrate_balls(detections, GEOMETRY, nominal)
     assert found.kept and found.reason.endswith(
-        "view(s) 7 resting on one disc each, which their other discs fix no better than 0.02 deg (standard error up "
-        f"to {found.angle_se_deg[7]:.4f} deg)")
+        f"view(s) 7 resting on a disc that their other discs do not check to 0.02 deg (standard error up to "
+        f"{found.angle_se_deg[7]:.4f} deg)")
     assert np.abs(view_errors_deg(found.angles_deg, truth)).max() < 0.01
     assert np.nanmax(found.angle_jackknife_se_deg) < 0.005
+
+
+def test_a_drifting_view_of_two_discs_rests_on_them_and_one_across_a_clips_edge_is_refused():
+    """With its own shift, a view of two discs has three unknowns and four coordinates: neither jackknife refit that
+    leaves it one disc can place it, so nothing checks either disc. Both whole, it rests on them and is named; one of
+    them across a clip's edge, the nominal angles come back with the reason (kept before, the refits that could not
+    adjust it simply not counted)."""
+    n_views = 17
+    rng = np.random.default_rng(5)
+    nominal = np.linspace(0.0, 360.0, n_views, endpoint=False)
+    truth = nominal + rng.normal(0.0, 0.5, n_views)
+    detections = _detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=5, shifts_px=_drift(n_views, 5))
+    detections[4] = detections[4][:2]
+    whole = calibrate_balls(detections, GEOMETRY, nominal)
+    assert whole.kept and whole.view_shifts_px is not None
+    assert "view(s) 4 resting on a disc that their other discs do not check to 0.02 deg" in whole.reason
+    detections[4][1, 3] = 3
+    cut = calibrate_balls(detections, GEOMETRY, nominal)
+    assert not cut.kept and cut.reason.startswith("view 4's angle rests on ball ")
+    assert "which has its rim across a clip's edge" in cut.reason
+    np.testing.assert_array_equal(cut.angles_deg, nominal)
 
 
 def _resting_on_one_disc(flag: int):
@@ -961,7 +982,7 @@ def test_a_view_resting_on_one_good_disc_is_not_refused_for_its_weak_discs_noise
     result = calibrate_balls(detections, GEOMETRY, nominal)
     error = (result.angles_deg - truth) - np.median(result.angles_deg - truth)
     assert result.kept and np.abs(error).max() < 0.01
-    assert "view(s) 7 resting on one disc each, which their other discs fix no better than 0.02 deg" in result.reason
+    assert "view(s) 7 resting on a disc that their other discs do not check to 0.02 deg" in result.reason
     assert result.angle_jackknife_se_deg[7] < 0.005
 
 
@@ -970,8 +991,9 @@ def test_a_view_resting_on_one_disc_across_a_clips_edge_returns_the_nominal_angl
     the nominal angles come back with the reason, the disc named."""
     nominal, _, detections = _resting_on_one_disc(3)
     result = calibrate_balls(detections, GEOMETRY, nominal)
-    assert not result.kept and result.reason.startswith("view 7's angle rests on one disc, ball ")
-    assert "which has its rim across a clip's edge: the view's other discs do not fix it to 0.02 deg" in result.reason
+    assert not result.kept and result.reason.startswith("view 7's angle rests on ball ")
+    assert "which has its rim across a clip's edge: without it the view's other discs do not fix the angle to 0.02 " \
+           "deg, and nothing checks that disc (1 view(s) so)" in result.reason
     np.testing.assert_array_equal(result.angles_deg, nominal)
 
 
