@@ -1166,8 +1166,8 @@ def _resting_views(rests: np.ndarray, discs: _Discs, flagged: np.ndarray, index_
                    balls, radii_mm, angles, geometry: Geometry, detector) -> tuple[np.ndarray, dict]:
     """The views that rest on one group's discs (``rests``, from :func:`_jackknife_se`) where each of those is clean
     or overlaps another disc only (:data:`_RESTING_FLAGS`) and no followed ball hides within it
-    (:func:`_hidden_within`), and, for the others, ``{view: (ball, what is wrong with its disc)}``: near the rule a
-    view of one disc is held to, which asks for a clean disc (one overlapping something no ball followed explains)."""
+    (:func:`_hidden_within`), and, for the others, ``{view: (ball, what is wrong with its disc)}``. A view of one disc
+    is held to the same rule but for the overlap: there, what its disc overlaps is no other followed ball's disc."""
     groups = _jackknife_groups(len(balls))
     resting, unclean = [], {}
     for v in np.flatnonzero(rests.any(axis=0)):
