@@ -931,27 +931,6 @@ def test_a_view_one_refit_loses_does_not_move_the_others_jackknife():
     assert np.nanmax(found.angle_jackknife_se_deg) < 0.005
 
 
-def test_a_drifting_view_of_two_discs_rests_on_them_and_one_across_a_clips_edge_is_refused():
-    """With its own shift, a view of two discs has three unknowns and four coordinates: neither jackknife refit that
-    leaves it one disc can place it, so nothing checks either disc. Both whole, it rests on them and is named; one of
-    them across a clip's edge, the nominal angles come back with the reason (kept before, the refits that could not
-    adjust it simply not counted)."""
-    n_views = 17
-    rng = np.random.default_rng(5)
-    nominal = np.linspace(0.0, 360.0, n_views, endpoint=False)
-    truth = nominal + rng.normal(0.0, 0.5, n_views)
-    detections = _detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=5, shifts_px=_drift(n_views, 5))
-    detections[4] = detections[4][:2]
-    whole = calibrate_balls(detections, GEOMETRY, nominal)
-    assert whole.kept and whole.view_shifts_px is not None
-    assert "view(s) 4 resting on a disc that their other discs do not check to 0.02 deg" in whole.reason
-    detections[4][1, 3] = 3
-    cut = calibrate_balls(detections, GEOMETRY, nominal)
-    assert not cut.kept and cut.reason.startswith("view 4's angle rests on ball ")
-    assert "which has its rim across a clip's edge" in cut.reason
-    np.testing.assert_array_equal(cut.angles_deg, nominal)
-
-
 def _resting_on_one_disc(flag: int):
     """A 20-view scan of :data:`BALLS` and a seventh ball 1.7 mm from the axis, whose discs are 0.2 px off at random
     (an angle fixed to about 0.25 deg by it alone), where view 7 keeps one disc of a far ball (flagged ``flag``) and
@@ -1087,16 +1066,38 @@ def test_a_disc_per_view_pulled_by_a_neighbour_is_not_taken_for_a_drift():
     assert np.abs(view_errors_deg(found.angles_deg, truth)).max() < 0.01
 
 
-def test_a_drifting_view_with_two_discs_is_refitted_only_where_both_are_left():
-    """With its own shift a view has three unknowns: a jackknife refit that leaves it one disc cannot place it, and
-    must not count it (it made the balls "disagree" on the view by 0.34 deg and refused the scan)."""
+def _drifting_with_a_view_of_two_discs():
+    """A drifting 17-view scan of :data:`BALLS` whose view 4 keeps two discs: nominal and true angles, detections."""
     n_views = 17
     rng = np.random.default_rng(5)
     nominal = np.linspace(0.0, 360.0, n_views, endpoint=False)
     truth = nominal + rng.normal(0.0, 0.5, n_views)
     detections = _detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=5, shifts_px=_drift(n_views, 5))
     detections[4] = detections[4][:2]
+    return nominal, truth, detections
+
+
+def test_a_drifting_view_with_two_discs_is_refitted_only_where_both_are_left():
+    """With its own shift a view has three unknowns: a jackknife refit that leaves it one disc cannot place it, and
+    must not count it (it made the balls "disagree" on the view by 0.34 deg and refused the scan)."""
+    nominal, truth, detections = _drifting_with_a_view_of_two_discs()
     found = calibrate_balls(detections, GEOMETRY, nominal)
     error = found.corrected_deg - truth
     assert found.kept and found.view_shifts_px is not None
     assert np.abs(error - np.median(error)).max() < 0.01 and found.angle_jackknife_se_deg[4] < 0.02
+
+
+def test_a_drifting_view_of_two_discs_rests_on_them_and_one_across_a_clips_edge_is_refused():
+    """With its own shift, a view of two discs has three unknowns and four coordinates: neither jackknife refit that
+    leaves it one disc can place it, so nothing checks either disc. Both whole, it rests on them and is named; one of
+    them across a clip's edge, the nominal angles come back with the reason (kept before, the refits that could not
+    adjust it simply not counted)."""
+    nominal, _, detections = _drifting_with_a_view_of_two_discs()
+    whole = calibrate_balls(detections, GEOMETRY, nominal)
+    assert whole.kept and whole.view_shifts_px is not None
+    assert "view(s) 4 resting on a disc that their other discs do not check to 0.02 deg" in whole.reason
+    detections[4][1, 3] = 3
+    cut = calibrate_balls(detections, GEOMETRY, nominal)
+    assert not cut.kept and cut.reason.startswith("view 4's angle rests on ball ")
+    assert "which has its rim across a clip's edge" in cut.reason
+    np.testing.assert_array_equal(cut.angles_deg, nominal)
