@@ -1158,8 +1158,8 @@ def _jackknife_groups(n_balls: int) -> np.ndarray:
 #: across the clip's edge (tenths of a pixel).
 _RESTING_FLAGS = (_CLEAN_FLAG, 1)
 
-#: What a disc's flag says of it, where a view rests on that disc alone.
-_FLAG_SAYS = {1: "overlaps another disc", 2: "is cut by the border", 3: "has its rim across a clip's edge"}
+#: What a disc's flag says of it, for the flags a view may not rest on.
+_FLAG_SAYS = {2: "is cut by the border", 3: "has its rim across a clip's edge"}
 
 
 def _resting_views(rests: np.ndarray, discs: _Discs, flagged: np.ndarray, index_of: np.ndarray, placed, assigned,
@@ -1174,8 +1174,8 @@ def _resting_views(rests: np.ndarray, discs: _Discs, flagged: np.ndarray, index_
         mine = np.flatnonzero((discs.view_of == v) & rests[groups[discs.ball_of], v])
         hidden = _hidden_within(placed[v], assigned[v], balls, radii_mm, angles[v], geometry, detector)
         faults = [(int(discs.ball_of[j]), "hides another followed ball" if hidden[index_of[j]] else
-                   _FLAG_SAYS.get(int(flagged[j]), "is flagged")) for j in mine
-                  if hidden[index_of[j]] or flagged[j] not in _RESTING_FLAGS]
+                   _FLAG_SAYS[int(flagged[j])])
+                  for j in mine if hidden[index_of[j]] or flagged[j] not in _RESTING_FLAGS]
         if faults:
             unclean[int(v)] = faults[0]
         else:
