@@ -312,7 +312,8 @@ def main(argv=None) -> int:
         print(f"  ball-phantom check: {'yes' if recognised else 'NO'} ({why}; {checked:.1f} s)")
         print(f"  calibration: {ran:.1f} s (stages: {' '.join(f'{k} {v:.1f}' for k, v in result.timings_s.items())}); "
               f"{balls.get('balls', 0)} of {COATED_BALLS if args.coated or args.solid else 9} balls followed, "
-              f"views per ball {balls.get('views_per_ball')}; "
+              f"views per ball {balls.get('views_per_ball')}, {balls.get('hidden_discs_placed', 0)} hidden disc(s) "
+              f"placed on a second look; "
               f"{'corrected' if balls.get('kept') else 'NOMINAL'} angles returned: {balls.get('reason', '')}")
         peer_s, peer_circles = hough_peer(scan.projections)
         print(f"  peer: OpenCV's HoughCircles on the {len(truth)} views {peer_s:.1f} s ({peer_circles:.1f} circles "

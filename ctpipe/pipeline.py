@@ -486,6 +486,10 @@ class ScanResult:
                       f"inner edge, which no clip or neighbour beyond the rim moves"] if shells else []) + \
                 ([f"{left_out} disc(s) left out as gross errors, pixels off their ball where the rest of their view "
                   f"and ball fit (balls merged into one disc)"] if left_out else [])
+            hidden = balls.get("hidden_discs_placed", 0)
+            if hidden:
+                notes.append(f"{hidden} disc(s) of balls hidden within others' placed on their rims where the balls "
+                             f"put them")
             shifts, shift_p = balls.get("view_shifts_px"), balls.get("shift_p_value")
             if shifts is not None:
                 shifts = np.asarray(shifts, dtype=np.float64)

@@ -60,6 +60,11 @@ def test_every_view_of_a_16_view_ball_bar_scan_within_two_hundredths_of_a_degree
     assert balls["left_out"] == 0 and "left out" not in result.summary()
     balls["left_out"] = 3
     assert "moves; 3 disc(s) left out as gross errors, pixels off their ball" in result.summary()
+    # Balls hidden within others' discs placed on a second look: said where there were some.
+    assert ("hidden within others" in result.summary()) == (balls["hidden_discs_placed"] > 0)
+    balls["hidden_discs_placed"] = 2
+    assert "; 2 disc(s) of balls hidden within others' placed on their rims where the balls put them)" in \
+        result.summary()
 
 
 def test_estimate_on_a_ball_scan_folder_needs_only_the_pipeline(ball_bar_scan, tmp_path, capsys, monkeypatch):

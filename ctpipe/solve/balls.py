@@ -48,7 +48,11 @@ nothing is decided pair by pair:
    have settled the angles (:data:`_READMIT_ERROR_RAD`), and the rounds run again with it. A disc
    pixels off its ball where the rest of its view and ball fit (two or three balls merged into one
    disc) is left out of the rounds after (:func:`_leave_out_gross`), and so is a disc tenths of a pixel off within
-   which a followed ball with no disc of its own lies (the two found as one: :func:`_leave_out_blends`). A view's
+   which a followed ball with no disc of its own lies (the two found as one: :func:`_leave_out_blends`). Where a
+   followed ball has no disc of its own in a view and its disc would overlap another's, the calibration says where the
+   balls put it (:attr:`BallCalibration.hidden_px`): the ``ball-calibration`` refiner looks for its rim there on the
+   projections, and calibrates again with the discs so placed (flagged :data:`PLACED_FLAG`, their kind weighed by its
+   own residuals). A view's
    angle is adjusted on two discs or more, or on one clean disc no followed ball hides within. Where the projections
    drift (a source spot that wanders as the tube warms, a detector that moves), every disc of a view is shifted
    alike: taken for angle errors, a drift of 0.2-0.7 px left simulated views 0.01-0.12 deg off, or refused. So once
@@ -116,7 +120,7 @@ from ctpipe.errors import InputError
 from ctpipe.geometry import Geometry
 from ctpipe.solve.camera import pixels_to_rays
 
-__all__ = ["BallCalibration", "calibrate_balls", "ellipse_centres"]
+__all__ = ["BallCalibration", "calibrate_balls", "ellipse_centres", "PLACED_FLAG"]
 
 
 @dataclass(frozen=True)
@@ -181,6 +185,11 @@ class BallCalibration:
     ball_cut_px : ndarray of shape (B,)
         How deep a clipped background cuts each ball's rim (px), fitted where its discs say on
         which side (NaN where none of a ball's discs is cut on one side only).
+    hidden_px : list of ndarray of shape (H_k, 4)
+        Per view, the followed balls with no disc of their own in it (none found, or the one found left out) whose
+        disc the corrected fit projects onto another disc of the view, on the image: rows ``(ball, x, y, r)``, where
+        the disc's centre and radius (px) would be (with the view's shift, where fitted). What the detector may
+        look for again there (the ``ball-calibration`` refiner's second look).
     """
 
     angles_deg: np.ndarray
@@ -209,6 +218,7 @@ class BallCalibration:
     correction_p_value: float = math.nan
     view_shifts_px: np.ndarray | None = None
     shift_p_value: float = math.nan
+    hidden_px: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"kept": self.kept, "reason": self.reason, "balls": len(self.balls_mm),
@@ -587,6 +597,30 @@ def _hidden_within(found: np.ndarray, labels: np.ndarray, balls, radii_mm, angle
     return within
 
 
+def _hidden_discs_px(detections, assigned, gross, balls, radii_mm, angles, geometry: Geometry, detector,
+                     shifts_px: np.ndarray | None) -> list[np.ndarray]:
+    """Per view, rows ``(ball, x, y, r)`` (px, on the image as taken: the view's shift added) of the followed balls
+    with no disc of their own in it (left out ones count as none) whose disc overlaps another disc of the view and
+    lies on the image: :attr:`BallCalibration.hidden_px`."""
+    rows, cols = geometry.shape
+    out = []
+    for view, (found, labels, left_out) in enumerate(zip(detections, assigned, gross)):
+        hidden = np.setdiff1d(np.arange(len(balls)), labels[(labels >= 0) & ~left_out])
+        if not len(hidden) or not len(found):
+            out.append(np.zeros((0, 4)))
+            continue
+        angle = np.full(len(hidden), angles[view])
+        uv = _project(balls[hidden], angle, geometry, *detector, radii_mm[hidden])
+        if shifts_px is not None:
+            uv = uv + shifts_px[view]
+        r = _disc_radius_px(balls[hidden], radii_mm[hidden], angle, geometry)
+        gap = np.hypot(uv[:, None, 0] - found[None, :, 0], uv[:, None, 1] - found[None, :, 1])
+        keep = np.any(gap < r[:, None] + found[None, :, 2], axis=1) & np.isfinite(r) & \
+            (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= cols - 1) & (uv[:, 1] <= rows - 1)
+        out.append(np.column_stack([hidden[keep], uv[keep], r[keep]]).astype(np.float64))
+    return out
+
+
 def _leave_out_blends(gross: list, detections, assigned, off_px: np.ndarray, blend_px: float, view_of, ball_of,
                       index_of, balls, radii_mm, angles, geometry, detector, min_views: int) -> int:
     """Mark in ``gross`` the discs off their ball by more than ``blend_px`` within which a followed ball that has no
@@ -654,8 +688,10 @@ _LOST_VIEW_PX = 1.0
 #: fitted centre may be pulled; after it, at the weight each kind's own residuals give (:func:`_flag_weights`).
 _FLAGGED_WEIGHT = 0.25
 
-#: Disc flags of the ``beads`` detector: 0 clean, 1 overlapping, 2 cut by the border, 3 rim across a clip edge.
-_CLEAN_FLAG, _FLAG_KINDS = 0, 4
+#: Disc flags of the ``beads`` detector: 0 clean, 1 overlapping, 2 cut by the border, 3 rim across a clip edge; and 4,
+#: a hidden ball's disc placed on its rim where the balls put it (``PLACED_FLAG``: the ``ball-calibration`` refiner's
+#: second look), whose rims other balls mostly cover.
+_CLEAN_FLAG, PLACED_FLAG, _FLAG_KINDS = 0, 4, 5
 
 
 def _ball_weights(residual_px: np.ndarray, ball_of: np.ndarray, n_balls: int) -> np.ndarray:
@@ -1159,7 +1195,8 @@ def _jackknife_groups(n_balls: int) -> np.ndarray:
 _RESTING_FLAGS = (_CLEAN_FLAG, 1)
 
 #: What a disc's flag says of it, for the flags a view may not rest on.
-_FLAG_SAYS = {2: "is cut by the border", 3: "has its rim across a clip's edge"}
+_FLAG_SAYS = {2: "is cut by the border", 3: "has its rim across a clip's edge",
+              PLACED_FLAG: "was placed only where the balls put it, within another ball's disc"}
 
 
 def _resting_views(rests: np.ndarray, discs: _Discs, flagged: np.ndarray, index_of: np.ndarray, placed, assigned,
@@ -1242,8 +1279,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     detections : sequence of ndarray of shape (N_k, 4), (N_k, 6), (N_k, 7) or (N_k, 8)
         Per view, every disc found: ``x=col, y=row`` of its centre (px), its radius (px) and a flag
         (0 clean, 1 overlapping another disc, 2 cut by the border, 3 its rim across the edge of a
-        clipped background), as the ``beads`` detector reports them; any other flag (-1, the
-        ``class_id`` of keypoints without one) counts as clean. Two more columns, where given:
+        clipped background), as the ``beads`` detector reports them, or 4 (:data:`PLACED_FLAG`: a hidden ball's
+        disc placed where the balls put it); any other flag (-1, the ``class_id`` of keypoints without one) counts as
+        clean, any above 4 as 4. Two more columns, where given:
         the side a clipped background cuts the disc's rim on (:attr:`ctpipe.data.Features.clipped_side`),
         from which the pull of each ball's cut rim is fitted with the rest. A seventh, where given: the
         radius (px) of the circle the centre is that of (:attr:`ctpipe.data.Features.centre_edge_px`: a
@@ -1336,7 +1374,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             view_of, ball_of = np.array(view_of, dtype=int), np.array(ball_of, dtype=int)
             observed, side = np.array(observed).reshape(-1, 2), np.array(side).reshape(-1, 2)
             edge = np.array(edge, dtype=np.float64)
-            # Flags beyond the beads detector's (another detector's -1, a NaN) count as clean; above 3 as 3.
+            # Flags beyond these (another detector's -1, a NaN) count as clean; above 4 as 4.
             flagged = np.clip(np.nan_to_num(np.array(flagged), nan=0.0), 0, _FLAG_KINDS - 1).astype(int)
             weight = flag_weight[flagged] * ball_weight[ball_of] * _se_weights(np.array(disc_se), ball_of, len(balls))
             counts = np.bincount(view_of, minlength=V)
@@ -1585,7 +1623,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                            detector_se=_detector_se(detector_cov if fit_detector else None),
                            angle_jackknife_se_deg=jack_se, detector_kept=detector_kept,
                            detector_reason=detector_reason, correction_p_value=p_change,
-                           view_shifts_px=shifts_out, shift_p_value=shift_p)
+                           view_shifts_px=shifts_out, shift_p_value=shift_p,
+                           hidden_px=_hidden_discs_px(detections, assigned, gross, balls, radii_mm, angles, geometry,
+                                                      detector, view_shifts))
 
 
 def _shifted(detections, shifts_px: np.ndarray) -> list[np.ndarray]:

@@ -445,3 +445,26 @@ def test_rims_and_shells_do_not_lock_onto_pixel_edges(inner):
                                                            ball_edges._directions(720))
         assert np.hypot(x0 - centre[0], y0 - centre[1]) < 0.01
         assert centre_se < 0.003
+
+
+def test_a_ball_others_hide_is_placed_on_its_uncovered_rim_where_the_balls_put_it():
+    """The middle of three balls in a bent row, 52 px from each of its neighbours (160 px across), has no disc of its
+    own; started where the calibration's balls put it (0.36 px off), the rim fit places it on the arcs its neighbours
+    leave. A ball within another's disc, 3 px from its centre, is not taken: a rim fit so near a disc found is taken
+    for that disc's (as one from a ball nearly behind another settles on the nearer's rim)."""
+    from types import SimpleNamespace
+
+    from ctpipe.builtin.ball_calibration import _with_hidden_discs
+    from ctpipe.solve.balls import PLACED_FLAG
+
+    row = [((304.1, 331.0), 80.0, 0.05), ((352.1, 351.0), 80.0, 0.04), ((403.7, 351.9), 80.0, 0.05),
+           ((700.3, 380.6), 80.0, 0.05), ((703.1, 381.2), 60.0, 0.03)]
+    view = _view(row, shape=(700, 900), seed=3)
+    seen = np.array([[*row[k][0], row[k][1], 1.0, 0.0, 0.0, row[k][1], 0.01] for k in (0, 2, 3)])
+    hidden = np.array([[1.0, 352.4, 350.8, 80.0], [4.0, 703.0, 381.0, 60.0]])
+    detections, placed = _with_hidden_discs(view[None], [seen], SimpleNamespace(hidden_px=[hidden]))
+    assert placed == 1 and len(detections[0]) == 4
+    np.testing.assert_array_equal(detections[0][:3], seen)
+    new = detections[0][3]
+    assert np.hypot(new[0] - 352.1, new[1] - 351.0) < 0.05 and abs(new[2] - 80.0) < 1.5
+    assert new[3] == PLACED_FLAG and np.isfinite(new[7])

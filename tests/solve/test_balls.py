@@ -1101,3 +1101,30 @@ def test_a_drifting_view_of_two_discs_rests_on_them_and_one_across_a_clips_edge_
     assert not cut.kept and cut.reason.startswith("view 4's angle rests on ball ")
     assert "which has its rim across a clip's edge" in cut.reason
     np.testing.assert_array_equal(cut.angles_deg, nominal)
+
+
+def test_a_followed_ball_without_a_disc_is_said_where_it_lies_within_another_disc():
+    """Where a followed ball has no disc of its own in a view and its disc would overlap another's (found as one with
+    it, or missed), the calibration says where the balls put it, for the detector to look again: within hundredths
+    of a pixel, with its radius. A ball missing where nothing overlaps it (under the clip, say) is not said."""
+    rng = np.random.default_rng(5)
+    nominal = np.linspace(0.0, 360.0, 20, endpoint=False)
+    truth = nominal + np.clip(rng.normal(0.0, 0.5, 20), -1.5, 1.5)
+    detections = _detections(truth, BALLS, 2.5, noise_px=0.01, seed=5)
+    where = {v: ellipse_centres(BALLS, np.full(len(BALLS), 2.5), np.full(len(BALLS), np.deg2rad(truth[v])), GEOMETRY,
+                                999.5, GEOMETRY.v0_px, 0.0) for v in (5, 9)}
+    # View 5: ball 4's disc 125 px from ball 3's (each about 145 px across); view 9: ball 0's 330 px from any other.
+    for view, ball in ((5, 4), (9, 0)):
+        nearest = int(np.argmin(np.hypot(*(detections[view][:, :2] - where[view][ball]).T)))
+        detections[view] = np.delete(detections[view], nearest, axis=0)
+    found = calibrate_balls(detections, GEOMETRY, nominal)
+    assert found.kept
+    assert [v for v, hidden in enumerate(found.hidden_px) if len(hidden)] == [5]
+    (ball, x, y, r), = found.hidden_px[5]
+    assert np.hypot(x - where[5][4, 0], y - where[5][4, 1]) < 0.05
+    depth = np.sin(np.deg2rad(truth[5])) * BALLS[4, 0] + np.cos(np.deg2rad(truth[5])) * BALLS[4, 2] + 172.0
+    assert r == pytest.approx(2.5 * 1000.0 / (0.2 * depth), abs=0.5)
+    # The ball said is the one ball 4's discs go to in the other views.
+    uv = ellipse_centres(BALLS[4:5], np.full(1, 2.5), np.full(1, np.deg2rad(truth[6])), GEOMETRY, 999.5,
+                         GEOMETRY.v0_px, 0.0)
+    assert found.assigned[6][int(np.argmin(np.hypot(*(detections[6][:, :2] - uv[0]).T)))] == ball
