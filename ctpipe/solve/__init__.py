@@ -18,7 +18,7 @@ known points for testing the solvers without images. ``docs/wholescan.md`` has t
 figures; the refiner stages that call these are in :mod:`ctpipe.builtin`.
 """
 
-from ctpipe.solve.balls import BallCalibration, calibrate_balls, ellipse_centres
+from ctpipe.solve.balls import PLACED_FLAG, BallCalibration, calibrate_balls, ellipse_centres
 from ctpipe.solve.bundle import BundleResult, BundleSettings, BundleSolution, bundle_adjust, solve_bundle
 from ctpipe.solve.camera import pixels_to_rays, project_points
 from ctpipe.solve.conjugate import (ConjugateRayScore, conjugate_pairs, conjugate_ray_costs, conjugate_ray_mismatch,
@@ -47,4 +47,5 @@ __all__ = ["covers_full_turn", "turn_pairs", "unwrap_pair_angles_deg", "view_pai
            "project_points", "pixels_to_rays", "synthetic_scan", "SyntheticScan", "midplane_rows", "midplane_row", "conjugate_pairs",
            "conjugate_ray_mismatch", "conjugate_ray_costs", "ConjugateRayScore", "turning_part",
            "gate_angles", "GateDecision",
-           "split_bands", "needed_z", "cannot_tell", "BANDS", "calibrate_balls", "BallCalibration", "ellipse_centres"]
+           "split_bands", "needed_z", "cannot_tell", "BANDS", "calibrate_balls", "BallCalibration", "ellipse_centres",
+           "PLACED_FLAG"]
