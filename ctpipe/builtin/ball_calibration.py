@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Literal
 
@@ -74,19 +75,17 @@ class BallCalibrationRefiner(Refiner):
             edge = 0.5 * np.asarray(features.size) if features.centre_edge_px is None else features.centre_edge_px
             se = np.full(len(features.xy), np.nan) if features.centre_se_px is None else features.centre_se_px
             detections.append(np.column_stack([features.xy, 0.5 * np.asarray(features.size), flags, side, edge, se]))
-        found = calibrate_balls(detections, observations.geometry, nominal, max_error_deg=self.max_error_deg,
-                                fit_detector=self.fit_detector, p_value=self.p_value,
-                                max_angle_se_deg=self.max_angle_se_deg,
-                                fit_shifts=None if self.view_shifts == "auto" else False)
+        calibrate = functools.partial(calibrate_balls, geometry=observations.geometry, nominal_angles_deg=nominal,
+                                      max_error_deg=self.max_error_deg, fit_detector=self.fit_detector,
+                                      p_value=self.p_value, max_angle_se_deg=self.max_angle_se_deg,
+                                      fit_shifts=None if self.view_shifts == "auto" else False)
+        found = calibrate(detections)
         placed = 0
         if observations.projections is not None and not observations.static_background_removed:
             # Balls the detector found as one with another, or not at all, looked for again where the balls put them.
             detections, placed = _with_hidden_discs(observations.projections, detections, found)
             if placed:
-                found = calibrate_balls(detections, observations.geometry, nominal, max_error_deg=self.max_error_deg,
-                                        fit_detector=self.fit_detector, p_value=self.p_value,
-                                        max_angle_se_deg=self.max_angle_se_deg,
-                                        fit_shifts=None if self.view_shifts == "auto" else False)
+                found = calibrate(detections)
         angles = found.angles_deg
         info = {"balls": {**found.to_dict(), "hidden_discs_placed": placed},
                 "chosen": "corrected" if found.kept else "nominal"}

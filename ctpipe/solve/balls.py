@@ -589,12 +589,19 @@ def _hidden_within(found: np.ndarray, labels: np.ndarray, balls, radii_mm, angle
     """Per disc of one view (``found``, its balls ``labels``, -1 none): whether a followed ball with no disc of its own
     in the view is projected within it (False for discs of no ball)."""
     within = np.zeros(len(found), bool)
-    hidden = np.setdiff1d(np.arange(len(balls)), labels[labels >= 0])
-    if len(hidden) and np.any(labels >= 0):
-        uv = _project(balls[hidden], np.full(len(hidden), angle), geometry, *detector, radii_mm[hidden])
+    if np.any(labels >= 0):
+        _, uv = _balls_without_disc(labels, balls, radii_mm, angle, geometry, detector)
         for k in np.flatnonzero(labels >= 0):
             within[k] = bool(np.any(np.hypot(*(uv - found[k, :2]).T) < found[k, 2]))
     return within
+
+
+def _balls_without_disc(labels: np.ndarray, balls, radii_mm, angle: float, geometry: Geometry,
+                        detector) -> tuple[np.ndarray, np.ndarray]:
+    """The followed balls with no disc of their own in a view (``labels``: each disc's ball, -1 none), and where the
+    view projects their discs' centres (px, shape (H, 2))."""
+    hidden = np.setdiff1d(np.arange(len(balls)), labels[labels >= 0])
+    return hidden, _project(balls[hidden], np.full(len(hidden), angle), geometry, *detector, radii_mm[hidden])
 
 
 def _hidden_discs_px(detections, assigned, gross, balls, radii_mm, angles, geometry: Geometry, detector,
@@ -605,15 +612,14 @@ def _hidden_discs_px(detections, assigned, gross, balls, radii_mm, angles, geome
     rows, cols = geometry.shape
     out = []
     for view, (found, labels, left_out) in enumerate(zip(detections, assigned, gross)):
-        hidden = np.setdiff1d(np.arange(len(balls)), labels[(labels >= 0) & ~left_out])
+        hidden, uv = _balls_without_disc(np.where(left_out, -1, labels), balls, radii_mm, angles[view], geometry,
+                                         detector)
         if not len(hidden) or not len(found):
             out.append(np.zeros((0, 4)))
             continue
-        angle = np.full(len(hidden), angles[view])
-        uv = _project(balls[hidden], angle, geometry, *detector, radii_mm[hidden])
         if shifts_px is not None:
             uv = uv + shifts_px[view]
-        r = _disc_radius_px(balls[hidden], radii_mm[hidden], angle, geometry)
+        r = _disc_radius_px(balls[hidden], radii_mm[hidden], np.full(len(hidden), angles[view]), geometry)
         gap = np.hypot(uv[:, None, 0] - found[None, :, 0], uv[:, None, 1] - found[None, :, 1])
         keep = np.any(gap < r[:, None] + found[None, :, 2], axis=1) & np.isfinite(r) & \
             (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= cols - 1) & (uv[:, 1] <= rows - 1)
