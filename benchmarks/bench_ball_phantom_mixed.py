@@ -20,7 +20,9 @@ balls followed and seen per ball, every view's error
 against the truth (after the common offset), the largest and the RMS, and the fitted detector
 against the true one (axis column in pixels, tilt in degrees, the camera convention of
 :mod:`ctpipe.solve.balls`: the simulator's ``tilt_deg`` with the opposite sign; where not given, why) and how deep the
-clip cuts each ball's rim as the calibration fitted it (null: no disc of that ball cut on one side). Exits with 1
+clip cuts each ball's rim as the calibration fitted it (null: no disc of that ball cut on one side), and how far
+discs are pushed from, and scattered along, the balls that overlap them (:func:`ctpipe.solve.balls._overlap_pull`,
+per whole disc covered; null: none overlaps another). Exits with 1
 when a view is beyond ``--bar-deg`` (0.01, the issue's) or the geometry beyond 0.1 px / 0.01 deg.
 
     python benchmarks/bench_ball_phantom_mixed.py [--seeds 0 1 2] [--views 24] [--max-error-deg 2]
@@ -325,7 +327,9 @@ def main(argv=None) -> int:
         print(f"  detector{given}: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it; "
               f"reprojection RMS {balls.get('rms_px', np.nan):.3f} px (nominal angles "
               f"{balls.get('nominal_rms_px', np.nan):.3f}); "
-              f"rims cut by the clip (px, per ball): {balls.get('ball_cut_px')}")
+              f"rims cut by the clip (px, per ball): {balls.get('ball_cut_px')}; discs pushed from the balls overlapping "
+              f"them {balls.get('overlap_pull_px')} px and scattered along them {balls.get('overlap_scatter_px')} px, "
+              f"per disc covered")
         shifts = balls.get("view_shifts_px")
         if drift or shifts is not None:
             fitted = "none fitted" if shifts is None else (
