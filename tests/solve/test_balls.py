@@ -321,11 +321,14 @@ def test_one_gross_error_does_not_set_a_kind_of_flagged_discs_weight():
     assert _flag_weights(residual, flag, gross_px=1.0)[3] == pytest.approx(0.2)
 
 
-def test_nominal_angles_each_within_the_stated_error_are_corrected():
-    """Every view off by up to 2 deg either way: the corrections span nearly 4 deg, and that is allowed."""
+@pytest.mark.parametrize("edge_deg", [1.95, 2.0])
+def test_nominal_angles_each_within_the_stated_error_are_corrected(edge_deg):
+    """Every view off by up to 2 deg either way: the corrections span nearly 4 deg, and that is allowed. Two views
+    exactly 2 deg off either way span 4 deg, which the estimate may put a thousandth of a degree beyond (2.0007 here,
+    refused when written): allowed too, within the views' standard errors."""
     nominal = np.linspace(0.0, 360.0, 24, endpoint=False)
     off = np.random.default_rng(10).uniform(-2.0, 2.0, 24)
-    off[[3, 17]] = [-1.95, 1.95]
+    off[[3, 17]] = [-edge_deg, edge_deg]
     detections = _detections(nominal + off, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3, seed=10)
     found = calibrate_balls(detections, GEOMETRY, nominal, max_error_deg=2.0)
     error = (found.angles_deg - (nominal + off)) - np.median(found.angles_deg - (nominal + off))
