@@ -21,7 +21,7 @@ against the truth (after the common offset), the largest and the RMS, and the fi
 against the true one (axis column in pixels, tilt in degrees, the camera convention of
 :mod:`ctpipe.solve.balls`: the simulator's ``tilt_deg`` with the opposite sign; where not given, why) and how deep the
 clip cuts each ball's rim as the calibration fitted it (null: no disc of that ball cut on one side), and how far
-discs are pushed from, and scattered along, the balls that overlap them (:func:`ctpipe.solve.balls._overlap_pull`,
+discs are pushed from, and scattered along, the balls that overlap them (:func:`ctpipe.solve.balls._overlaps`,
 per whole disc covered; null: none overlaps another). Exits with 1
 when a view is beyond ``--bar-deg`` (0.01, the issue's) or the geometry beyond 0.1 px / 0.01 deg.
 

@@ -43,7 +43,7 @@ nothing is decided pair by pair:
    better on 16 (``docs/calibration-phantoms.md``). A disc whose rim another ball's disc overlaps is found a few
    hundredths of a pixel away from that ball, more the more of it the other covers, and scatters along that direction
    more than across it: the push is modelled as one more unknown for the scan, times the share of the disc each
-   neighbour's covers along the direction to it (:func:`_overlap_pull`), and the scatter, per share covered,
+   neighbour's covers along the direction to it (:func:`_overlaps`), and the scatter, per share covered,
    estimated from the residuals, weighs such discs along it (:func:`_overlap_whitening`). Between rounds, each view's
    angle is searched
    again in one dimension with the balls and the detector as the others fix them
@@ -197,7 +197,7 @@ class BallCalibration:
         look for again there (the ``ball-calibration`` refiner's second look).
     overlap_pull_px : float
         How far the detector placed a disc away from another ball's disc covering all of it (px; a share of that
-        where the other covers part of it: :func:`_overlap_pull`), fitted with the corrected angles; NaN where no
+        where the other covers part of it: :func:`_overlaps`), fitted with the corrected angles; NaN where no
         disc overlaps another.
     overlap_scatter_px : float
         How far such discs scatter along the balls that overlap them, beyond clean discs, a share of this per share
@@ -894,7 +894,7 @@ class _Discs:
     """The discs assigned to balls, a row each: the centre found (M, 2), its weight, its view and its ball, the side
     a clip cuts its rim on (M, 2: :attr:`~ctpipe.data.Features.clipped_side`), the radius of the edge that
     placed it over its disc's (1 for the rim, less for a shell's inside), how the other balls' discs overlap it
-    (M, 2: :func:`_overlap_pull`) and the matrix its error is taken through before its weight, where its scatter
+    (M, 2: :func:`_overlaps`) and the matrix its error is taken through before its weight, where its scatter
     along that overlap is modelled (M, 2, 2: :func:`_overlap_whitening`; None: the identity)."""
 
     xy: np.ndarray
@@ -977,7 +977,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     disc's fitted centre is taken as pulled by ``-2 cut side`` (:data:`_CUT_PULL`).
 
     Where other balls' discs overlap some discs (``discs.overlap``), one more unknown, the overlap pull ``p`` (px, from
-    0): a disc's fitted centre is taken as pushed by ``-p overlap`` (:func:`_overlap_pull`).
+    0): a disc's fitted centre is taken as pushed by ``-p overlap`` (:func:`_overlaps`).
 
     Given ``shifts_px`` (V, 2: their start), every free view's projection is shifted by its own ``(du, dv)`` px
     besides, a source spot or a detector that drifts. Four more gauge rows (weighed :data:`_SHIFT_GAUGE_WEIGHT`)
@@ -1293,7 +1293,7 @@ def _kept_information(discs: _Discs, groups: np.ndarray, G: int, radii_mm, angle
     return share
 
 
-def _overlap_pull(view_of, ball_of, balls, radii_mm, angles, geometry: Geometry, detector) -> np.ndarray:
+def _overlaps(view_of, ball_of, balls, radii_mm, angles, geometry: Geometry, detector) -> np.ndarray:
     """Per disc, how the other followed balls' discs overlap it in its view (M, 2): the sum over them of the share of
     its area each covers (:func:`_lens_share`) times the unit vector towards its centre, where the balls project.
 
@@ -1337,7 +1337,7 @@ def _overlap_scatter_px(residual_px: np.ndarray, overlap: np.ndarray, flagged: n
                         counted: np.ndarray) -> tuple[float, float]:
     """How far discs scatter along the balls that overlap them, per share covered (px), and the clean discs' spread.
 
-    Returns ``tau`` and ``clean``: the discs other balls overlap (``overlap``, :func:`_overlap_pull`) have residuals
+    Returns ``tau`` and ``clean``: the discs other balls overlap (``overlap``, :func:`_overlaps`) have residuals
     whose squares exceed, along the overlap's direction, those across it by ``tau^2 s^2`` (``s`` the share covered,
     the overlap's length), summed over the discs (a moment estimate; 0 where across exceeds along, or fewer than
     ten such discs); ``clean`` is the root mean square of the clean discs no other overlaps (all discs' where there
@@ -1364,7 +1364,7 @@ def _overlap_whitening(overlap: np.ndarray, weight: np.ndarray, tau_px: float, c
     ``sd^2 (I + k u u^T)`` with ``k = (tau s / sd)^2``, and ``(I + k u u^T)^(-1/2) = I + (1 / sqrt(1 + k) - 1) u u^T``
     weighs the disc's error along the overlap as what it is (generalised least squares), across it as before.
 
-    The scatter grows with how much of the disc the others cover, where the push (:func:`_overlap_pull`) is its
+    The scatter grows with how much of the disc the others cover, where the push (:func:`_overlaps`) is its
     mean: on the 13 seen hardened scans (as there), the discs' error towards a neighbour reaching 0.5-0.8, 0.8-1.2 and
     1.2-2.1 radii into them had standard deviations of 0.018, 0.022 and 0.096 px about its mean, across it 0.009. Two
     or three balls crowded within 50 px of each other set the worst views: in a 36-view scan drawn after the push was
@@ -1542,7 +1542,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             z = np.array([np.median(np.sin(angles[view_of[ball_of == b]]) * balls[b, 0]
                                     + np.cos(angles[view_of[ball_of == b]]) * balls[b, 2]) for b in range(len(balls))])
             radii_mm = radii_mm * (z + geometry.source_to_object_mm) / geometry.source_to_detector_mm
-            overlap = _overlap_pull(view_of, ball_of, balls, radii_mm, angles, geometry, detector)
+            overlap = _overlaps(view_of, ball_of, balls, radii_mm, angles, geometry, detector)
             whiten, fit_scatter_px = _overlap_whitening(overlap, weight, *scatter), scatter[0]
             discs = _Discs(observed, weight, view_of, ball_of, side, edge, overlap, whiten)
             fit = _adjust(discs, radii_mm, angles, balls, detector, geometry, free_views=free_views,
