@@ -1585,6 +1585,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                 balls, tol, radii_mm, ball_weight = balls[good], tol[good], radii_mm[good], ball_weight[good]
                 cut_px = np.zeros(len(balls))
                 flag_weight = _first_flag_weights()   # their residuals held the dropped ball's discs
+                scatter = (0.0, 1.0)                  # and so did the overlaps' scatter
                 gross = [np.zeros(len(found), bool) for found in detections]
                 angles, detector = start_angles.copy(), start_detector.copy()   # as it bent them
                 shifting, shifts, shift_p, shift_tested = start_shifts
