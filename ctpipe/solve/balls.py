@@ -342,6 +342,13 @@ def _disc_radius_px(points, radii_mm, angles, geometry) -> np.ndarray:
         return np.where(depth > 0, radii_mm * geometry.source_to_detector_mm / (pitch * depth), np.nan)
 
 
+def _view_discs(balls, radii_mm, angle: float, geometry: Geometry, detector) -> tuple[np.ndarray, np.ndarray]:
+    """Where a view at ``angle`` (rad) with ``detector`` ``(u0, v0, tilt)`` puts every ball's disc: the centres (B, 2)
+    and the radii (B,), px."""
+    at = np.full(len(balls), angle)
+    return _project(balls, at, geometry, *detector, radii_mm), _disc_radius_px(balls, radii_mm, at, geometry)
+
+
 def _radius_fits(found_px, expected_px) -> np.ndarray:
     """Whether discs of radius ``found_px`` can be those of a ball expected at ``expected_px`` (broadcast).
 
@@ -505,10 +512,9 @@ def _assign(detections, balls, radii_mm, angles, geometry, u0, v0, tilt, tol_px)
     for view, found in enumerate(detections):
         labels = np.full(len(found), -1)
         if len(found) and B:
-            uv = _project(balls, np.full(B, angles[view]), geometry, u0, v0, tilt, radii_mm)
+            uv, expected = _view_discs(balls, radii_mm, angles[view], geometry, (u0, v0, tilt))
             cost = np.hypot(found[:, None, 0] - uv[None, :, 0], found[:, None, 1] - uv[None, :, 1])
-            sized = _radius_fits(found[:, None, 2], _disc_radius_px(balls, radii_mm, np.full(B, angles[view]),
-                                                                   geometry)[None, :])
+            sized = _radius_fits(found[:, None, 2], expected[None, :])
             gated = np.where((cost <= tol_px[None, :]) & sized, cost, 1e9)
             rows, cols = linear_sum_assignment(gated)
             for r, c in zip(rows, cols):
@@ -607,18 +613,19 @@ def _hidden_within(found: np.ndarray, labels: np.ndarray, balls, radii_mm, angle
     in the view is projected within it (False for discs of no ball)."""
     within = np.zeros(len(found), bool)
     if np.any(labels >= 0):
-        _, uv = _balls_without_disc(labels, balls, radii_mm, angle, geometry, detector)
+        _, uv, _ = _balls_without_disc(labels, balls, radii_mm, angle, geometry, detector)
         for k in np.flatnonzero(labels >= 0):
             within[k] = bool(np.any(np.hypot(*(uv - found[k, :2]).T) < found[k, 2]))
     return within
 
 
 def _balls_without_disc(labels: np.ndarray, balls, radii_mm, angle: float, geometry: Geometry,
-                        detector) -> tuple[np.ndarray, np.ndarray]:
+                        detector) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The followed balls with no disc of their own in a view (``labels``: each disc's ball, -1 none), and where the
-    view projects their discs' centres (px, shape (H, 2))."""
+    view puts their discs (:func:`_view_discs`: centres (H, 2) and radii (H,), px)."""
     hidden = np.setdiff1d(np.arange(len(balls)), labels[labels >= 0])
-    return hidden, _project(balls[hidden], np.full(len(hidden), angle), geometry, *detector, radii_mm[hidden])
+    uv, r = _view_discs(balls, radii_mm, angle, geometry, detector)
+    return hidden, uv[hidden], r[hidden]
 
 
 def _hidden_discs_px(detections, assigned, gross, balls, radii_mm, angles, geometry: Geometry, detector,
@@ -629,14 +636,13 @@ def _hidden_discs_px(detections, assigned, gross, balls, radii_mm, angles, geome
     rows, cols = geometry.shape
     out = []
     for view, (found, labels, left_out) in enumerate(zip(detections, assigned, gross)):
-        hidden, uv = _balls_without_disc(np.where(left_out, -1, labels), balls, radii_mm, angles[view], geometry,
-                                         detector)
+        hidden, uv, r = _balls_without_disc(np.where(left_out, -1, labels), balls, radii_mm, angles[view], geometry,
+                                            detector)
         if not len(hidden) or not len(found):
             out.append(np.zeros((0, 4)))
             continue
         if shifts_px is not None:
             uv = uv + shifts_px[view]
-        r = _disc_radius_px(balls[hidden], radii_mm[hidden], np.full(len(hidden), angles[view]), geometry)
         gap = np.hypot(uv[:, None, 0] - found[None, :, 0], uv[:, None, 1] - found[None, :, 1])
         keep = np.any(gap < r[:, None] + found[None, :, 2], axis=1) & np.isfinite(r) & \
             (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= cols - 1) & (uv[:, 1] <= rows - 1)
@@ -1317,12 +1323,9 @@ def _overlaps(view_of, ball_of, balls, radii_mm, angles, geometry: Geometry, det
     The pull is not the same on every scan (the blur, the balls' contrast, the clip), so it is fitted (:func:`_adjust`).
     """
     out = np.zeros((len(view_of), 2))
-    B = len(balls)
     for v in np.unique(view_of):
         mine = np.flatnonzero(view_of == v)
-        at = np.full(B, angles[v])
-        uv = _project(balls, at, geometry, *detector, radii_mm)
-        r = _disc_radius_px(balls, radii_mm, at, geometry)
+        uv, r = _view_discs(balls, radii_mm, angles[v], geometry, detector)
         gap = uv[None, :, :] - uv[ball_of[mine], None, :]            # (discs, balls, 2): towards each ball
         d = np.hypot(gap[..., 0], gap[..., 1])
         share = _lens_share(r[ball_of[mine], None], r[None, :], d)
@@ -1354,6 +1357,11 @@ def _overlap_scatter_px(residual_px: np.ndarray, overlap: np.ndarray, flagged: n
     across = residual_px[mine, 1] * u[:, 0] - residual_px[mine, 0] * u[:, 1]
     excess = (np.sum(along ** 2) - np.sum(across ** 2)) / np.sum(s[mine] ** 2)
     return math.sqrt(max(float(excess), 0.0)), clean_px
+
+
+#: The overlaps' scatter before any residual is seen (:func:`_overlap_scatter_px`'s ``tau`` and ``clean``, px):
+#: none, so every disc is weighed alike along and across.
+_NO_SCATTER = (0.0, 1.0)
 
 
 def _overlap_whitening(overlap: np.ndarray, weight: np.ndarray, tau_px: float, clean_px: float) -> np.ndarray | None:
@@ -1493,7 +1501,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     ball_weight = np.ones(len(balls))   # each ball's weight from its own residuals' spread, after the first round
     cut_px = np.zeros(len(balls))       # how deep a clipped background cuts each ball's rim, fitted with the rest
     flag_weight = _first_flag_weights()
-    scatter = (0.0, 1.0)                # how discs scatter along what overlaps them, and clean ones (px)
+    scatter = _NO_SCATTER               # how discs scatter along what overlaps them, and clean ones (px)
     loss = "huber"
     start_angles, start_detector = theta0.copy(), detector.copy()
     dropped = False
@@ -1585,7 +1593,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                 balls, tol, radii_mm, ball_weight = balls[good], tol[good], radii_mm[good], ball_weight[good]
                 cut_px = np.zeros(len(balls))
                 flag_weight = _first_flag_weights()   # their residuals held the dropped ball's discs
-                scatter = (0.0, 1.0)                  # and so did the overlaps' scatter
+                scatter = _NO_SCATTER                 # and so did the overlaps' scatter
                 gross = [np.zeros(len(found), bool) for found in detections]
                 angles, detector = start_angles.copy(), start_detector.copy()   # as it bent them
                 shifting, shifts, shift_p, shift_tested = start_shifts
