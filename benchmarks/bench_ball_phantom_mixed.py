@@ -324,7 +324,11 @@ def main(argv=None) -> int:
         print(f"  per-view error (deg): max {largest:.4f}, RMS {rms:.4f}; "
               f"{np.array2string(errors, precision=4, max_line_width=150, suppress_small=True)}")
         given = "" if balls.get("detector_kept") else f" (NOT given: {balls.get('detector_reason')})"
-        print(f"  detector{given}: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it; "
+        sdd = balls.get("source_to_detector_mm")
+        sdd_mm = np.nan if sdd is None else sdd - scan.geometry.source_to_detector_mm
+        print(f"  detector{given}: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it, the axis "
+              f"{balls.get('axis_offset_mm', np.nan):+.3f} mm off the source's perpendicular (truth 0), source to "
+              f"detector {sdd_mm:+.2f} mm from the truth; "
               f"reprojection RMS {balls.get('rms_px', np.nan):.3f} px (nominal angles "
               f"{balls.get('nominal_rms_px', np.nan):.3f}); "
               f"rims cut by the clip (px, per ball): {balls.get('ball_cut_px')}; discs pushed from the balls overlapping "

@@ -543,12 +543,26 @@ class ScanResult:
         if refined is not None and any(k in refined.refined for k in ("u0_px", "tilt_deg")):
             lines.append(f"geometry: u0 {refined.geometry.u0_px:.3f} px (was {g.u0_px:.3f}), v0 "
                          f"{refined.geometry.v0_px:.3f} px, detector tilt {refined.tilt_deg:.4f} deg"
-                         + _detector_se_text(balls))
+                         + _detector_se_text(balls) + _ball_scanner_text(balls, g))
         lines.append(f"estimated angles: {estimated[0]:.4f} .. {estimated[-1]:.4f} deg "
                      f"(in the nominal angles' frame{'' if self.nominal_angles_deg is not None else ': relative to view 0'})")
         if written:
             lines.append("written: " + ", ".join(written))
         return "\n".join(lines)
+
+
+def _ball_scanner_text(balls, geometry: Geometry) -> str:
+    """The ball calibration's axis offset and source-to-detector distance, as the summary's geometry line ends, or ""
+    (:attr:`ctpipe.solve.balls.BallCalibration.axis_offset_mm`: reported, not in the geometry written)."""
+    if not isinstance(balls, dict) or balls.get("source_to_detector_mm") is None:
+        return ""
+    offset, sdd = float(balls["axis_offset_mm"]), float(balls["source_to_detector_mm"])
+    se = balls.get("detector_se") or []
+    said = (f" (standard errors {se[3]:.3f} mm, {se[4]:.2f} mm)" if len(se) >= 5 and None not in se[3:5] else "")
+    return (f"; the axis {offset:.3f} mm off the source's perpendicular to the detector (a detector yaw of "
+            f"{math.degrees(math.asin(max(-1.0, min(1.0, offset / geometry.source_to_object_mm)))):.3f} deg), source "
+            f"to detector {sdd:.2f} mm (was {geometry.source_to_detector_mm:.2f}; magnification "
+            f"{sdd / geometry.source_to_object_mm:.4f}){said}: reported, not written into the geometry")
 
 
 def _detector_se_text(balls) -> str:

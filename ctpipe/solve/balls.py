@@ -17,7 +17,8 @@ nothing is decided pair by pair:
    keep its size at its depth: a disc of another size (two overlapping balls found as one, larger)
    is not that ball's (:data:`_RADIUS_TOLERANCE`), here and in every assignment.
 2. **One bundle adjustment** of every view's angle, every ball's position and the detector
-   (the axis column ``u0``, the principal row ``v0``, the in-plane tilt) on the detections
+   (the axis column ``u0``, the principal row ``v0``, the in-plane tilt, how far the axis lies off the source's
+   perpendicular to the detector, and the source-to-detector distance) on the detections
    assigned to a ball one-to-one in each view; assignment and adjustment alternate. Robust:
    Huber's loss at one pixel from the nominal angles, Cauchy's once a round has settled them, so
    that a disc pulled tenths of a pixel by a clip edge counts for less than linearly (on the
@@ -98,7 +99,7 @@ nothing is decided pair by pair:
    returned angles, the detector is given where the angles are corrected (it is part of the
    correction the F test accepted), or, with the nominal angles, where they explain the balls as
    well as the corrected ones (the F test above finds no difference) and the fitted detector
-   explains them better than the scan's own beyond noise (an F test of its three unknowns). Where the
+   explains them better than the scan's own beyond noise (an F test of its unknowns). Where the
    corrected angles are refused for some views alone (a view its balls barely pin, or on which they
    disagree) while they explain the balls beyond noise, the nominal angles, off by the stage's
    error, would bend the detector (0.26 px on a simulated scan); the detector the corrected angles
@@ -107,9 +108,19 @@ nothing is decided pair by pair:
 
 Gauges: a common turn of every view only turns the phantom, so each adjustment holds the free
 views' mean angle where it starts (the corrected angles carry whatever common turn that leaves;
-the ``ball-calibration`` refiner returns them from view 0's); the magnification stays the
-nominal one (balls of unknown positions and size fix the geometry only up to scale: a phantom
-scaled about the source projects the same).
+the ``ball-calibration`` refiner returns them from view 0's); the source-to-object distance stays the
+nominal one (balls of unknown positions and size fix the geometry only up to scale: a phantom, with its axis,
+scaled about the source projects the same). The detector does not scale with them, so its distance from the source
+is fitted, and the magnification with it.
+
+The scanner, as a full calibration takes it (Noo, Clackdoyle, Mennessier, White and Roney 2000; Yang et al. 2006;
+CtCalib, Sensors 24:5139, 2024): the source, a detector at any pose, and an axis. Tipping the axis towards the
+source, or the detector about its rows' direction, moves the balls' trajectories as the principal row does, to first
+order: ``v0`` takes it (a synthetic scan with the axis tipped 0.5 deg: the views within 0.004 deg, ``v0`` moved
+38 px). Two parts of the pose do not fold into ``u0``, ``v0`` and the tilt, and each bent the angles where it was left
+out (synthetic discs with 0.02 px of noise, told angles 0.5 deg off): the axis off the source's perpendicular (a
+stage moved sideways, or a detector yawed by 0.5 deg: views up to 0.026 deg off, kept) and the distance from the
+source to the detector (1 % off: up to 0.048 deg, refused). Both are fitted (:func:`ellipse_centres`).
 """
 
 from __future__ import annotations
@@ -126,6 +137,11 @@ from ctpipe.geometry import Geometry
 from ctpipe.solve.camera import pixels_to_rays
 
 __all__ = ["BallCalibration", "calibrate_balls", "ellipse_centres", "PLACED_FLAG"]
+
+
+#: The detector's unknowns: the axis column, the principal row, the in-plane tilt (rad), the axis's offset from the
+#: source's perpendicular to the detector (mm, at the axis), the source-to-detector distance (mm).
+_DETECTOR_UNKNOWNS = 5
 
 
 @dataclass(frozen=True)
@@ -151,8 +167,18 @@ class BallCalibration:
     u0_px, v0_px, tilt_deg : float
         The detector fitted with the returned angles: axis column, principal row, in-plane tilt
         (camera convention); with the corrected angles where ``detector_reason`` says so though they are not returned.
-    detector_se : ndarray of shape (3,)
-        Standard errors of ``u0_px`` (px), ``v0_px`` (px) and ``tilt_deg`` (deg); NaN where not computed.
+        ``(u0_px, v0_px)`` is where the axis's point level with the source projects.
+    axis_offset_mm : float
+        Fitted with them: how far the rotation axis lies from the source's perpendicular to the detector, along the
+        detector's columns, at the axis (mm; the principal point lies ``axis_offset_mm * SDD / (SOD * pitch_u)``
+        columns below ``u0_px``). The same as a detector turned by ``asin(axis_offset_mm / SOD)`` about its columns'
+        perpendicular in its plane (a yaw), the axis on the perpendicular.
+    source_to_detector_mm : float
+        Fitted with them, at the scan's own source-to-object distance (a phantom of unknown size fixes the rest
+        only up to a scale about the source): the magnification is this over ``source_to_object_mm``.
+    detector_se : ndarray of shape (5,)
+        Standard errors of ``u0_px`` (px), ``v0_px`` (px), ``tilt_deg`` (deg), ``axis_offset_mm`` (mm) and
+        ``source_to_detector_mm`` (mm); NaN where not computed.
     angle_jackknife_se_deg : ndarray of shape (V,) or None
         Every view's angle's standard error by the delete-a-group jackknife over the balls (NaN where
         not computed): how far the balls disagree on it.
@@ -221,7 +247,7 @@ class BallCalibration:
     observations: int
     assigned: list = field(default_factory=list)
     ball_cut_px: np.ndarray | None = None
-    detector_se: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    detector_se: np.ndarray = field(default_factory=lambda: np.full(_DETECTOR_UNKNOWNS, np.nan))
     angle_jackknife_se_deg: np.ndarray | None = None
     detector_kept: bool = False
     detector_reason: str = ""
@@ -233,11 +259,15 @@ class BallCalibration:
     hidden_px: list = field(default_factory=list)
     overlap_pull_px: float = math.nan
     overlap_scatter_px: float = math.nan
+    axis_offset_mm: float = 0.0
+    source_to_detector_mm: float = math.nan
 
     def to_dict(self) -> dict:
         return {"kept": self.kept, "reason": self.reason, "balls": len(self.balls_mm),
                 "balls_mm": np.round(self.balls_mm, 4).tolist(), "u0_px": self.u0_px, "v0_px": self.v0_px,
-                "tilt_deg": self.tilt_deg, "detector_se": [None if not np.isfinite(e) else float(e)
+                "tilt_deg": self.tilt_deg, "axis_offset_mm": self.axis_offset_mm,
+                "source_to_detector_mm": None if not math.isfinite(self.source_to_detector_mm) else
+                self.source_to_detector_mm, "detector_se": [None if not np.isfinite(e) else float(e)
                                                            for e in self.detector_se],
                 "detector_kept": self.detector_kept, "detector_reason": self.detector_reason, "rms_px": self.rms_px,
                 "max_jackknife_se_deg": (None if self.angle_jackknife_se_deg is None
@@ -260,7 +290,8 @@ class BallCalibration:
 
 
 def ellipse_centres(points_mm: np.ndarray, radii_mm: np.ndarray, angles_rad: np.ndarray, geometry: Geometry,
-                    u0_px: float, v0_px: float, tilt_rad: float) -> np.ndarray:
+                    u0_px: float, v0_px: float, tilt_rad: float, axis_offset_mm: float = 0.0,
+                    source_to_detector_mm: float | None = None) -> np.ndarray:
     """Pixel centres of the discs (ellipses) balls of ``radii_mm`` at ``points_mm`` project to, shape (N, 2).
 
     The cone of rays tangent to a ball of radius ``r`` whose centre lies at distance ``D`` from
@@ -270,9 +301,14 @@ def ellipse_centres(points_mm: np.ndarray, radii_mm: np.ndarray, angles_rad: np.
     centre's projection ``SDD tan(gamma)`` (Clackdoyle and Mennessier 2011). The bias grows as
     ``tan(gamma) alpha^2``: a few hundredths of a pixel for small balls near the axis, tenths of
     a pixel for balls a hundred pixels across at the detector's edge.
+
+    The axis lies ``axis_offset_mm`` along the camera's ``x`` from the source's perpendicular to the detector (the
+    principal ray), and the detector ``source_to_detector_mm`` from the source (the geometry's where None);
+    ``(u0_px, v0_px)`` is where the axis's point level with the source projects, the tilt turning the detector about
+    it. With no offset, that is the principal point, as before.
     """
     c, s = np.cos(angles_rad), np.sin(angles_rad)
-    px = c * points_mm[:, 0] - s * points_mm[:, 2]
+    px = c * points_mm[:, 0] - s * points_mm[:, 2] + axis_offset_mm
     py = points_mm[:, 1]
     z = s * points_mm[:, 0] + c * points_mm[:, 2] + geometry.source_to_object_mm
     xn, yn = px / z, py / z
@@ -286,9 +322,18 @@ def ellipse_centres(points_mm: np.ndarray, radii_mm: np.ndarray, angles_rad: np.
                          1.0 / (0.5 * (1.0 + cos_2alpha)))
     xn, yn = xn * scale, yn * scale
     ct, st = math.cos(tilt_rad), math.sin(tilt_rad)
-    fu = geometry.source_to_detector_mm / geometry.pixel_pitch_u_mm
-    fv = geometry.source_to_detector_mm / geometry.pixel_pitch_v_mm
+    sdd = geometry.source_to_detector_mm if source_to_detector_mm is None else source_to_detector_mm
+    fu, fv = sdd / geometry.pixel_pitch_u_mm, sdd / geometry.pixel_pitch_v_mm
+    # (u0, v0) is where the axis's point level with the source projects: the principal point lies off it by the
+    # axis's offset from the source's perpendicular.
+    xa = axis_offset_mm / geometry.source_to_object_mm
+    xn, yn = xn - xa, yn
     return np.stack([u0_px + fu * (ct * xn - st * yn), v0_px + fv * (st * xn + ct * yn)], axis=1)
+
+
+def _nominal_detector(geometry: Geometry) -> np.ndarray:
+    """The scan's own detector, as :func:`_adjust` fits it: ``(u0, v0, tilt, axis offset, source to detector)``."""
+    return np.array([geometry.u0_px, geometry.v0_px, 0.0, 0.0, geometry.source_to_detector_mm])
 
 
 def _rays(xy_px: np.ndarray, angle_rad: float, geometry: Geometry) -> tuple[np.ndarray, np.ndarray]:
@@ -317,9 +362,9 @@ def _triangulate(s1, d1, s2, d2) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * (p1 + p2), np.linalg.norm(p1 - p2, axis=-1)
 
 
-def _project(points, angles, geometry, u0, v0, tilt, radii=None):
+def _project(points, angles, geometry, detector, radii=None):
     radii = np.zeros(len(points)) if radii is None else radii
-    return ellipse_centres(points, radii, angles, geometry, u0, v0, tilt)
+    return ellipse_centres(points, radii, angles, geometry, *detector)
 
 
 #: A disc is a ball's only where its radius is within this fraction of the ball's own at that depth. A ball's
@@ -343,10 +388,10 @@ def _disc_radius_px(points, radii_mm, angles, geometry) -> np.ndarray:
 
 
 def _view_discs(balls, radii_mm, angle: float, geometry: Geometry, detector) -> tuple[np.ndarray, np.ndarray]:
-    """Where a view at ``angle`` (rad) with ``detector`` ``(u0, v0, tilt)`` puts every ball's disc: the centres (B, 2)
-    and the radii (B,), px."""
+    """Where a view at ``angle`` (rad) with ``detector`` (the five unknowns of :func:`_nominal_detector`) puts every
+    ball's disc: the centres (B, 2) and the radii (B,), px."""
     at = np.full(len(balls), angle)
-    return _project(balls, at, geometry, *detector, radii_mm), _disc_radius_px(balls, radii_mm, at, geometry)
+    return _project(balls, at, geometry, detector, radii_mm), _disc_radius_px(balls, radii_mm, at, geometry)
 
 
 def _radius_fits(found_px, expected_px) -> np.ndarray:
@@ -382,7 +427,7 @@ def _support(point: np.ndarray, detections, angles, geometry, error_rad, radius_
     With ``radius_mm``, only discs of the size a ball of that radius has there count.
     """
     points = np.repeat(point[None], len(angles), 0)
-    uv = _project(points, angles, geometry, geometry.u0_px, geometry.v0_px, 0.0)
+    uv = _project(points, angles, geometry, _nominal_detector(geometry))
     tol = _tolerance_px(point[None], geometry, error_rad, radius_px)[0]
     expected = None if radius_mm is None else _disc_radius_px(points, radius_mm, angles, geometry)
     chosen = []
@@ -470,7 +515,7 @@ def _find_balls(detections, angles, geometry, error_rad, radius_px, min_views) -
         found = detections[view]
         if not len(found):
             continue
-        uv = _project(candidates, np.full(len(candidates), angles[view]), geometry, geometry.u0_px, geometry.v0_px, 0.0)
+        uv = _project(candidates, np.full(len(candidates), angles[view]), geometry, _nominal_detector(geometry))
         nearest = np.min(np.hypot(uv[:, None, 0] - found[None, :, 0], uv[:, None, 1] - found[None, :, 1]), axis=1)
         scores += nearest <= tolerance
     needed = max(3, int(math.ceil(min_views * len(anchors) / V)))
@@ -503,7 +548,7 @@ def _find_balls(detections, angles, geometry, error_rad, radius_px, min_views) -
     return np.array(balls).reshape(-1, 3), np.array(radii)
 
 
-def _assign(detections, balls, radii_mm, angles, geometry, u0, v0, tilt, tol_px) -> list[np.ndarray]:
+def _assign(detections, balls, radii_mm, angles, geometry, detector, tol_px) -> list[np.ndarray]:
     """Per view, the ball of every detection (-1: none): one-to-one, nearest first, within ``tol_px``, of its size."""
     from scipy.optimize import linear_sum_assignment
 
@@ -512,7 +557,7 @@ def _assign(detections, balls, radii_mm, angles, geometry, u0, v0, tilt, tol_px)
     for view, found in enumerate(detections):
         labels = np.full(len(found), -1)
         if len(found) and B:
-            uv, expected = _view_discs(balls, radii_mm, angles[view], geometry, (u0, v0, tilt))
+            uv, expected = _view_discs(balls, radii_mm, angles[view], geometry, detector)
             cost = np.hypot(found[:, None, 0] - uv[None, :, 0], found[:, None, 1] - uv[None, :, 1])
             sized = _radius_fits(found[:, None, 2], expected[None, :])
             gated = np.where((cost <= tol_px[None, :]) & sized, cost, 1e9)
@@ -849,7 +894,7 @@ def _spread_px(residual_px: np.ndarray) -> float:
 class _Fit:
     angles: np.ndarray
     balls: np.ndarray
-    detector: np.ndarray           # u0, v0, tilt_rad
+    detector: np.ndarray           # u0, v0, tilt_rad, axis offset mm, source to detector mm
     residual: np.ndarray           # (M, 2) px
     jac: np.ndarray | None
     free_views: np.ndarray
@@ -998,7 +1043,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     side, edge = discs.side, discs.edge
     B = len(balls)
     n_free = len(free_views) if fit_angles else 0
-    n_det = 3 if fit_detector else 0
+    n_det = _DETECTOR_UNKNOWNS if fit_detector else 0
     one_sided = np.any(side != 0.0, axis=1)
     cut_balls = np.flatnonzero(np.bincount(ball_of[one_sided], minlength=B) > 0) if B else np.zeros(0, int)
     cut_start = np.zeros(B) if cut_px is None else np.nan_to_num(np.asarray(cut_px, dtype=np.float64), nan=0.0)
@@ -1045,7 +1090,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
 
     def residuals(x, gauge=True):
         a, p, c, t, d, pull = unpack(x)
-        uv = ellipse_centres(p[ball_of], radii_mm[ball_of] * edge, a[view_of], geometry, d[0], d[1], d[2])
+        uv = ellipse_centres(p[ball_of], radii_mm[ball_of] * edge, a[view_of], geometry, *d)
         # Where the disc's centre would be, uncut and uncovered.
         seen = observed + _CUT_PULL * c[ball_of, None] * side + pull * discs.overlap
         off = uv + t[view_of] - seen
@@ -1193,7 +1238,7 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
                 discs, groups, G, radii_mm, angles, balls, detector, geometry))
     rests = others_deg > allowed_deg
     uncounted = others_deg > _UNCOUNTED_TIMES * allowed_deg
-    detectors = np.full((G, 3), np.nan)
+    detectors = np.full((G, _DETECTOR_UNKNOWNS), np.nan)
     for k in range(G):
         keep_ball = groups != k
         left = discs.of_balls(keep_ball)
@@ -1225,7 +1270,7 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
         if len(a) >= 2:
             se[v] = math.degrees(math.sqrt((len(a) - 1) / len(a) * float(np.sum((a - a.mean()) ** 2))))
     refitted = detectors[np.all(np.isfinite(detectors), axis=1)]
-    detector_se = np.full(3, np.nan)
+    detector_se = np.full(_DETECTOR_UNKNOWNS, np.nan)
     if len(refitted) >= 2:
         detector_se = np.sqrt((len(refitted) - 1) / len(refitted) * np.sum((refitted - refitted.mean(axis=0)) ** 2,
                                                                            axis=0))
@@ -1493,7 +1538,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     pitch = min(geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm)
     reach_mm = 0.5 * geometry.detector_cols * geometry.pixel_pitch_u_mm / geometry.magnification
     orbit_mm = _min_orbit_mm(radius_px, geometry)
-    detector = np.array([geometry.u0_px, geometry.v0_px, 0.0])
+    detector = _nominal_detector(geometry)
     angles = theta0.copy()
     tol = _tolerance_px(balls, geometry, error_rad, radius_px)
     fit = None
@@ -1518,7 +1563,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             placed = _shifted(detections, shifts)   # each view's discs where an unshifted projection puts them
             if fit is not None:
                 angles = _relocate_views(placed, balls, radii_mm, angles, theta0, error_rad, geometry, detector)
-            assigned = _assign(placed, balls, radii_mm, angles, geometry, *detector, tol)
+            assigned = _assign(placed, balls, radii_mm, angles, geometry, detector, tol)
             for labels, left_out in zip(assigned, gross):
                 labels[left_out] = -1
             # A view with one disc: is another followed ball hidden within it (found as one with it)?
@@ -1590,7 +1635,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                 np.all(np.isfinite(balls), axis=1) & (np.hypot(balls[:, 0], balls[:, 2]) <= 2.0 * reach_mm) & \
                 (np.hypot(balls[:, 0], balls[:, 2]) >= orbit_mm)
             if not good.all() and good.sum() >= 2:
-                balls, tol, radii_mm, ball_weight = balls[good], tol[good], radii_mm[good], ball_weight[good]
+                balls, radii_mm, ball_weight = balls[good], radii_mm[good], ball_weight[good]
+                # Assigned again from the start's angles and detector, within the start's tolerance: tightened
+                # to what the fit explained, it missed every disc of a detector the fit had moved 38 px.
+                tol = _tolerance_px(balls, geometry, error_rad, radius_px)
                 cut_px = np.zeros(len(balls))
                 flag_weight = _first_flag_weights()   # their residuals held the dropped ball's discs
                 scatter = _NO_SCATTER                 # and so did the overlaps' scatter
@@ -1653,7 +1701,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     # The balls must agree on each view's angle: the Gauss-Newton errors take the residuals as independent, and a
     # bias a ball's discs share (a rim the clip cuts less where something below the clip lies behind it) is not.
     jack_se, jack_n = np.full(V, np.nan), np.zeros(V, dtype=int)
-    detector_jack_se, detector_jack_n = np.full(3, np.nan), 0
+    detector_jack_se, detector_jack_n = np.full(_DETECTOR_UNKNOWNS, np.nan), 0
     rests = np.zeros((1, V), bool)
     if len(free_views) and extra > 0:
         jack_se, jack_n, detector_jack_se, detector_jack_n, rests = _jackknife_se(
@@ -1770,7 +1818,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     detector_kept, detector_reason = _detector_verdict(
         returned, kept, fit_detector, p_value, nominal_as_good=nominal_as_good,
         scan_fit=lambda: _adjust(discs, radii_mm, theta0, nominal_fit.balls,
-                                 np.array([geometry.u0_px, geometry.v0_px, 0.0]), geometry, free_views=free_views,
+                                 _nominal_detector(geometry), geometry, free_views=free_views,
                                  fit_angles=False, fit_detector=False, scale_px=scale_px, loss=fit_loss,
                                  cut_px=nominal_fit.cut_px, shifts_px=nominal_fit.shifts_px))
     detector_fit, detector_cov = returned, returned_cov
@@ -1786,7 +1834,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     shifts_out = detector_fit.shifts_px.copy() if pinned and not len(unfixed) and not len(lost) else None
     return BallCalibration(angles_deg=corrected if kept else nominal.copy(), corrected_deg=corrected,
                            angle_se_deg=se, kept=kept, reason=reason, balls_mm=balls, u0_px=float(detector[0]),
-                           v0_px=float(detector[1]), tilt_deg=math.degrees(detector[2]), rms_px=rms,
+                           v0_px=float(detector[1]), tilt_deg=math.degrees(detector[2]),
+                           axis_offset_mm=float(detector[3]), source_to_detector_mm=float(detector[4]), rms_px=rms,
                            nominal_rms_px=nominal_rms, ball_rms_px=ball_rms, f_statistic=float(f_stat), p_value=p,
                            observations=int(len(observed)), shell_observations=int(np.sum(edge < 1.0)),
                            left_out=int(sum(int(np.sum(out)) for out in gross)),
@@ -1877,8 +1926,9 @@ def _covariance(fit: _Fit) -> np.ndarray | None:
         return None
 
 
-#: A fitted detector ``(u0, v0, tilt)`` (px, px, rad) times this is in the units it is reported in (px, px, deg).
-_DETECTOR_UNITS = np.array([1.0, 1.0, math.degrees(1.0)])
+#: A fitted detector ``(u0, v0, tilt, axis offset, source to detector)`` (px, px, rad, mm, mm) times this is in the
+#: units it is reported in (px, px, deg, mm, mm).
+_DETECTOR_UNITS = np.array([1.0, 1.0, math.degrees(1.0), 1.0, 1.0])
 
 
 def _beyond_allowed(jackknife_se, refits, allowed, p_value: float) -> np.ndarray:
@@ -1909,9 +1959,11 @@ def _refused_angles_detector(fit_se: np.ndarray, jackknife_se: np.ndarray, refit
     simulated 36-view hardened scan, seed 2105 of ``benchmarks/bench_ball_phantom_mixed.py``: the axis column 0.26 px
     off with them). It is given where its standard errors, by the residuals (``fit_se``) and by the jackknife over the
     balls (``jackknife_se`` over ``refits``), are within :data:`_MAX_DETECTOR_SE`, the jackknife's by the views' own
-    test (:func:`_beyond_allowed`).
+    test (:func:`_beyond_allowed`): those of the axis column, the principal row and the tilt, which the geometry takes.
     """
     names = ("axis column", "principal row", "tilt")
+    # What the geometry a user reconstructs with takes (the axis offset and the distance are reported alone).
+    fit_se, jackknife_se = fit_se[:len(names)], jackknife_se[:len(names)]
     spread = np.fmax(fit_se, jackknife_se)
     if refits < 2 or not np.all(np.isfinite(spread)):
         return False, "not given: the detector fitted with the corrected angles, which are not returned, is not checked"
@@ -1929,11 +1981,11 @@ def _refused_angles_detector(fit_se: np.ndarray, jackknife_se: np.ndarray, refit
 
 
 def _detector_se(cov: np.ndarray | None) -> np.ndarray:
-    """Standard errors of the detector (u0 px, v0 px, tilt deg), a fitted detector being the last three unknowns of
-    ``cov`` (:func:`_covariance`); NaN without one."""
+    """Standard errors of the detector (u0 px, v0 px, tilt deg, axis offset mm, source to detector mm), a fitted
+    detector being the last :data:`_DETECTOR_UNKNOWNS` unknowns of ``cov`` (:func:`_covariance`); NaN without one."""
     if cov is None:
-        return np.full(3, np.nan)
-    return np.sqrt(np.clip(np.diag(cov)[-3:], 0.0, None)) * _DETECTOR_UNITS
+        return np.full(_DETECTOR_UNKNOWNS, np.nan)
+    return np.sqrt(np.clip(np.diag(cov)[-_DETECTOR_UNKNOWNS:], 0.0, None)) * _DETECTOR_UNITS
 
 
 def _beyond_disagreement(change_deg: np.ndarray, spread_deg: np.ndarray,
@@ -1989,7 +2041,7 @@ def _detector_verdict(returned: _Fit, kept: bool, fit_detector: bool, p_value: f
     scan = scan_fit()
     rms = math.sqrt(chi / returned.residual.size)
     rms_scan = math.sqrt(float(np.sum(scan.residual ** 2)) / scan.residual.size)
-    _, p = _f_test(scan, returned)    # the detector's three unknowns
+    _, p = _f_test(scan, returned)    # the detector's unknowns
     if p < p_value:
         return True, (f"with the nominal angles, the fitted detector explains the balls better than the scan's: "
                       f"reprojection RMS {rms:.3f} px against {rms_scan:.3f} px (F test p {p:.2g})")
