@@ -200,13 +200,16 @@ def coated_spec(views: int, jitter_deg: float, seed: int) -> dict:
 
 def simulate_scan(views: int, jitter_deg: float, max_error_deg: float | None, seed: int, random: bool = False,
                   coated: bool = False, saturation: float | None = None, drift: dict | None = None,
-                  solid: bool = False):
+                  solid: bool = False, axis_offset_mm: float = 0.0):
     """The simulated scan and the nominal angles given to the pipeline (``saturation``: the clip's level, as a
     share of the open beam, in place of the spec's 95 %; ``drift``: the misalignment's ``drift`` section; ``solid``:
-    :func:`solid_layout` through the coated scan's beam)."""
+    :func:`solid_layout` through the coated scan's beam; ``axis_offset_mm``: the axis that far off the source's
+    perpendicular, a stage moved sideways)."""
     spec = coated_spec(views, jitter_deg, seed) if coated or solid else scan_spec(views, jitter_deg, seed)
     if saturation is not None:
         spec["detector"] = {**spec["detector"], "saturation_fraction": saturation}
+    if axis_offset_mm:
+        spec["misalignment"] = {**spec["misalignment"], "axis_offset_mm": axis_offset_mm}
     if drift:
         spec["misalignment"] = {**spec["misalignment"], "drift": drift}
         if max_error_deg:
@@ -271,6 +274,9 @@ def main(argv=None) -> int:
                              "docs/calibration-phantoms.md, 'A harsh clip')")
     parser.add_argument("--drift-walk-px", type=float, default=0.0,
                         help="the projections drift: a random walk of this step between views (px, both directions)")
+    parser.add_argument("--axis-offset-mm", type=float, default=0.0,
+                        help="the rotation axis this far off the source's perpendicular to the detector (mm): a stage "
+                             "moved sideways, or a detector yawed by asin(it / SOD)")
     parser.add_argument("--drift-jump-px", type=float, default=0.0,
                         help="and one jump of this size (px) at a random view")
     layout = parser.add_mutually_exclusive_group()
@@ -289,7 +295,7 @@ def main(argv=None) -> int:
         drift = ({"walk_px": args.drift_walk_px, "jumps": 1 if args.drift_jump_px else 0,
                   "jump_px": args.drift_jump_px} if args.drift_walk_px or args.drift_jump_px else None)
         scan, nominal, truth = simulate_scan(args.views, args.jitter_deg, args.max_error_deg, seed, args.random_layout,
-                                             args.coated, args.saturation, drift, args.solid)
+                                             args.coated, args.saturation, drift, args.solid, args.axis_offset_mm)
         simulated = time.perf_counter() - start
         start = time.perf_counter()
         recognised, why = looks_like_ball_phantom(scan.projections)
@@ -306,7 +312,9 @@ def main(argv=None) -> int:
         offsets = scan.true_detector_offsets_px
         drifted = (np.zeros((len(truth), 2)) if offsets is None         # the drift alone
                    else offsets - np.array([COR_OFFSET_PX, 0.0]))
-        axis_px = balls.get("u0_px", np.nan) - (scan.geometry.u0_px + COR_OFFSET_PX
+        g = scan.geometry   # the axis images this far from the principal point where it is off the perpendicular
+        axis_image_px = args.axis_offset_mm * g.source_to_detector_mm / (g.source_to_object_mm * g.pixel_pitch_u_mm)
+        axis_px = balls.get("u0_px", np.nan) - (g.u0_px + COR_OFFSET_PX + axis_image_px
                                                 + _axis_part(drifted[:, 0], np.deg2rad(truth)))
         tilt_deg = balls.get("tilt_deg", np.nan) + TILT_DEG
         print(f"seed {seed}: {args.views} views simulated in {simulated:.1f} s; nominal off by "
@@ -327,7 +335,8 @@ def main(argv=None) -> int:
         sdd = balls.get("source_to_detector_mm")
         sdd_mm = np.nan if sdd is None else sdd - scan.geometry.source_to_detector_mm
         print(f"  detector{given}: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it, the axis "
-              f"{balls.get('axis_offset_mm', np.nan):+.3f} mm off the source's perpendicular (truth 0), source to "
+              f"{balls.get('axis_offset_mm', np.nan):+.3f} mm off the source's perpendicular (truth "
+              f"{args.axis_offset_mm:g}), source to "
               f"detector {sdd_mm:+.2f} mm from the truth; "
               f"reprojection RMS {balls.get('rms_px', np.nan):.3f} px (nominal angles "
               f"{balls.get('nominal_rms_px', np.nan):.3f}); "

@@ -52,7 +52,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ctpipe.config import check_keys
-from ctpipe.errors import ConfigError
+from ctpipe.errors import ConfigError, InputError
 from ctpipe.sim.materials import (INSTALL_BEAM, MATERIALS, REFERENCE_KEV, beam_libraries_missing,
                                   element_density_g_cm3, mass_attenuation_cm2_g, resolve_material)
 from ctpipe.stages import ParamSpec, check_value
@@ -239,7 +239,8 @@ def _groups(phantom) -> list[tuple[str, Any]]:
 
 def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, supersample: int = 1,
                                  blur_px: float = 0.0, progress: Callable[[int], object] | None = None,
-                                 detector_offsets_px=None, detector_tilt_deg: float = 0.0) -> np.ndarray:
+                                 detector_offsets_px=None, detector_tilt_deg: float = 0.0,
+                                 axis_offset_mm: float = 0.0) -> np.ndarray:
     """``-log T`` of every pixel (see the module docstring), float32 of shape (V, rows, cols).
 
     Parameters
@@ -250,7 +251,7 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
     geometry : Geometry
     angles_deg : array_like of shape (V,)
         Turntable angles, degrees.
-    supersample, blur_px, progress, detector_offsets_px, detector_tilt_deg
+    supersample, blur_px, progress, detector_offsets_px, detector_tilt_deg, axis_offset_mm
         As for :func:`ctpipe.sim.simulator.project_phantom` (a misaligned detector included); the
         blur acts on ``T``.
     """
@@ -274,9 +275,13 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
         offsets = None if detector_offsets_px is None else np.asarray(detector_offsets_px)[start:stop]
         if phantom.primitives is not None:
             paths = [project_analytic(prims, geometry, chunk, supersample=supersample, detector_offsets_px=offsets,
-                                      detector_tilt_deg=detector_tilt_deg).astype(np.float64)
+                                      detector_tilt_deg=detector_tilt_deg,
+                                      axis_offset_mm=axis_offset_mm).astype(np.float64)
                      for _, prims in groups]
         else:
+            if axis_offset_mm:
+                raise InputError(f"misalignment.axis_offset_mm: {axis_offset_mm:g} mm is simulated for primitive "
+                                 "phantoms only; leave it out (0) for a voxel phantom")
             path = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, chunk)
             if offsets is not None or detector_tilt_deg != 0:
                 from ctpipe.sim.drift import resample_to_detector

@@ -5,6 +5,7 @@ The optional ``misalignment`` section of a scan spec (:mod:`ctpipe.sim.scan_spec
     misalignment:
       cor_offset_px: 1.5          # the rotation axis images at column u0_px + 1.5 (every view)
       tilt_deg: 0.3               # the detector turned 0.3 deg in its own plane
+      axis_offset_mm: 1.0         # the axis 1 mm off the source's perpendicular (a stage moved sideways)
       drift:                      # the whole projection shifts a little, differently in every view
         walk_px: 0.05             # random walk: normal steps of 0.05 px between views, view 0 at 0
         jumps: 2                  # persistent steps at 2 random views (1..V-1)
@@ -23,8 +24,11 @@ Pixels are ``(x=col, y=row)`` and the principal point ``(u0_px, v0_px)`` as in
     (u0_px + cor_offset_px + du[k],  v0_px + dv[k])
 
 so a positive offset moves the whole projection towards larger columns (rows): a detector
-moved by ``-offset * pitch`` mm in its plane. ``du``/``dv`` are the drift. A source spot that
-moves sideways by ``s`` mm moves the image of the rotation axis by ``-s (M - 1) / pitch`` pixels
+moved by ``-offset * pitch`` mm in its plane. ``axis_offset_mm`` moves the axis itself sideways, off the source's
+perpendicular to the detector (the principal point stays): a point of the object is at ``R(theta) X +
+(axis_offset_mm, 0, SOD)`` in the camera frame, so the axis images ``axis_offset_mm * SDD / (SOD * pitch_u)`` columns
+from the principal point and the cone's perspective is no longer centred on it. ``du``/``dv`` are the drift. A
+source spot that moves sideways by ``s`` mm moves the image of the rotation axis by ``-s (M - 1) / pitch`` pixels
 (``M`` the magnification); the drift models it as that uniform shift, leaving out the parallax
 across the sample's depth (a fraction ``depth / SOD`` of the shift). The tilt turns the
 detector's column direction by ``tilt_deg`` from the camera ``x`` axis towards the camera ``y``
@@ -106,11 +110,17 @@ class Misalignment:
         In-plane rotation of the detector about the principal point, degrees.
     drift : DetectorDrift or None
         Per-view shifts of the projection; None for none.
+    axis_offset_mm : float
+        How far the rotation axis lies off the source's perpendicular to the detector, along the camera ``x``, at the
+        axis (mm): a stage moved sideways, or a detector yawed by ``asin(axis_offset_mm / SOD)`` (primitive phantoms
+        only; :func:`ctpipe.sim.projectors.project_analytic`). The axis then images ``axis_offset_mm * SDD / (SOD *
+        pitch_u)`` columns from the principal point, which ``cor_offset_px`` places.
     """
 
     cor_offset_px: float = 0.0
     tilt_deg: float = 0.0
     drift: DetectorDrift | None = None
+    axis_offset_mm: float = 0.0
 
     def sample_offsets_px(self, n_views: int, rng: np.random.Generator, *, drift: bool = True) -> np.ndarray:
         """True minus nominal principal point per view, ``(du, dv)`` pixels, shape (n_views, 2), float64.
@@ -126,11 +136,13 @@ class Misalignment:
     def to_dict(self) -> dict:
         """The mapping that parses back to this misalignment."""
         return {"cor_offset_px": self.cor_offset_px, "tilt_deg": self.tilt_deg,
-                "drift": None if self.drift is None else self.drift.to_dict()}
+                "drift": None if self.drift is None else self.drift.to_dict(),
+                **({"axis_offset_mm": self.axis_offset_mm} if self.axis_offset_mm else {})}
 
 
 _FIELDS = {"cor_offset_px": ParamSpec("cor_offset_px", float, 0.0, "", ge=-10_000, le=10_000),
-           "tilt_deg": ParamSpec("tilt_deg", float, 0.0, "", ge=-45, le=45)}
+           "tilt_deg": ParamSpec("tilt_deg", float, 0.0, "", ge=-45, le=45),
+           "axis_offset_mm": ParamSpec("axis_offset_mm", float, 0.0, "", ge=-100, le=100)}
 _DRIFT_FIELDS = {"walk_px": ParamSpec("walk_px", float, 0.0, "", ge=0, le=100),
                  "jumps": ParamSpec("jumps", int, 0, "", ge=0, le=100_000),
                  "jump_px": ParamSpec("jump_px", float, 0.0, "", ge=0, le=1_000),

@@ -208,7 +208,8 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
 
 def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, supersample: int = 1,
                      blur_px: float = 0.0, progress: Callable[[int], object] | None = None,
-                     detector_offsets_px=None, detector_tilt_deg: float = 0.0) -> np.ndarray:
+                     detector_offsets_px=None, detector_tilt_deg: float = 0.0,
+                     axis_offset_mm: float = 0.0) -> np.ndarray:
     """Exact line integrals through analytic primitives.
 
     Every pixel integrates the ray from the source to its centre (or the mean of
@@ -241,6 +242,12 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     detector_tilt_deg : float
         In-plane rotation of the detector about the principal point, degrees, from the camera
         ``x`` axis towards ``y`` (:mod:`ctpipe.sim.drift`); 0 for none.
+    axis_offset_mm : float
+        How far the turntable's axis lies off the source's perpendicular to the detector, along the camera ``x``
+        (mm): an object point sits at ``X_cam = R(theta) X + (axis_offset_mm, 0, SOD)`` (a stage moved sideways, or,
+        the same, a detector yawed by ``asin(axis_offset_mm / SOD)`` about its columns' perpendicular; the axis
+        images ``axis_offset_mm * SDD / (SOD * pitch_u)`` columns from the principal point). Each view then projects
+        the primitives moved by ``R(theta)^T (axis_offset_mm, 0, 0)``, one view at a time. 0 for none.
 
     Returns
     -------
@@ -263,6 +270,14 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     if not (isinstance(tilt_deg, (int, float, np.floating, np.integer)) and not isinstance(tilt_deg, bool)
             and math.isfinite(tilt_deg) and abs(tilt_deg) <= 45):
         raise InputError(f"detector_tilt_deg: must be a finite number of degrees in [-45, 45], got {tilt_deg!r}")
+    if not (isinstance(axis_offset_mm, (int, float, np.floating, np.integer)) and not isinstance(axis_offset_mm, bool)
+            and math.isfinite(axis_offset_mm) and abs(axis_offset_mm) < 0.5 * geometry.source_to_object_mm):
+        raise InputError(f"axis_offset_mm: must be a finite number of mm within half the source-to-object distance "
+                         f"({0.5 * geometry.source_to_object_mm:g} mm), got {axis_offset_mm!r}")
+    if axis_offset_mm:
+        return _project_off_axis(primitives, geometry, angles, u0_v, v0_v, float(axis_offset_mm),
+                                 supersample=supersample, blur_px=blur_px, progress=progress,
+                                 detector_tilt_deg=detector_tilt_deg)
     tilt = math.radians(detector_tilt_deg)
     # cos(0) and sin(0) are exactly 1 and 0: the untilted kernel reproduces the plain mapping bit for bit.
     cos_tilt, sin_tilt = math.cos(tilt), math.sin(tilt)
@@ -325,6 +340,25 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
                 list(pool.map(blur, range(start, stop)))
         if progress is not None:
             progress(stop)
+    return out
+
+
+def _project_off_axis(primitives: Primitives, geometry: Geometry, angles: np.ndarray, u0_v: np.ndarray,
+                      v0_v: np.ndarray, axis_offset_mm: float, *, progress, **settings) -> np.ndarray:
+    """:func:`project_analytic` with the axis ``axis_offset_mm`` off the source's perpendicular: view by view, the
+    primitives moved by ``R(theta)^T (axis_offset_mm, 0, 0)``, which puts them at ``R(theta) X + (axis_offset_mm, 0,
+    SOD)`` in the camera frame."""
+    import dataclasses
+
+    out = np.empty((angles.size, geometry.detector_rows, geometry.detector_cols), dtype=np.float32)
+    offsets = np.column_stack([u0_v - geometry.u0_px, v0_v - geometry.v0_px])
+    for k, theta in enumerate(np.deg2rad(angles)):
+        moved = axis_offset_mm * np.array([math.cos(theta), 0.0, -math.sin(theta)])
+        shifted = dataclasses.replace(primitives, centre_mm=primitives.centre_mm + moved)
+        out[k] = project_analytic(shifted, geometry, angles[k:k + 1], detector_offsets_px=offsets[k:k + 1],
+                                  **settings)[0]
+        if progress is not None:
+            progress(k + 1)
     return out
 
 

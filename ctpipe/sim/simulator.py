@@ -42,6 +42,9 @@ class SimulatedScan:
         scan has no ``misalignment``. ``geometry`` stays the nominal one.
     true_detector_tilt_deg : float
         The detector's true in-plane tilt (degrees; 0 unless the scan is misaligned).
+    true_axis_offset_mm : float
+        How far the true axis lies off the source's perpendicular to the detector (mm; 0 unless the scan's
+        misalignment says so: :class:`ctpipe.sim.drift.Misalignment`).
     """
 
     projections: np.ndarray
@@ -53,23 +56,26 @@ class SimulatedScan:
     darks: np.ndarray | None = None
     true_detector_offsets_px: np.ndarray | None = None
     true_detector_tilt_deg: float = 0.0
+    true_axis_offset_mm: float = 0.0
 
 
 def project_phantom(phantom, geometry: Geometry, angles_deg, *, supersample: int = 1, blur_px: float = 0.0,
                     progress: Callable[[int], object] | None = None, detector_offsets_px=None,
-                    detector_tilt_deg: float = 0.0) -> np.ndarray:
+                    detector_tilt_deg: float = 0.0, axis_offset_mm: float = 0.0) -> np.ndarray:
     """Line integrals (V, rows, cols), float32, of a primitive or voxel phantom.
 
     ``detector_offsets_px`` (V, 2) and ``detector_tilt_deg`` place the true detector of a misaligned
     scan (:func:`ctpipe.sim.projectors.project_analytic`); a voxel phantom's projections on the
     nominal detector are resampled onto it (:func:`ctpipe.sim.drift.resample_to_detector`).
+    ``axis_offset_mm`` puts the axis off the source's perpendicular (primitive phantoms only).
     """
     from ctpipe.sim.projectors import VoxelProjector, project_analytic
 
     if phantom.primitives is not None:
         return project_analytic(phantom.primitives, geometry, angles_deg, supersample=supersample, blur_px=blur_px,
                                 progress=progress, detector_offsets_px=detector_offsets_px,
-                                detector_tilt_deg=detector_tilt_deg)
+                                detector_tilt_deg=detector_tilt_deg, axis_offset_mm=axis_offset_mm)
+    _axis_on_perpendicular(axis_offset_mm)
     projections = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, angles_deg)
     if detector_offsets_px is not None or detector_tilt_deg != 0:
         from ctpipe.sim.drift import resample_to_detector
@@ -261,6 +267,15 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
                          darks, **true_detector)
 
 
+def _axis_on_perpendicular(axis_offset_mm: float) -> None:
+    """Refuse an axis off the source's perpendicular where only primitives can be projected so (a voxel phantom)."""
+    if axis_offset_mm:
+        from ctpipe.errors import InputError
+
+        raise InputError(f"misalignment.axis_offset_mm: {axis_offset_mm:g} mm is simulated for primitive phantoms "
+                         "only; leave it out (0) for a voxel phantom")
+
+
 def _add_holder(out: np.ndarray, primitives, spec, angles_deg: np.ndarray, misaligned: dict) -> None:
     """Add to ``out`` (V, rows, cols) the line integrals of holder ``primitives`` at ``angles_deg``.
 
@@ -272,9 +287,10 @@ def _add_holder(out: np.ndarray, primitives, spec, angles_deg: np.ndarray, misal
     from ctpipe.sim.projectors import project_analytic
 
     settings = {"supersample": spec.projector.supersample, "blur_px": spec.projector.blur_px,
-                "detector_tilt_deg": misaligned.get("detector_tilt_deg", 0.0)}
+                "detector_tilt_deg": misaligned.get("detector_tilt_deg", 0.0),
+                "axis_offset_mm": misaligned.get("axis_offset_mm", 0.0)}
     offsets = misaligned.get("detector_offsets_px")
-    if offsets is None and np.all(angles_deg == angles_deg[0]):
+    if offsets is None and np.all(angles_deg == angles_deg[0]) and not settings["axis_offset_mm"]:
         out += project_analytic(primitives, spec.geometry, angles_deg[:1], **settings)
         return
     chunk = 32
@@ -295,7 +311,8 @@ def _true_detector(spec, rng, jitter: bool) -> dict:
     if misalignment is None:
         return {}
     return {"detector_offsets_px": misalignment.sample_offsets_px(spec.n_views, rng, drift=jitter),
-            "detector_tilt_deg": misalignment.tilt_deg}
+            "detector_tilt_deg": misalignment.tilt_deg,
+            **({"axis_offset_mm": misalignment.axis_offset_mm} if misalignment.axis_offset_mm else {})}
 
 
 def voxelise_phantom(phantom, grid: VolumeGrid, *, supersample: int = 2) -> np.ndarray:
@@ -330,6 +347,8 @@ def write_simulated_scan(out: str | Path, scan: SimulatedScan, *, phantom, spec,
     if scan.true_detector_offsets_px is not None:  # the scan folder's truth of a misaligned scanner
         provenance["true_detector_offsets_px"] = np.asarray(scan.true_detector_offsets_px).tolist()
         provenance["true_detector_tilt_deg"] = float(scan.true_detector_tilt_deg)
+        if scan.true_axis_offset_mm:
+            provenance["true_axis_offset_mm"] = float(scan.true_axis_offset_mm)
     if scan.intensities is None:
         return write_scan(out, scan.projections, scan.geometry, scan.nominal_angles_deg, scan.true_angles_deg,
                           values="line_integrals", provenance=provenance, overwrite=overwrite)
