@@ -52,7 +52,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ctpipe.config import check_keys
-from ctpipe.errors import ConfigError, InputError
+from ctpipe.errors import ConfigError
 from ctpipe.sim.materials import (INSTALL_BEAM, MATERIALS, REFERENCE_KEV, beam_libraries_missing,
                                   element_density_g_cm3, mass_attenuation_cm2_g, resolve_material)
 from ctpipe.stages import ParamSpec, check_value
@@ -279,9 +279,9 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
                                       axis_offset_mm=axis_offset_mm).astype(np.float64)
                      for _, prims in groups]
         else:
-            if axis_offset_mm:
-                raise InputError(f"misalignment.axis_offset_mm: {axis_offset_mm:g} mm is simulated for primitive "
-                                 "phantoms only; leave it out (0) for a voxel phantom")
+            from ctpipe.sim.drift import refuse_axis_offset
+
+            refuse_axis_offset(axis_offset_mm)
             path = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, chunk)
             if offsets is not None or detector_tilt_deg != 0:
                 from ctpipe.sim.drift import resample_to_detector

@@ -52,7 +52,7 @@ from ctpipe.config import check_keys
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.stages import ParamSpec, check_value
 
-__all__ = ["DetectorDrift", "Misalignment", "parse_misalignment", "resample_to_detector"]
+__all__ = ["DetectorDrift", "Misalignment", "parse_misalignment", "resample_to_detector", "refuse_axis_offset"]
 
 
 @dataclass(frozen=True)
@@ -169,6 +169,14 @@ def parse_misalignment(value: Any, path: str = "misalignment", *, n_views: int |
             raise ConfigError(f"{path}.drift.jumps: {drift.jumps} jumps need at least {drift.jumps + 1} views, "
                               f"got {n_views}")
     return Misalignment(drift=drift, **values)
+
+
+def refuse_axis_offset(axis_offset_mm: float) -> None:
+    """Refuse an axis off the source's perpendicular where it cannot be projected: a voxel phantom (the analytic
+    projector moves primitives view by view; the voxel projector has no such move)."""
+    if axis_offset_mm:
+        raise InputError(f"misalignment.axis_offset_mm: {axis_offset_mm:g} mm is simulated for primitive phantoms "
+                         "only; leave it out (0) for a voxel phantom")
 
 
 def resample_to_detector(projections: np.ndarray, geometry, offsets_px=None, tilt_deg: float = 0.0) -> np.ndarray:

@@ -69,13 +69,14 @@ def project_phantom(phantom, geometry: Geometry, angles_deg, *, supersample: int
     nominal detector are resampled onto it (:func:`ctpipe.sim.drift.resample_to_detector`).
     ``axis_offset_mm`` puts the axis off the source's perpendicular (primitive phantoms only).
     """
+    from ctpipe.sim.drift import refuse_axis_offset
     from ctpipe.sim.projectors import VoxelProjector, project_analytic
 
     if phantom.primitives is not None:
         return project_analytic(phantom.primitives, geometry, angles_deg, supersample=supersample, blur_px=blur_px,
                                 progress=progress, detector_offsets_px=detector_offsets_px,
                                 detector_tilt_deg=detector_tilt_deg, axis_offset_mm=axis_offset_mm)
-    _axis_on_perpendicular(axis_offset_mm)
+    refuse_axis_offset(axis_offset_mm)
     projections = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, angles_deg)
     if detector_offsets_px is not None or detector_tilt_deg != 0:
         from ctpipe.sim.drift import resample_to_detector
@@ -265,15 +266,6 @@ def _simulate(phantom, spec, rng, jitter, progress) -> SimulatedScan:
         intensities, flats, darks = acquire(line_integrals, spec.noise, rng)
     return SimulatedScan(log_transform(intensities, flats, darks), nominal, truth, spec.geometry, intensities, flats,
                          darks, **true_detector)
-
-
-def _axis_on_perpendicular(axis_offset_mm: float) -> None:
-    """Refuse an axis off the source's perpendicular where only primitives can be projected so (a voxel phantom)."""
-    if axis_offset_mm:
-        from ctpipe.errors import InputError
-
-        raise InputError(f"misalignment.axis_offset_mm: {axis_offset_mm:g} mm is simulated for primitive phantoms "
-                         "only; leave it out (0) for a voxel phantom")
 
 
 def _add_holder(out: np.ndarray, primitives, spec, angles_deg: np.ndarray, misaligned: dict) -> None:
