@@ -279,9 +279,9 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
                                       axis_offset_mm=axis_offset_mm).astype(np.float64)
                      for _, prims in groups]
         else:
-            from ctpipe.sim.drift import refuse_axis_offset
+            from ctpipe.sim.drift import _refuse_axis_offset
 
-            refuse_axis_offset(axis_offset_mm)
+            _refuse_axis_offset(axis_offset_mm)
             path = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, chunk)
             if offsets is not None or detector_tilt_deg != 0:
                 from ctpipe.sim.drift import resample_to_detector

@@ -52,7 +52,7 @@ from ctpipe.config import check_keys
 from ctpipe.errors import ConfigError, InputError
 from ctpipe.stages import ParamSpec, check_value
 
-__all__ = ["DetectorDrift", "Misalignment", "parse_misalignment", "resample_to_detector", "refuse_axis_offset"]
+__all__ = ["DetectorDrift", "Misalignment", "parse_misalignment", "resample_to_detector"]
 
 
 @dataclass(frozen=True)
@@ -171,7 +171,7 @@ def parse_misalignment(value: Any, path: str = "misalignment", *, n_views: int |
     return Misalignment(drift=drift, **values)
 
 
-def refuse_axis_offset(axis_offset_mm: float) -> None:
+def _refuse_axis_offset(axis_offset_mm: float) -> None:
     """Refuse an axis off the source's perpendicular where it cannot be projected: a voxel phantom (the analytic
     projector moves primitives view by view; the voxel projector has no such move)."""
     if axis_offset_mm:

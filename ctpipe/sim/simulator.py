@@ -69,14 +69,14 @@ def project_phantom(phantom, geometry: Geometry, angles_deg, *, supersample: int
     nominal detector are resampled onto it (:func:`ctpipe.sim.drift.resample_to_detector`).
     ``axis_offset_mm`` puts the axis off the source's perpendicular (primitive phantoms only).
     """
-    from ctpipe.sim.drift import refuse_axis_offset
+    from ctpipe.sim.drift import _refuse_axis_offset
     from ctpipe.sim.projectors import VoxelProjector, project_analytic
 
     if phantom.primitives is not None:
         return project_analytic(phantom.primitives, geometry, angles_deg, supersample=supersample, blur_px=blur_px,
                                 progress=progress, detector_offsets_px=detector_offsets_px,
                                 detector_tilt_deg=detector_tilt_deg, axis_offset_mm=axis_offset_mm)
-    refuse_axis_offset(axis_offset_mm)
+    _refuse_axis_offset(axis_offset_mm)
     projections = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, angles_deg)
     if detector_offsets_px is not None or detector_tilt_deg != 0:
         from ctpipe.sim.drift import resample_to_detector
