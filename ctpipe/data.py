@@ -275,6 +275,13 @@ class ScanSolution:
         Each view's own shift of the projection ``(du, dv)`` in pixels (a drifting source spot or
         detector: the view's principal point is ``(u0_px + du, v0_px + dv)``), where the refiner
         estimated it; None otherwise.
+    source_to_detector_mm : float or None
+        The source-to-detector distance, where the refiner estimated it (at the input geometry's source-to-object
+        distance: the ball calibration); None otherwise.
+    axis_offset_mm : float or None
+        How far the rotation axis lies off the source's perpendicular to the detector, along the columns, at the axis
+        (mm), where the refiner estimated it; ``(u0_px, v0_px)`` is then where the axis's point level with the source
+        projects (:func:`ctpipe.solve.balls.ellipse_centres`). None otherwise.
     """
 
     angles_rad: np.ndarray
@@ -285,3 +292,5 @@ class ScanSolution:
     tilt_deg: float | None = None
     angle_se_deg: np.ndarray | None = None
     view_shifts_px: np.ndarray | None = None
+    source_to_detector_mm: float | None = None
+    axis_offset_mm: float | None = None

@@ -43,7 +43,7 @@ _BACKGROUND_BYTES = 512 * 2**20
 
 
 #: What a refiner may estimate of the geometry, by the key it reports it under in its info.
-REFINABLE_GEOMETRY = ("u0_px", "v0_px", "tilt_deg")
+REFINABLE_GEOMETRY = ("u0_px", "v0_px", "tilt_deg", "source_to_detector_mm", "axis_offset_mm")
 
 
 @dataclass(frozen=True)
@@ -58,32 +58,42 @@ class RefinedGeometry:
     tilt_deg : float
         In-plane detector tilt the refiner estimated, degrees; 0 when it estimated none.
     refined : tuple of str
-        Which of ``"u0_px"``, ``"v0_px"``, ``"tilt_deg"``, ``"view_shifts_px"`` the refiner
-        estimated (bundle adjustment with ``estimate_u0``, ``estimate_v0`` or ``estimate_tilt``;
-        the ball calibration); empty when ``geometry`` is the input geometry as it was.
+        Which of ``"u0_px"``, ``"v0_px"``, ``"tilt_deg"``, ``"source_to_detector_mm"``, ``"axis_offset_mm"``,
+        ``"view_shifts_px"`` the refiner estimated (bundle adjustment with ``estimate_u0``, ``estimate_v0`` or
+        ``estimate_tilt``; the ball calibration); empty when ``geometry`` is the input geometry as it was.
     view_shifts_px : tuple of (float, float) per view, or None
         Each view's own shift of the projection ``(du, dv)`` (px), where the refiner estimated it
         (:attr:`ctpipe.data.ScanSolution.view_shifts_px`); a tuple, so that the geometry compares and
         hashes by value.
+    axis_offset_mm : float
+        How far the rotation axis lies off the source's perpendicular to the detector (mm), where the refiner
+        estimated it (the ball calibration), else 0: ``(u0_px, v0_px)`` is where the axis's point level with the
+        source projects. :meth:`ScanResult.cone_vectors` places the source and detector so; ctpipe's own FDK takes
+        the axis on the perpendicular.
     """
 
     geometry: Geometry
     tilt_deg: float = 0.0
     refined: tuple[str, ...] = ()
     view_shifts_px: tuple[tuple[float, float], ...] | None = None
+    axis_offset_mm: float = 0.0
 
     @classmethod
     def from_solution(cls, geometry: Geometry, solution: ScanSolution) -> "RefinedGeometry":
-        """The geometry a refiner's solution estimated (its typed ``u0_px``, ``v0_px``, ``tilt_deg``)."""
+        """The geometry a refiner's solution estimated (its typed ``u0_px``, ``v0_px``, ``tilt_deg``,
+        ``source_to_detector_mm``, ``axis_offset_mm``)."""
         refined = tuple(k for k in REFINABLE_GEOMETRY if getattr(solution, k) is not None)
-        corrected = dataclasses.replace(geometry, **{k: float(getattr(solution, k)) for k in ("u0_px", "v0_px")
+        corrected = dataclasses.replace(geometry, **{k: float(getattr(solution, k))
+                                                     for k in ("u0_px", "v0_px", "source_to_detector_mm")
                                                      if k in refined})
+        offset = solution.axis_offset_mm
         tilt = solution.tilt_deg
         shifts = solution.view_shifts_px
         if shifts is not None:
             shifts = tuple((float(du), float(dv)) for du, dv in np.asarray(shifts, dtype=np.float64))
             refined = (*refined, "view_shifts_px")
-        return cls(corrected, 0.0 if tilt is None else float(tilt), refined, shifts)
+        return cls(corrected, 0.0 if tilt is None else float(tilt), refined, shifts,
+                   0.0 if offset is None else float(offset))
 
 
 @dataclass(frozen=True)
@@ -388,6 +398,8 @@ class ScanResult:
             # What geometry_vectors.csv holds, for a lab to set beside its scanner's calibration.
             report["refined_geometry"] = {"geometry": refined.geometry.to_dict(), "tilt_deg": refined.tilt_deg,
                                           "refined": list(refined.refined)}
+            if "axis_offset_mm" in refined.refined:
+                report["refined_geometry"]["axis_offset_mm"] = refined.axis_offset_mm
             if refined.view_shifts_px is not None:
                 report["refined_geometry"]["view_shifts_px"] = np.round(np.array(refined.view_shifts_px), 4).tolist()
         if self.gate is not None:
@@ -431,7 +443,7 @@ class ScanResult:
         """
         refined = self.refined_geometry
         return cone_vectors(refined.geometry, self.estimated_deg, tilt_deg=refined.tilt_deg,
-                            shifts_px=refined.view_shifts_px)
+                            shifts_px=refined.view_shifts_px, axis_offset_mm=refined.axis_offset_mm)
 
     def failed_pairs_warning(self) -> str | None:
         """One line saying how many pairs failed and why the first did, or None when none failed."""
@@ -543,7 +555,7 @@ class ScanResult:
         if refined is not None and any(k in refined.refined for k in ("u0_px", "tilt_deg")):
             lines.append(f"geometry: u0 {refined.geometry.u0_px:.3f} px (was {g.u0_px:.3f}), v0 "
                          f"{refined.geometry.v0_px:.3f} px, detector tilt {refined.tilt_deg:.4f} deg"
-                         + _detector_se_text(balls) + _ball_scanner_text(balls, g))
+                         + _detector_se_text(balls) + _ball_scanner_text(balls, g, refined))
         lines.append(f"estimated angles: {estimated[0]:.4f} .. {estimated[-1]:.4f} deg "
                      f"(in the nominal angles' frame{'' if self.nominal_angles_deg is not None else ': relative to view 0'})")
         if written:
@@ -551,24 +563,39 @@ class ScanResult:
         return "\n".join(lines)
 
 
-def _ball_scanner_text(balls, geometry: Geometry) -> str:
-    """The ball calibration's axis offset and source-to-detector distance, as the summary's geometry line ends, or ""
-    (:attr:`ctpipe.solve.balls.BallCalibration.axis_offset_mm`: reported, not in the geometry written)."""
+def _ball_scanner_text(balls, geometry: Geometry, refined: RefinedGeometry) -> str:
+    """The ball calibration's axis offset and source-to-detector distance, as the summary's geometry line ends, and
+    which of them the refined geometry took (:meth:`ctpipe.solve.balls.BallCalibration.pose_beyond_noise`), or ""."""
     if not isinstance(balls, dict) or balls.get("source_to_detector_mm") is None:
         return ""
+    se, p = balls.get("detector_se") or [], balls.get("pose_p_value")
+    tested = "" if p is None else f" (F test p {p:.2g})"
+    if len(se) < 5 or se[3] is None or se[4] is None:
+        return ("" if p is None else f"; the axis on the source's perpendicular and the detector at the scan's "
+                f"distance: the balls show them no different beyond noise{tested}")
     offset, sdd = float(balls["axis_offset_mm"]), float(balls["source_to_detector_mm"])
-    se = balls.get("detector_se") or []
-    said = (f" (standard errors {se[3]:.3f} mm, {se[4]:.2f} mm)" if len(se) >= 5 and None not in se[3:5] else "")
     return (f"; the axis {offset:.3f} mm off the source's perpendicular to the detector (a detector yaw of "
             f"{math.degrees(math.asin(max(-1.0, min(1.0, offset / geometry.source_to_object_mm)))):.3f} deg), source "
             f"to detector {sdd:.2f} mm (was {geometry.source_to_detector_mm:.2f}; magnification "
-            f"{sdd / geometry.source_to_object_mm:.4f}){said}: reported, not written into the geometry")
+            f"{sdd / geometry.source_to_object_mm:.4f}), standard errors {se[3]:.3f} mm and {se[4]:.2f} mm{tested}; "
+            + _taken_text(refined))
+
+
+def _taken_text(refined: RefinedGeometry) -> str:
+    """Which of the axis offset and the distance the refined geometry took, in words."""
+    taken = [name for key, name in (("axis_offset_mm", "the axis offset"), ("source_to_detector_mm", "the distance"))
+             if key in refined.refined]
+    if not taken:
+        return "both within three standard errors of the scan's own, which the geometry keeps"
+    left = "" if len(taken) == 2 else (", the other within three standard errors of the scan's own, which it keeps")
+    return (f"{' and '.join(taken)} in the geometry written (geometry_vectors.csv{left}; ctpipe's FDK takes the "
+            f"axis on the perpendicular)")
 
 
 def _detector_se_text(balls) -> str:
     """The ball calibration's standard errors of u0, v0 and the tilt, as the summary's geometry line ends, or ""."""
     se = balls.get("detector_se") if isinstance(balls, dict) else None
-    if not se or any(e is None for e in se):
+    if not se or len(se) < 3 or any(e is None for e in se[:3]):
         return ""
     return f" (standard errors {se[0]:.3f} px, {se[1]:.3f} px, {se[2]:.4f} deg)"
 

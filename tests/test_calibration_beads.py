@@ -171,6 +171,10 @@ def _estimate_with_an_offset_detector(tmp_path, capsys, **spec_changes) -> str:
     assert refined["tilt_deg"] == pytest.approx(-0.5, abs=0.02)
     vectors = np.loadtxt(tmp_path / "out" / "geometry_vectors.csv", delimiter=",", skiprows=1)
     assert np.abs(vectors[:, 10]).max() > 1e-4     # the detector's v axis leans: the tilt is in the vectors
+    # The plane's standard errors are said, and the pose the balls show no different from the scan's, which is kept.
+    line = next(text for text in said.splitlines() if text.startswith("geometry: u0"))
+    assert " (standard errors " in line and "deg); the axis on the source's perpendicular" in line
+    assert refined["geometry"]["source_to_detector_mm"] == scan.geometry.source_to_detector_mm
     return said
 
 

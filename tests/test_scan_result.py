@@ -163,6 +163,11 @@ def test_refined_geometry_is_typed_on_the_solution_and_refiner_info_is_read_in_o
     assert refined.geometry.u0_px == 30.25 and refined.geometry.v0_px == geometry.v0_px
     assert refined.tilt_deg == 0.5 and refined.refined == ("u0_px", "tilt_deg")
     assert RefinedGeometry.from_solution(geometry, ScanSolution(np.zeros(2), ())) == RefinedGeometry(geometry)
+    # The ball calibration's pose: the distance into the geometry, the axis offset beside it.
+    posed = RefinedGeometry.from_solution(geometry, ScanSolution(np.zeros(2), (), u0_px=31.0,
+                                                                 source_to_detector_mm=201.5, axis_offset_mm=-0.4))
+    assert posed.geometry.source_to_detector_mm == 201.5 and posed.axis_offset_mm == -0.4
+    assert posed.refined == ("u0_px", "source_to_detector_mm", "axis_offset_mm")
     skipped = RefinerChoice.from_info({"start": "nominal", "matching": "skipped: 8 views are too few"})
     assert not skipped.matched and skipped.skipped.startswith("skipped") and skipped.chosen is None
     assert TurnCheck.compute(np.array([[0, 1]]), np.array([np.nan]), np.array([0.0, 1.0])) == TurnCheck(0)

@@ -91,8 +91,9 @@ class BallCalibrationRefiner(Refiner):
                 "chosen": "corrected" if found.kept else "nominal"}
         # The detector is given with the nominal angles too, where the balls show it (a stage that is right, a
         # detector that is not: what a lab checking its scanner asks).
-        detector = ({"u0_px": found.u0_px, "v0_px": found.v0_px, "tilt_deg": found.tilt_deg}
-                    if found.detector_kept else {})
+        # The axis offset and the detector's distance with it, where the balls show them beyond noise.
+        detector = ({"u0_px": found.u0_px, "v0_px": found.v0_px, "tilt_deg": found.tilt_deg,
+                     **found.pose_beyond_noise(observations.geometry)} if found.detector_kept else {})
         return ScanSolution(np.deg2rad(angles - angles[0]), tuple(observations.estimates), info,
                             angle_se_deg=found.angle_se_deg if found.kept else None,
                             view_shifts_px=found.view_shifts_px, **detector)

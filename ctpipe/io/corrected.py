@@ -59,7 +59,8 @@ def scanner_frame_deg(angles_deg, nominal_deg) -> np.ndarray:
     return angles + (float(np.median(nominal[both] - angles[both])) if both.any() else 0.0)
 
 
-def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0, shifts_px=None) -> np.ndarray:
+def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0, shifts_px=None,
+                 axis_offset_mm: float = 0.0) -> np.ndarray:
     """ASTRA ``cone_vec`` rows, one per view: source, detector centre, column step, row step (mm).
 
     Parameters
@@ -74,6 +75,12 @@ def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0, shift
         Each view's own shift of the projection ``(du, dv)`` (px): that view's principal point is
         ``(u0_px + du, v0_px + dv)``, its detector moved by ``-du`` columns and ``-dv`` rows
         (:attr:`ctpipe.data.ScanSolution.view_shifts_px`).
+    axis_offset_mm : float
+        How far the rotation axis lies off the source's perpendicular to the detector, along the camera ``x``, at
+        the axis (mm; :attr:`ctpipe.data.ScanSolution.axis_offset_mm`): an object point is at ``R X + (offset, 0,
+        SOD)`` in the camera frame, and ``(u0_px, v0_px)`` is where the axis's point level with the source projects,
+        the principal point ``offset SDD / SOD`` mm from it along the (tilted) columns
+        (:func:`ctpipe.solve.balls.ellipse_centres`). 0: the axis on the perpendicular, as before.
 
     Returns
     -------
@@ -85,9 +92,14 @@ def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0, shift
     ct, st = np.cos(tilt), np.sin(tilt)
     u_cam = np.array([ct * g.pixel_pitch_u_mm, -st * g.pixel_pitch_u_mm, 0.0])
     v_cam = np.array([st * g.pixel_pitch_v_mm, ct * g.pixel_pitch_v_mm, 0.0])
+    # The principal point: the image of the source's perpendicular, ``offset SDD / SOD`` mm along the camera x from the
+    # axis's image (u0, v0).
+    along = float(axis_offset_mm) * g.source_to_detector_mm / g.source_to_object_mm
+    u_p = g.u0_px - along * ct / g.pixel_pitch_u_mm
+    v_p = g.v0_px - along * st / g.pixel_pitch_v_mm
     centre_cam = (np.array([0.0, 0.0, g.source_to_detector_mm])
-                  + ((g.detector_cols - 1) / 2.0 - g.u0_px) * u_cam + ((g.detector_rows - 1) / 2.0 - g.v0_px) * v_cam)
-    shift = np.array([0.0, 0.0, g.source_to_object_mm])
+                  + ((g.detector_cols - 1) / 2.0 - u_p) * u_cam + ((g.detector_rows - 1) / 2.0 - v_p) * v_cam)
+    shift = np.array([float(axis_offset_mm), 0.0, g.source_to_object_mm])
     angles = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
     shifts = np.zeros((len(angles), 2)) if shifts_px is None else np.asarray(shifts_px, dtype=np.float64)
     rows = []

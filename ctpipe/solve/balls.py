@@ -120,7 +120,8 @@ order: ``v0`` takes it (a synthetic scan with the axis tipped 0.5 deg: the views
 38 px). Two parts of the pose do not fold into ``u0``, ``v0`` and the tilt, and each bent the angles where it was left
 out (synthetic discs with 0.02 px of noise, told angles 0.5 deg off): the axis off the source's perpendicular (a
 stage moved sideways, or a detector yawed by 0.5 deg: views up to 0.026 deg off, kept) and the distance from the
-source to the detector (1 % off: up to 0.048 deg, refused). Both are fitted (:func:`ellipse_centres`).
+source to the detector (1 % off: up to 0.048 deg, refused). Both are fitted (:func:`ellipse_centres`), from the
+round where an F test shows them: fitted always, they cost up to 0.0007 deg on scans of the exact geometry.
 """
 
 from __future__ import annotations
@@ -142,6 +143,14 @@ __all__ = ["BallCalibration", "calibrate_balls", "ellipse_centres", "PLACED_FLAG
 #: The detector's unknowns: the axis column, the principal row, the in-plane tilt (rad), the axis's offset from the
 #: source's perpendicular to the detector (mm, at the axis), the source-to-detector distance (mm).
 _DETECTOR_UNKNOWNS = 5
+#: Of them, those of the detector's plane (the first three), fitted whenever the detector is; the axis offset and the
+#: distance only where the balls show them (``calibrate_balls``).
+_PLANE_UNKNOWNS = 3
+
+
+#: The axis offset and the source-to-detector distance go into the geometry only beyond this many standard errors from
+#: the scan's own (:meth:`BallCalibration.pose_beyond_noise`).
+_POSE_SES = 3.0
 
 
 @dataclass(frozen=True)
@@ -175,7 +184,12 @@ class BallCalibration:
         perpendicular in its plane (a yaw), the axis on the perpendicular.
     source_to_detector_mm : float
         Fitted with them, at the scan's own source-to-object distance (a phantom of unknown size fixes the rest
-        only up to a scale about the source): the magnification is this over ``source_to_object_mm``.
+        only up to a scale about the source): the magnification is this over ``source_to_object_mm``. This and the
+        axis offset are fitted only where an F test shows them (``pose_p_value`` below ``p_value``); else they are the
+        scan's own (0 and its stated distance), their standard errors NaN.
+    pose_p_value : float
+        The F test of the axis offset and the distance fitted against held at the scan's own, made once the first
+        round has settled the angles (NaN where not made: the detector not fitted, or the rounds never settled).
     detector_se : ndarray of shape (5,)
         Standard errors of ``u0_px`` (px), ``v0_px`` (px), ``tilt_deg`` (deg), ``axis_offset_mm`` (mm) and
         ``source_to_detector_mm`` (mm); NaN where not computed.
@@ -261,13 +275,27 @@ class BallCalibration:
     overlap_scatter_px: float = math.nan
     axis_offset_mm: float = 0.0
     source_to_detector_mm: float = math.nan
+    pose_p_value: float = math.nan
+
+    def pose_beyond_noise(self, geometry: Geometry) -> dict:
+        """Of the axis offset and the source-to-detector distance, those that differ from the scan's own (``geometry``:
+        the axis on the source's perpendicular, its stated distance) by more than :data:`_POSE_SES` of their standard
+        errors, by their :class:`ctpipe.data.ScanSolution` keys: what the geometry a user reconstructs with takes.
+        Where the balls barely show the cone's perspective (a small cone angle, few balls), both are fitted loosely and
+        the scanner's own values, good to a few tenths of a millimetre, are the better ones."""
+        se = self.detector_se
+        fitted = {"axis_offset_mm": (self.axis_offset_mm, 0.0, se[3]),
+                  "source_to_detector_mm": (self.source_to_detector_mm, geometry.source_to_detector_mm, se[4])}
+        return {key: float(value) for key, (value, own, error) in fitted.items()
+                if math.isfinite(value) and math.isfinite(error) and abs(value - own) > _POSE_SES * error}
 
     def to_dict(self) -> dict:
         return {"kept": self.kept, "reason": self.reason, "balls": len(self.balls_mm),
                 "balls_mm": np.round(self.balls_mm, 4).tolist(), "u0_px": self.u0_px, "v0_px": self.v0_px,
                 "tilt_deg": self.tilt_deg, "axis_offset_mm": self.axis_offset_mm,
                 "source_to_detector_mm": None if not math.isfinite(self.source_to_detector_mm) else
-                self.source_to_detector_mm, "detector_se": [None if not np.isfinite(e) else float(e)
+                self.source_to_detector_mm, "pose_p_value": None if not math.isfinite(self.pose_p_value) else
+                self.pose_p_value, "detector_se": [None if not np.isfinite(e) else float(e)
                                                            for e in self.detector_se],
                 "detector_kept": self.detector_kept, "detector_reason": self.detector_reason, "rms_px": self.rms_px,
                 "max_jackknife_se_deg": (None if self.angle_jackknife_se_deg is None
@@ -904,6 +932,7 @@ class _Fit:
     shift_columns: slice = field(default_factory=lambda: slice(0, 0))   # the shifts' unknowns in ``jac``
     n_gauge: int = 0                   # gauge rows after the discs' in ``jac``, each giving one unknown back
     overlap_pull_px: float = math.nan  # how far a disc is pushed from a neighbour covering all of it (px), if fitted
+    n_det: int = 0                     # the detector's unknowns fitted, the last in ``jac``
 
 
 #: The robust loss once a round has settled the angles from the nominal ones (the first round, and the first after a
@@ -1016,8 +1045,12 @@ def _forward_differences(fun, x: np.ndarray, f0: np.ndarray, rows: np.ndarray, c
 
 
 def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_views, fit_angles=True,
-            fit_detector=True, scale_px: float = 1.0, loss: str = "huber", cut_px=None, shifts_px=None) -> _Fit:
+            fit_detector=True, scale_px: float = 1.0, loss: str = "huber", cut_px=None, shifts_px=None,
+            fit_pose: bool = False) -> _Fit:
     """Bundle adjustment of the free views' angles, the balls and the detector on the discs.
+
+    The detector's unknowns are the axis column, the principal row and the tilt; with ``fit_pose``, the axis's offset
+    from the source's perpendicular and the source-to-detector distance too (else held where ``detector`` has them).
 
     The gauge (a common turn of every view turns only the phantom) is one more residual: the free
     views' mean angle held where it starts. No view is held: with one view held and a robust
@@ -1043,7 +1076,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     side, edge = discs.side, discs.edge
     B = len(balls)
     n_free = len(free_views) if fit_angles else 0
-    n_det = _DETECTOR_UNKNOWNS if fit_detector else 0
+    n_det = (_DETECTOR_UNKNOWNS if fit_pose else _PLANE_UNKNOWNS) if fit_detector else 0
     one_sided = np.any(side != 0.0, axis=1)
     cut_balls = np.flatnonzero(np.bincount(ball_of[one_sided], minlength=B) > 0) if B else np.zeros(0, int)
     cut_start = np.zeros(B) if cut_px is None else np.nan_to_num(np.asarray(cut_px, dtype=np.float64), nan=0.0)
@@ -1066,7 +1099,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
         c[cut_balls] = x[n_free + 3 * B:first_shift]
         t = np.zeros((len(angles), 2)) if shifts_px is None else np.array(shifts_px, dtype=np.float64)
         t[shifted] = x[shift_unknowns].reshape(-1, 2)
-        d = x[pull_at + n_pull:] if n_det else detector
+        d = np.concatenate([x[pull_at + n_pull:], detector[n_det:]]) if n_det else detector
         return a, p, c, t, d, (x[pull_at] if n_pull else 0.0)
 
     start_mean = float(np.mean(angles[free_views])) if n_free else 0.0
@@ -1101,7 +1134,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
 
     x0 = np.concatenate([angles[free_views] if n_free else [], balls.reshape(-1), cut_start[cut_balls],
                          np.asarray(shifts_px, dtype=np.float64)[shifted].reshape(-1) if n_shift else [],
-                         [0.0] * n_pull, detector if n_det else []])
+                         [0.0] * n_pull, detector[:n_det]])
     # The Jacobian's structure: each observation sees its view's angle, its ball, its ball's cut, the overlap pull
     # where another disc overlaps it, and the detector.
     M = len(observed)
@@ -1182,7 +1215,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     return _Fit(a, p, np.asarray(d, dtype=np.float64), residuals(solved.x, gauge=False).reshape(-1, 2),
                 solved.jac.toarray() if hasattr(solved.jac, "toarray") else solved.jac,
                 np.asarray(free_views), len(x0), cut, None if shifts_px is None else t, shift_unknowns, n_gauge,
-                float(pull) if n_pull else math.nan)
+                float(pull) if n_pull else math.nan, n_det)
 
 
 #: A view's correction may exceed the nominal angles' stated error by this many of the largest standard error of the
@@ -1202,7 +1235,7 @@ _UNCOUNTED_TIMES = 10.0
 
 
 def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_views, fit_detector, scale_px,
-                  loss, cut_px, shifts_px=None, se_deg=None,
+                  loss, cut_px, shifts_px=None, se_deg=None, fit_pose: bool = False,
                   allowed_deg: float = np.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray]:
     """Each view's angle's standard error by the delete-a-group jackknife over the balls (deg; NaN where not free or
     where one ball's disc alone pins it), and how many refits adjusted it; then the fitted detector's (u0 px, v0 px,
@@ -1253,7 +1286,7 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
             continue
         refit = _adjust(left, radii_mm[keep_ball], angles, balls[keep_ball], detector, geometry, free_views=free,
                         fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=np.asarray(cut_px)[keep_ball],
-                        shifts_px=shifts_px)
+                        shifts_px=shifts_px, fit_pose=fit_pose)
         # The refit's common turn by the median: its gauge holds the views' mean, so a view the refit loses (its one
         # good disc left out, a merged pair's disc left to pin it) would move every other view by its share.
         refits[k, free] = refit.angles[free] - np.median(refit.angles[free] - angles[free])
@@ -1274,6 +1307,8 @@ def _jackknife_se(discs: _Discs, radii_mm, angles, balls, detector, geometry, *,
     if len(refitted) >= 2:
         detector_se = np.sqrt((len(refitted) - 1) / len(refitted) * np.sum((refitted - refitted.mean(axis=0)) ** 2,
                                                                            axis=0))
+        if not fit_pose:
+            detector_se[_PLANE_UNKNOWNS:] = np.nan   # held, not fitted
     rests &= (np.isin(np.arange(V), free_views) & (balls_seen >= 2))[None, :]
     return se, n, detector_se, len(refitted), rests
 
@@ -1548,7 +1583,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     flag_weight = _first_flag_weights()
     scatter = _NO_SCATTER               # how discs scatter along what overlaps them, and clean ones (px)
     loss = "huber"
-    start_angles, start_detector = theta0.copy(), detector.copy()
+    start_angles, start_detector, start_balls = theta0.copy(), detector.copy(), balls.copy()
     dropped = False
     gross = [np.zeros(len(found), bool) for found in detections]   # discs left out as gross errors
     shifting = fit_shifts is True       # whether each view's shift is fitted (from the start, or once shown)
@@ -1557,6 +1592,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     # (:data:`_MAX_SHIFT_VIEWS`).
     shift_p, shift_tested = math.nan, fit_shifts is not None or V > _MAX_SHIFT_VIEWS
     start_shifts = (shifting, shifts.copy(), shift_p, shift_tested)   # what a dropped ball takes the rounds back to
+    # The axis's offset from the source's perpendicular and the detector's distance: fitted from the round where an F
+    # test of them shows them (:data:`_PLANE_UNKNOWNS`), tested once the first round has settled the angles.
+    posing, pose_p, pose_tested = False, math.nan, not fit_detector
+    start_pose = (posing, pose_p, pose_tested)
     for readmitted in (False, True):
         done = again = 0
         while done < rounds:   # a round that drops a ball does not count (at most all but two are dropped)
@@ -1600,12 +1639,23 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
             discs = _Discs(observed, weight, view_of, ball_of, side, edge, overlap, whiten)
             fit = _adjust(discs, radii_mm, angles, balls, detector, geometry, free_views=free_views,
                           fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=cut_px,
-                          shifts_px=shifts if shifting else None)
+                          shifts_px=shifts if shifting else None, fit_pose=posing)
+            if not posing and loss == _SETTLED_LOSS and not pose_tested:
+                # Once the angles have settled: does the scanner's pose differ from its file's beyond noise?
+                trial = _adjust(discs, radii_mm, fit.angles, fit.balls, fit.detector, geometry, free_views=free_views,
+                                fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=fit.cut_px,
+                                shifts_px=shifts if shifting else None, fit_pose=True)
+                pose_p, pose_tested = _f_test(fit, trial)[1], True
+                if pose_p < p_value:
+                    fit, posing = trial, True
+                    if done == rounds - 1:
+                        again += 1   # one more round, assigned with the pose
+                        done -= 1
             if fit_shifts is None and not shifting and loss == _SETTLED_LOSS and not shift_tested:
                 # Once the angles have settled: do the views' projections shift, each its own way?
                 trial = _adjust(discs, radii_mm, fit.angles, fit.balls, fit.detector, geometry, free_views=free_views,
                                 fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=fit.cut_px,
-                                shifts_px=np.zeros((V, 2)))
+                                shifts_px=np.zeros((V, 2)), fit_pose=posing)
                 # A drift moves every disc of a view: tested over all of them, and again without each view's worst
                 # (:func:`_but_the_worst`), which a shift also takes up where a neighbour pulled it.
                 shift_p = max(_f_test(fit, trial)[1], _f_test(fit, trial, _but_the_worst(fit.residual, view_of))[1])
@@ -1635,9 +1685,12 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                 np.all(np.isfinite(balls), axis=1) & (np.hypot(balls[:, 0], balls[:, 2]) <= 2.0 * reach_mm) & \
                 (np.hypot(balls[:, 0], balls[:, 2]) >= orbit_mm)
             if not good.all() and good.sum() >= 2:
-                balls, radii_mm, ball_weight = balls[good], radii_mm[good], ball_weight[good]
-                # Assigned again from the start's angles and detector, within the start's tolerance: tightened
-                # to what the fit explained, it missed every disc of a detector the fit had moved 38 px.
+                # The rounds begin again without it, from the start: the angles, the detector and the balls as they
+                # were before it bent them, and the start's tolerance. (The fitted balls kept with the start's
+                # detector missed their discs by as much as the fit had moved the detector: 38 px, beyond the
+                # tolerance tightened to what the fit explained, and no disc was assigned again.)
+                balls, radii_mm, ball_weight = start_balls[good], radii_mm[good], ball_weight[good]
+                start_balls = balls.copy()
                 tol = _tolerance_px(balls, geometry, error_rad, radius_px)
                 cut_px = np.zeros(len(balls))
                 flag_weight = _first_flag_weights()   # their residuals held the dropped ball's discs
@@ -1646,6 +1699,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                 angles, detector = start_angles.copy(), start_detector.copy()   # as it bent them
                 shifting, shifts, shift_p, shift_tested = start_shifts
                 shifts = shifts.copy()
+                posing, pose_p, pose_tested = start_pose
                 dropped = True
                 loss = "huber"
                 continue
@@ -1683,13 +1737,14 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         tol = np.append(tol, np.full(len(more), tol.max()))
         radii_mm = np.append(radii_mm, more_radii_mm)
         ball_weight, cut_px = np.append(ball_weight, np.ones(len(more))), np.append(cut_px, np.zeros(len(more)))
-        start_angles, start_detector = angles.copy(), detector.copy()
+        start_angles, start_detector, start_balls = angles.copy(), detector.copy(), balls.copy()
         start_shifts = (shifting, shifts.copy(), shift_p, shift_tested)
+        start_pose = (posing, pose_p, pose_tested)
         loss = "huber"
     view_shifts = shifts if shifting else None
     nominal_fit = _adjust(discs, radii_mm, theta0, balls, detector, geometry, free_views=free_views, fit_angles=False,
                           fit_detector=fit_detector, scale_px=scale_px, loss=fit_loss, cut_px=cut_px,
-                          shifts_px=view_shifts)
+                          shifts_px=view_shifts, fit_pose=posing)
     # The gauge row takes one unknown back: the angles add len(free_views) - 1 over the nominal fit.
     extra = len(free_views) - 1
     f_stat, p = _f_test(nominal_fit, fit)
@@ -1707,7 +1762,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         jack_se, jack_n, detector_jack_se, detector_jack_n, rests = _jackknife_se(
             discs, radii_mm, angles, balls, detector, geometry, free_views=free_views, fit_detector=fit_detector,
             scale_px=scale_px, loss=fit_loss, cut_px=cut_px, shifts_px=view_shifts, se_deg=se,
-            allowed_deg=max_angle_se_deg)
+            allowed_deg=max_angle_se_deg, fit_pose=posing)
     # A view resting on one ball's disc (the other balls' discs in it do not fix it): as a view of one disc, that disc
     # must be whole (clean, or overlapping another), with no other followed ball within it.
     resting, unclean = _resting_views(rests, discs, np.asarray(flagged), np.asarray(index_of), placed, assigned,
@@ -1823,7 +1878,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                                  cut_px=nominal_fit.cut_px, shifts_px=nominal_fit.shifts_px))
     detector_fit, detector_cov = returned, returned_cov
     if one_view and fit_detector and not nominal_as_good and p < p_value:
-        detector_kept, detector_reason = _refused_angles_detector(_detector_se(cov), detector_jack_se, detector_jack_n,
+        detector_kept, detector_reason = _refused_angles_detector(_detector_se(cov, fit.n_det), detector_jack_se,
+                                                                  detector_jack_n,
                                                                   p_value)
         if detector_kept:
             detector_fit, detector_cov = fit, cov
@@ -1840,7 +1896,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                            observations=int(len(observed)), shell_observations=int(np.sum(edge < 1.0)),
                            left_out=int(sum(int(np.sum(out)) for out in gross)),
                            assigned=assigned, ball_cut_px=cut_px,
-                           detector_se=_detector_se(detector_cov if fit_detector else None),
+                           detector_se=_detector_se(detector_cov if fit_detector else None, detector_fit.n_det),
+                           pose_p_value=pose_p,
                            angle_jackknife_se_deg=jack_se, detector_kept=detector_kept,
                            detector_reason=detector_reason, correction_p_value=p_change,
                            view_shifts_px=shifts_out, shift_p_value=shift_p,
@@ -1980,12 +2037,14 @@ def _refused_angles_detector(fit_se: np.ndarray, jackknife_se: np.ndarray, refit
                   f"above); {said}, within the {_MAX_DETECTOR_SE[0]:g} px and {_MAX_DETECTOR_SE[2]:g} deg allowed")
 
 
-def _detector_se(cov: np.ndarray | None) -> np.ndarray:
+def _detector_se(cov: np.ndarray | None, n_det: int = _DETECTOR_UNKNOWNS) -> np.ndarray:
     """Standard errors of the detector (u0 px, v0 px, tilt deg, axis offset mm, source to detector mm), a fitted
-    detector being the last :data:`_DETECTOR_UNKNOWNS` unknowns of ``cov`` (:func:`_covariance`); NaN without one."""
-    if cov is None:
-        return np.full(_DETECTOR_UNKNOWNS, np.nan)
-    return np.sqrt(np.clip(np.diag(cov)[-_DETECTOR_UNKNOWNS:], 0.0, None)) * _DETECTOR_UNITS
+    detector's ``n_det`` unknowns being the last of ``cov`` (:func:`_covariance`); NaN without one, and for those not
+    fitted."""
+    se = np.full(_DETECTOR_UNKNOWNS, np.nan)
+    if cov is not None and n_det:
+        se[:n_det] = np.sqrt(np.clip(np.diag(cov)[-n_det:], 0.0, None)) * _DETECTOR_UNITS[:n_det]
+    return se
 
 
 def _beyond_disagreement(change_deg: np.ndarray, spread_deg: np.ndarray,

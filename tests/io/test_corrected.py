@@ -65,3 +65,24 @@ def test_scanner_frame_keeps_differences_and_aligns_to_the_nominal_median():
     np.testing.assert_allclose(np.diff(out[:3]), np.diff(estimated[:3]))
     assert np.nanmedian(out - nominal) == pytest.approx(0.0)
     np.testing.assert_array_equal(scanner_frame_deg(estimated, None), estimated)
+
+
+@pytest.mark.parametrize("tilt_deg, offset_mm", [(0.0, 1.2), (0.6, -0.8)])
+def test_cone_vectors_of_an_axis_off_the_perpendicular_project_as_the_ball_calibration_models(tilt_deg, offset_mm):
+    """The ball calibration's scanner (:func:`ctpipe.solve.balls.ellipse_centres` of balls of no size): the axis
+    ``offset_mm`` off the source's perpendicular, at its fitted distance, ``(u0, v0)`` where the axis's point level
+    with the source projects. The vectors put every point where that model does; with no offset, as before."""
+    from ctpipe.solve.balls import ellipse_centres
+
+    rng = np.random.default_rng(2)
+    points = rng.uniform(-20, 20, (40, 3))
+    angles_deg = rng.uniform(-180, 180, 40)
+    geometry = dataclasses.replace(GEOMETRY, source_to_detector_mm=404.0)
+    expected = ellipse_centres(points, np.zeros(len(points)), np.deg2rad(angles_deg), geometry, geometry.u0_px,
+                               geometry.v0_px, np.deg2rad(tilt_deg), offset_mm)
+    vectors = cone_vectors(geometry, angles_deg, tilt_deg=tilt_deg, axis_offset_mm=offset_mm)
+    got = np.array([_pixel_from_vectors(row, TO_ASTRA @ p, geometry) for row, p in zip(vectors, points)])
+    np.testing.assert_allclose(got, expected, atol=1e-9)
+    # The axis images at (u0, v0) at the source's height, whatever the view.
+    on_axis = np.array([_pixel_from_vectors(row, np.zeros(3), geometry) for row in vectors])
+    np.testing.assert_allclose(on_axis, np.tile([geometry.u0_px, geometry.v0_px], (len(vectors), 1)), atol=1e-9)

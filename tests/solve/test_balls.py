@@ -74,7 +74,10 @@ def test_right_nominal_angles_still_give_the_detector_the_balls_show():
     assert found.detector_kept and "better than the scan's" in found.detector_reason
     assert found.u0_px == pytest.approx(1001.0, abs=0.02) and found.tilt_deg == pytest.approx(0.3, abs=0.002)
     se = found.detector_se
-    assert np.all(np.isfinite(se)) and np.all(se > 0)
+    assert np.all(np.isfinite(se[:3])) and np.all(se[:3] > 0)
+    # The scanner's pose is its file's here: not shown beyond noise, not fitted.
+    assert found.pose_p_value > 1e-3 and np.all(np.isnan(se[3:]))
+    assert found.axis_offset_mm == 0.0 and found.source_to_detector_mm == GEOMETRY.source_to_detector_mm
     assert abs(found.u0_px - 1001.0) < 4 * se[0] + 1e-3 and abs(found.tilt_deg - 0.3) < 4 * se[2] + 1e-4
     assert found.to_dict()["detector_kept"] is True
 
@@ -91,7 +94,8 @@ def test_corrected_angles_come_with_their_detector_and_its_standard_errors():
     truth = nominal + np.random.default_rng(1).uniform(-1.0, 1.0, 16)
     found = calibrate_balls(_detections(truth, BALLS, 2.5, u0_px=1001.0, tilt_deg=0.3), GEOMETRY, nominal)
     assert found.kept and found.detector_kept and found.detector_reason == "fitted with the corrected angles"
-    assert np.all(np.isfinite(found.detector_se)) and found.detector_se[0] < 0.05
+    assert np.all(np.isfinite(found.detector_se[:3])) and found.detector_se[0] < 0.05
+    assert np.all(np.isnan(found.detector_se[3:]))   # the pose held: the scan's own, which these discs follow
 
 
 def test_the_jackknife_over_the_balls_agrees_with_the_residuals_where_the_balls_agree():
@@ -1271,6 +1275,11 @@ def test_an_axis_off_the_sources_perpendicular_and_a_detector_at_another_distanc
     se = found.detector_se
     assert abs(found.axis_offset_mm - offset) < 4 * se[3] + 1e-3
     assert abs(found.source_to_detector_mm - distance_mm) < 4 * se[4] + 1e-2
+    assert found.pose_p_value < 1e-3
+    # Into the geometry where each differs from the scan's own beyond three standard errors.
+    taken = found.pose_beyond_noise(GEOMETRY)
+    assert ("axis_offset_mm" in taken) == (yaw_deg != 0.0)
+    assert ("source_to_detector_mm" in taken) == (distance_mm != GEOMETRY.source_to_detector_mm)
     said = found.to_dict()
     assert said["axis_offset_mm"] == found.axis_offset_mm
     assert said["source_to_detector_mm"] == found.source_to_detector_mm
