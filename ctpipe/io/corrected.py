@@ -7,7 +7,9 @@ there (the common offset that makes estimated minus nominal zero in the median).
 :func:`cone_vectors` gives the per-view vector geometry of ASTRA's ``cone_vec`` (and of any
 reconstructor that takes a source, a detector centre and the detector's row and column vectors
 per view, as TIGRE's and CIL's vector geometries do): it carries the angle and, when bundle
-adjustment estimated them, the centre of rotation (``u0_px``), ``v0_px`` and the detector tilt.
+adjustment estimated them, the centre of rotation (``u0_px``), ``v0_px`` and the detector tilt; when a ball
+calibration showed it, the axis's offset from the source's perpendicular (the source and the detector placed about
+the offset axis: ``S = R^T (-offset, 0, -SOD)``, the detector's centre likewise less the offset).
 
 Frame of the vectors
 --------------------
