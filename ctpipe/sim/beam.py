@@ -258,6 +258,10 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
     from ctpipe.sim.projectors import VoxelProjector, project_analytic
 
     angles = np.asarray(angles_deg, dtype=np.float64).reshape(-1)
+    if phantom.primitives is None:   # before any projection: only primitives are moved off the axis
+        from ctpipe.sim.drift import _refuse_axis_offset
+
+        _refuse_axis_offset(axis_offset_mm)
     energies, weights = beam_spectrum(beam)
     water_per_mm = _water_per_mm()
     if phantom.primitives is not None:
@@ -279,9 +283,6 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
                                       axis_offset_mm=axis_offset_mm).astype(np.float64)
                      for _, prims in groups]
         else:
-            from ctpipe.sim.drift import _refuse_axis_offset
-
-            _refuse_axis_offset(axis_offset_mm)
             path = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, chunk)
             if offsets is not None or detector_tilt_deg != 0:
                 from ctpipe.sim.drift import resample_to_detector

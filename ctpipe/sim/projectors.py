@@ -275,7 +275,9 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         raise InputError(f"axis_offset_mm: must be a finite number of mm within half the source-to-object distance "
                          f"({0.5 * geometry.source_to_object_mm:g} mm), got {axis_offset_mm!r}")
     if axis_offset_mm:
-        return _project_off_axis(primitives, geometry, angles, u0_v, v0_v, float(axis_offset_mm),
+        offsets = (np.zeros((angles.size, 2)) if detector_offsets_px is None
+                   else np.asarray(detector_offsets_px, dtype=np.float64))   # checked by _principal_points
+        return _project_off_axis(primitives, geometry, angles, offsets, float(axis_offset_mm),
                                  supersample=supersample, blur_px=blur_px, progress=progress,
                                  detector_tilt_deg=detector_tilt_deg)
     tilt = math.radians(detector_tilt_deg)
@@ -343,19 +345,18 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     return out
 
 
-def _project_off_axis(primitives: Primitives, geometry: Geometry, angles: np.ndarray, u0_v: np.ndarray,
-                      v0_v: np.ndarray, axis_offset_mm: float, *, progress, **settings) -> np.ndarray:
+def _project_off_axis(primitives: Primitives, geometry: Geometry, angles: np.ndarray, offsets_px: np.ndarray,
+                      axis_offset_mm: float, *, progress, **settings) -> np.ndarray:
     """:func:`project_analytic` with the axis ``axis_offset_mm`` off the source's perpendicular: view by view, the
     primitives moved by ``R(theta)^T (axis_offset_mm, 0, 0)``, which puts them at ``R(theta) X + (axis_offset_mm, 0,
     SOD)`` in the camera frame."""
     import dataclasses
 
     out = np.empty((angles.size, geometry.detector_rows, geometry.detector_cols), dtype=np.float32)
-    offsets = np.column_stack([u0_v - geometry.u0_px, v0_v - geometry.v0_px])
     for k, theta in enumerate(np.deg2rad(angles)):
         moved = axis_offset_mm * np.array([math.cos(theta), 0.0, -math.sin(theta)])
         shifted = dataclasses.replace(primitives, centre_mm=primitives.centre_mm + moved)
-        out[k] = project_analytic(shifted, geometry, angles[k:k + 1], detector_offsets_px=offsets[k:k + 1],
+        out[k] = project_analytic(shifted, geometry, angles[k:k + 1], detector_offsets_px=offsets_px[k:k + 1],
                                   **settings)[0]
         if progress is not None:
             progress(k + 1)

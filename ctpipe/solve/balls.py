@@ -355,7 +355,7 @@ def ellipse_centres(points_mm: np.ndarray, radii_mm: np.ndarray, angles_rad: np.
     # (u0, v0) is where the axis's point level with the source projects: the principal point lies off it by the
     # axis's offset from the source's perpendicular.
     xa = axis_offset_mm / geometry.source_to_object_mm
-    xn, yn = xn - xa, yn
+    xn = xn - xa
     return np.stack([u0_px + fu * (ct * xn - st * yn), v0_px + fv * (st * xn + ct * yn)], axis=1)
 
 
@@ -1593,7 +1593,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     shift_p, shift_tested = math.nan, fit_shifts is not None or V > _MAX_SHIFT_VIEWS
     start_shifts = (shifting, shifts.copy(), shift_p, shift_tested)   # what a dropped ball takes the rounds back to
     # The axis's offset from the source's perpendicular and the detector's distance: fitted from the round where an F
-    # test of them shows them (:data:`_PLANE_UNKNOWNS`), tested once the first round has settled the angles.
+    # test of them shows them (the unknowns beyond :data:`_PLANE_UNKNOWNS`), tested once the first round has settled
+    # the angles.
     posing, pose_p, pose_tested = False, math.nan, not fit_detector
     start_pose = (posing, pose_p, pose_tested)
     for readmitted in (False, True):
@@ -2037,7 +2038,7 @@ def _refused_angles_detector(fit_se: np.ndarray, jackknife_se: np.ndarray, refit
                   f"above); {said}, within the {_MAX_DETECTOR_SE[0]:g} px and {_MAX_DETECTOR_SE[2]:g} deg allowed")
 
 
-def _detector_se(cov: np.ndarray | None, n_det: int = _DETECTOR_UNKNOWNS) -> np.ndarray:
+def _detector_se(cov: np.ndarray | None, n_det: int) -> np.ndarray:
     """Standard errors of the detector (u0 px, v0 px, tilt deg, axis offset mm, source to detector mm), a fitted
     detector's ``n_det`` unknowns being the last of ``cov`` (:func:`_covariance`); NaN without one, and for those not
     fitted."""

@@ -272,3 +272,7 @@ def test_an_axis_off_the_perpendicular_round_trips_and_is_refused_for_a_voxel_ph
     volume = parse_phantom({"name": "cube", "voxels": {"file": "cube.npy", "voxel_size_mm": 0.5}}, base_dir=tmp_path)
     with pytest.raises(InputError, match="primitive phantoms only"):
         project_phantom(volume, spec.geometry, [0.0], axis_offset_mm=1.0)
+    from ctpipe.sim.beam import parse_beam, polychromatic_line_integrals
+
+    with pytest.raises(InputError, match="primitive phantoms only"):
+        polychromatic_line_integrals(volume, parse_beam({"energy_kev": 60}), spec.geometry, [0.0], axis_offset_mm=1.0)
