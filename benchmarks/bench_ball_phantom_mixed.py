@@ -43,6 +43,10 @@ directions, and one jump of ``J`` px at a random view); the calibration should f
 shift and keep its angles (the per-view shifts are then printed against the simulator's, less their
 mean and their columns' once-a-turn part, which the balls' positions and the axis take).
 
+``--lag-fraction L`` gives the detector an afterglow (each frame carries ``L`` of the last one's signal: the ghost of
+every ball's disc a step behind it) and ``--flux-sigma F`` a tube whose output in each view is off the flats' by
+``N(0, F)`` (:mod:`ctpipe.sim.detector`).
+
 ``--random-layout`` places the phantom's nine balls anew for each seed (:func:`random_layout`: the
 same four kinds and the same holder, 7-18 mm from the axis at random heights, none touching), so
 that what is measured is not one layout's luck: several balls at one height overlap in many
@@ -200,14 +204,16 @@ def coated_spec(views: int, jitter_deg: float, seed: int) -> dict:
 
 def simulate_scan(views: int, jitter_deg: float, max_error_deg: float | None, seed: int, random: bool = False,
                   coated: bool = False, saturation: float | None = None, drift: dict | None = None,
-                  solid: bool = False, axis_offset_mm: float = 0.0):
+                  solid: bool = False, axis_offset_mm: float = 0.0, detector: dict | None = None):
     """The simulated scan and the nominal angles given to the pipeline (``saturation``: the clip's level, as a
     share of the open beam, in place of the spec's 95 %; ``drift``: the misalignment's ``drift`` section; ``solid``:
     :func:`solid_layout` through the coated scan's beam; ``axis_offset_mm``: the axis that far off the source's
-    perpendicular, a stage moved sideways)."""
+    perpendicular, a stage moved sideways; ``detector``: keys of the spec's ``detector`` section to add or replace)."""
     spec = coated_spec(views, jitter_deg, seed) if coated or solid else scan_spec(views, jitter_deg, seed)
     if saturation is not None:
         spec["detector"] = {**spec["detector"], "saturation_fraction": saturation}
+    if detector:
+        spec["detector"] = {**spec["detector"], **detector}
     if axis_offset_mm:
         spec["misalignment"] = {**spec["misalignment"], "axis_offset_mm": axis_offset_mm}
     if drift:
@@ -277,6 +283,10 @@ def main(argv=None) -> int:
     parser.add_argument("--axis-offset-mm", type=float, default=0.0,
                         help="the rotation axis this far off the source's perpendicular to the detector (mm): a stage "
                              "moved sideways, or a detector yawed by asin(it / SOD)")
+    parser.add_argument("--lag-fraction", type=float, default=0.0,
+                        help="the detector carries this share of each frame's signal into the next (afterglow)")
+    parser.add_argument("--flux-sigma", type=float, default=0.0,
+                        help="the tube's output in each view off the flats' by this relative standard deviation")
     parser.add_argument("--drift-jump-px", type=float, default=0.0,
                         help="and one jump of this size (px) at a random view")
     layout = parser.add_mutually_exclusive_group()
@@ -295,7 +305,9 @@ def main(argv=None) -> int:
         drift = ({"walk_px": args.drift_walk_px, "jumps": 1 if args.drift_jump_px else 0,
                   "jump_px": args.drift_jump_px} if args.drift_walk_px or args.drift_jump_px else None)
         scan, nominal, truth = simulate_scan(args.views, args.jitter_deg, args.max_error_deg, seed, args.random_layout,
-                                             args.coated, args.saturation, drift, args.solid, args.axis_offset_mm)
+                                             args.coated, args.saturation, drift, args.solid, args.axis_offset_mm,
+                                             {key: value for key, value in (("lag_fraction", args.lag_fraction),
+                                                                            ("flux_sigma", args.flux_sigma)) if value})
         simulated = time.perf_counter() - start
         start = time.perf_counter()
         recognised, why = looks_like_ball_phantom(scan.projections)

@@ -6,18 +6,25 @@ defaults to "off", and a scan without the section is simulated exactly as before
     detector: {scatter_fraction: 0.05, scatter_sigma_px: 50, psf_sigma_px: 0.8,
                dead_pixels: 20, hot_pixels: 10, dead_columns: 1,
                gain_sigma: 0.05, gain_drift_sigma: 0.005, lag_fraction: 0.02,
-               dust_specks: 30, saturation_fraction: 0.9}
+               dust_specks: 30, flux_sigma: 0.005, saturation_fraction: 0.9}
 
 One frame of a pixel is recorded in this order (``p`` the line integral, ``I0`` the
 unattenuated counts of :class:`~ctpipe.sim.acquisition.NoiseModel`)::
 
-    primary  = I0 exp(-p)
-    scatter  = scatter_fraction * G(scatter_sigma_px) * (p I0 exp(-p))    (smooth, object-dependent)
+    primary  = I0 (1 + f_v) exp(-p)                                        (f_v: the tube's output, per view)
+    scatter  = scatter_fraction * G(scatter_sigma_px) * (p primary)       (smooth, object-dependent)
     counts   = Poisson(primary + scatter)                                  (photons arrive)
     counts   = G(psf_sigma_px) * counts                                    (scintillator blur)
     signal_v = (1 - lag_fraction) counts_v + lag_fraction signal_(v-1)     (charge left over)
     frame    = min(gain * signal + Poisson(dark_counts), saturation_fraction I0)
     dead pixels and columns read 0, hot pixels the full scale, in every frame
+
+The tube's output is not steady: with ``flux_sigma`` each projection's beam is ``I0 (1 + N(0,
+flux_sigma))``, the flats' ``I0`` (a microfocus tube's output wanders by tenths of a per cent to a
+few per cent over a scan). Where the background is not clipped, a view's flat-corrected line
+integrals are all ``-log(1 + f)`` off; where the clip holds the background flat, it hides the
+change there but not under the object, so the depth at which the clip cuts a faint edge differs
+from view to view.
 
 Dust that settled after the flats were taken multiplies the projections' mean counts (before the
 photons arrive) and is not in the flats: a flat-field residue, a few dark specks fixed on the
@@ -52,7 +59,8 @@ intensities, as any noise-free scan.
 
 The pattern (which pixels are dead, hot or in a dead column; the gains) is drawn once per scan
 from the scan's ``rng``, before the detector noise, in this order and each only when its key is
-non-zero: stuck pixels, dead columns, gains, gain drifts, dust. Frames are made one view at a time:
+non-zero: stuck pixels, dead columns, gains, gain drifts, dust; then the tube's output in each
+view, where ``flux_sigma`` is set. Frames are made one view at a time:
 the scan needs a float64 frame or two, never a float64 copy of the stack.
 """
 
@@ -96,6 +104,9 @@ _FIELDS = {
     "dust_specks": ParamSpec("dust_specks", int, 0,
                              "specks of dust on the detector since the flats were taken (a flat-field residue)",
                              ge=0, le=100_000),
+    "flux_sigma": ParamSpec("flux_sigma", float, 0.0,
+                            "relative std of the tube's output in each projection about the flats' (0: steady)",
+                            ge=0, le=0.2),
     "saturation_fraction": ParamSpec("saturation_fraction", float, 0.0,
                                      "full well as a fraction of the open beam's counts: frames clip there, the "
                                      "background reads flat (0: no clipping)", ge=0, le=10),
@@ -128,6 +139,10 @@ class DetectorModel:
     dust_specks : int
         Specks of dust that settled on the detector after the flats were taken: each a Gaussian
         of 1-3 px standard deviation absorbing 5-40 % at its centre, in the projections only.
+    flux_sigma : float
+        Relative standard deviation of the tube's output in each projection about its output in
+        the flats, in [0, 0.2]: every projection's beam is ``I0 (1 + N(0, flux_sigma))``, drawn
+        anew for each view.
     saturation_fraction : float
         The detector's full well as a fraction of the open beam's counts ``I0``: every frame
         (flats included) clips there, so where the beam reaches it the flat-corrected line
@@ -144,6 +159,7 @@ class DetectorModel:
     gain_drift_sigma: float = 0.0
     lag_fraction: float = 0.0
     dust_specks: int = 0
+    flux_sigma: float = 0.0
     saturation_fraction: float = 0.0
 
     def __post_init__(self) -> None:
@@ -304,9 +320,9 @@ class _Frames:
         signal = np.where(self.pattern.dead, 0.0, signal)
         return np.where(self.pattern.hot, self.full_scale, signal)
 
-    def projection(self, line_integrals: np.ndarray) -> np.ndarray:
+    def projection(self, line_integrals: np.ndarray, flux: float = 1.0) -> np.ndarray:
         p = np.asarray(line_integrals, np.float64)
-        mean = self.i0 * np.exp(-p)
+        mean = (self.i0 * flux) * np.exp(-p)
         if self.model.scatter_fraction > 0:
             mean = mean + scatter_counts(mean, p, self.model)
         if self.pattern.dust is not None:
@@ -344,6 +360,13 @@ def _pattern(model, shape, rng, pattern: DetectorPattern | None) -> DetectorPatt
     return pattern
 
 
+def _flux(model: DetectorModel, views: int, rng: np.random.Generator) -> np.ndarray:
+    """Each projection's beam as a share of the flats' (module docstring), drawn from ``rng`` where it varies."""
+    if model.flux_sigma == 0:
+        return np.ones(views)
+    return np.maximum(1.0 + model.flux_sigma * rng.standard_normal(views), 0.01)
+
+
 def record(line_integrals, noise, model: DetectorModel, rng: np.random.Generator, *,
            pattern: DetectorPattern | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Record a noisy scan through ``model``'s detector: what :func:`ctpipe.sim.acquisition.acquire` does, with artefacts.
@@ -355,7 +378,8 @@ def record(line_integrals, noise, model: DetectorModel, rng: np.random.Generator
     noise : ctpipe.sim.acquisition.NoiseModel
     model : DetectorModel
     rng : numpy.random.Generator
-        Draws the pattern (:func:`draw_pattern`), then the projections view by view, the flats and the darks.
+        Draws the pattern (:func:`draw_pattern`), the tube's output in each projection (where ``flux_sigma`` is
+        set), then the projections view by view, the flats and the darks.
     pattern : DetectorPattern or None
         A given pattern (e.g. a real detector's defect map) instead of one drawn from ``rng``.
 
@@ -368,9 +392,10 @@ def record(line_integrals, noise, model: DetectorModel, rng: np.random.Generator
     p = _views(line_integrals)
     shape = p.shape[1:]
     frames = _Frames(model, _pattern(model, shape, rng, pattern), noise.photons_per_pixel, noise.dark_counts, rng)
+    flux = _flux(model, len(p), rng)
     intensities = np.empty(p.shape, np.float32)
     for v in range(len(p)):
-        intensities[v] = frames.projection(p[v])
+        intensities[v] = frames.projection(p[v], flux[v])
     flats = np.stack([frames.flat(shape).astype(np.float32) for _ in range(noise.flat_frames)])
     darks = None
     if noise.dark_frames:
@@ -385,17 +410,18 @@ def detected_line_integrals(line_integrals, model: DetectorModel, rng: np.random
     The chain of the module docstring without Poisson draws or dark current; pixels whose flat
     is 0 (dead) get 0, as :func:`ctpipe.io.flatfield.log_transform` gives them, and the
     transmission is clipped below at 1e-6 as there. ``rng`` draws only the pattern, unless
-    ``pattern`` gives it (as in :func:`record`). ``out`` may
+    ``pattern`` gives it (as in :func:`record`), and the tube's output in each projection. ``out`` may
     be ``line_integrals`` itself (each view is read before it is written): no second stack.
     """
     p = _views(line_integrals)
     out = np.empty(p.shape, np.float32) if out is None else out
     shape = p.shape[1:]
     frames = _Frames(model, _pattern(model, shape, rng, pattern), 1.0, 0.0, None)
+    flux = _flux(model, len(p), rng)
     flat = frames.flat(shape)
     alive = flat > 0
     beam = np.where(alive, flat, 1.0)
     for v in range(len(p)):
-        transmission = np.maximum(frames.projection(p[v]) / beam, 1e-6)
+        transmission = np.maximum(frames.projection(p[v], flux[v]) / beam, 1e-6)
         out[v] = np.where(alive, -np.log(transmission), 0.0)
     return out

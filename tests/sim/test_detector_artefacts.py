@@ -186,7 +186,8 @@ def test_no_detector_section_simulates_bit_for_bit_as_before():
 def test_a_detector_section_is_simulated_and_round_trips():
     phantom = parse_phantom(PHANTOM)
     section = {"scatter_fraction": 0.05, "scatter_sigma_px": 10, "psf_sigma_px": 0.8, "dead_pixels": 3,
-               "hot_pixels": 2, "dead_columns": 1, "gain_sigma": 0.02, "gain_drift_sigma": 0.01, "lag_fraction": 0.02}
+               "hot_pixels": 2, "dead_columns": 1, "gain_sigma": 0.02, "gain_drift_sigma": 0.01, "lag_fraction": 0.02,
+               "flux_sigma": 0.01}
     for noise in (SPEC["noise"], None):
         spec = parse_scan_spec({**SPEC, "noise": noise, "detector": section})
         assert parse_scan_spec(spec.to_dict()) == spec and spec.to_dict()["detector"]["dead_pixels"] == 3
@@ -209,6 +210,7 @@ def test_a_detector_section_is_simulated_and_round_trips():
     ({"gain_sigma": 0.9}, r"^scan\.detector\.gain_sigma: must be a number >= 0 and <= 0\.5, got 0\.9$"),
     ({"gain_drift_sigma": -1}, r"^scan\.detector\.gain_drift_sigma: must be a number >= 0"),
     ({"lag_fraction": 1.0}, r"^scan\.detector\.lag_fraction: must be a number >= 0 and < 1, got 1\.0$"),
+    ({"flux_sigma": 0.3}, r"^scan\.detector\.flux_sigma: must be a number >= 0 and <= 0\.2, got 0\.3$"),
     ({"lag": 0.1}, r"^scan\.detector\.lag: unknown key; allowed: scatter_fraction, "),
     ({"dead_pixels": 40, "dead_columns": 3}, r"^scan\.detector: dead_pixels \+ hot_pixels \+ dead_columns x 16 rows = "
                                              r"88 pixels, more than 10 % of the 16 x 32 detector"),
@@ -238,3 +240,31 @@ def test_a_saturated_detector_reads_its_background_flat_and_cuts_faint_edges():
     np.testing.assert_allclose(out[0], 0.0, atol=1e-6)
     np.testing.assert_allclose(out[1], 0.0, atol=1e-6)
     np.testing.assert_allclose(out[2], 0.5 + np.log(0.9), atol=1e-6)
+
+
+def test_a_wandering_tube_shifts_each_views_line_integrals_by_its_output_unless_the_clip_hides_it():
+    p = _flat_stack([0.0] * 200 + [0.5] * 200)
+    model = DetectorModel(flux_sigma=0.01)
+    out = detected_line_integrals(p, model, np.random.default_rng(4)).astype(np.float64)
+    # Each view's beam is I0 (1 + f_v), the flats' I0: the whole view reads -log(1 + f_v) off.
+    f = np.exp(-(out[:, 0, 0] - p[:, 0, 0])) - 1.0
+    assert np.all(np.ptp(out - out[:, :1, :1], axis=(1, 2)) < 1e-6)
+    assert np.std(f) == pytest.approx(0.01, rel=0.15) and abs(np.mean(f)) < 0.003
+    # Drawn after the pattern and only where set: the same generator gives the same pattern either way.
+    dust = DetectorModel(dust_specks=3)
+    assert np.array_equal(detected_line_integrals(p[:2], DetectorModel(dust_specks=3, flux_sigma=0.0),
+                                                  np.random.default_rng(4)),
+                          detected_line_integrals(p[:2], dust, np.random.default_rng(4)))
+    # A clip at 90 % hides the change in the background but not under the object: the cut moves view by view.
+    clipped = detected_line_integrals(p, DetectorModel(flux_sigma=0.01, saturation_fraction=0.9),
+                                      np.random.default_rng(4)).astype(np.float64)
+    np.testing.assert_allclose(clipped[:200], 0.0, atol=1e-6)
+    np.testing.assert_allclose(clipped[200:, 0, 0], 0.5 + np.log(0.9) - np.log1p(f[200:]), atol=1e-5)
+
+
+def test_a_wandering_tube_is_recorded_in_the_projections_and_not_in_the_flats():
+    noise = NoiseModel(photons_per_pixel=1e6, flat_frames=8, dark_frames=0, dark_counts=0.0)
+    intensities, flats, _ = record(_flat_stack([0.0] * 50, (8, 8)), noise, DetectorModel(flux_sigma=0.02),
+                                   np.random.default_rng(6))
+    assert abs(flats.mean() / 1e6 - 1.0) < 1e-3
+    assert np.std(intensities.mean(axis=(1, 2)) / 1e6) == pytest.approx(0.02, rel=0.25)
