@@ -45,7 +45,8 @@ mean and their columns' once-a-turn part, which the balls' positions and the axi
 
 ``--lag-fraction L`` gives the detector an afterglow (each frame carries ``L`` of the last one's signal: the ghost of
 every ball's disc a step behind it) and ``--flux-sigma F`` a tube whose output in each view is off the flats' by
-``N(0, F)`` (:mod:`ctpipe.sim.detector`).
+``N(0, F)`` (:mod:`ctpipe.sim.detector`). Every run prints the calibration's test of a lag (the discs pulled
+back along their balls' way: :func:`ctpipe.solve.balls._lag_test`).
 
 ``--random-layout`` places the phantom's nine balls anew for each seed (:func:`random_layout`: the
 same four kinds and the same holder, 7-18 mm from the axis at random heights, none touching), so
@@ -355,6 +356,9 @@ def main(argv=None) -> int:
               f"rims cut by the clip (px, per ball): {balls.get('ball_cut_px')}; discs pushed from the balls overlapping "
               f"them {balls.get('overlap_pull_px')} px and scattered along them {balls.get('overlap_scatter_px')} px, "
               f"per disc covered")
+        print(f"  lag: discs pulled towards where their balls were the view before "
+              f"{'SHOWN' if balls.get('lag_shown') else 'not shown'} (F test p {balls.get('lag_p_value')}; "
+              f"pulls per ball {balls.get('lag_pull_px')} px)")
         shifts = balls.get("view_shifts_px")
         if drift or shifts is not None:
             fitted = "none fitted" if shifts is None else (

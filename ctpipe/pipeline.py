@@ -514,6 +514,8 @@ class ScanResult:
                          f"{balls['reason']}")
             if not balls["kept"] and balls.get("detector_kept"):
                 lines.append(f"detector: {balls['detector_reason']}")
+            if balls.get("lag_shown"):
+                lines.append(_lag_warning(balls))
         gate = self.gate
         if gate is not None:
             lines.append(_gate_line(gate, measured=self.before_after is not None and bool(self.before_after.scores)))
@@ -561,6 +563,19 @@ class ScanResult:
         if written:
             lines.append("written: " + ", ".join(written))
         return "\n".join(lines)
+
+
+def _lag_warning(balls) -> str:
+    """The summary's warning where the ball calibration's discs are pulled back along their way, as a detector's lag
+    pulls them (:func:`ctpipe.solve.balls._lag_test`)."""
+    pulls = np.asarray([np.nan if p is None else p for p in balls.get("lag_pull_px") or []], dtype=np.float64)
+    worst = int(np.nanargmax(np.abs(pulls))) if np.any(np.isfinite(pulls)) else None
+    most = "" if worst is None else f"up to {pulls[worst]:+.2f} px, ball {worst}; "
+    return (f"warning: the balls' discs are pulled towards where they were the view before ({most}F test p "
+            f"{balls['lag_p_value']:.2g}): the detector's lag (afterglow) carries each view into "
+            f"the next, and moves most the rims a clipped background cuts, so the angles may be off by a hundredth of "
+            f"a degree; discard a frame or two after each move, or let the detector settle, and scan again "
+            f"(docs/calibration-phantoms.md, Limits)")
 
 
 def _ball_scanner_text(balls, geometry: Geometry, refined: RefinedGeometry) -> str:

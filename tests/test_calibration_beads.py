@@ -50,6 +50,7 @@ def test_every_view_of_a_16_view_ball_bar_scan_within_two_hundredths_of_a_degree
     balls = result.refiner_info["balls"]
     assert balls["kept"] and balls["balls"] == 7 and balls["rms_px"] < 0.1 < balls["nominal_rms_px"]
     assert "ball calibration, 7 balls followed through the views, the corrected angles kept" in result.summary()
+    assert "the detector's lag" not in result.summary()      # no lag simulated, none said
     # Solid balls: no disc placed on a shell's inside, and the line does not speak of one; where some were, it says so.
     assert balls["shell_observations"] == 0 and "inner edge" not in result.summary()
     balls["shell_observations"] = 40
@@ -246,3 +247,12 @@ def test_a_drifting_source_spot_is_fitted_per_view_and_written_into_the_geometry
                                                      shifts_px=shifts), atol=1e-3)
     assert not np.allclose(vectors, cone_vectors(geometry, report["estimated_deg"], tilt_deg=refined["tilt_deg"]),
                            atol=1e-3)
+
+
+def test_the_summary_warns_of_a_detectors_lag_with_the_ball_it_pulls_most():
+    from ctpipe.pipeline import _lag_warning
+
+    line = _lag_warning({"lag_shown": True, "lag_p_value": 1.3e-32, "lag_pull_px": [-0.06, None, 0.3036, 0.02]})
+    assert line.startswith("warning: the balls' discs are pulled towards where they were the view before (up to "
+                           "+0.30 px, ball 2; F test p 1.3e-32): the detector's lag (afterglow)")
+    assert "\n" not in line

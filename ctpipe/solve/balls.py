@@ -242,6 +242,18 @@ class BallCalibration:
     overlap_scatter_px : float
         How far such discs scatter along the balls that overlap them, beyond clean discs, a share of this per share
         covered (px: :func:`_overlap_scatter_px`), as the fit weighed them; NaN where no disc overlaps another.
+    lag_p_value : float
+        The F test of whether each ball's discs are pulled towards where it was the view before, as a detector's lag
+        (afterglow) pulls them (:func:`_lag_test`; the views taken as recorded in the order given); NaN where it
+        could not be tested. Where ``lag_shown``, the summary says so: the angles may be off by a hundredth of a
+        degree.
+    lag_pull_px : ndarray of shape (B,) or None
+        Those pulls, per ball (px, towards the view before), as the test fitted them; the angles are fitted without.
+    lag_shown : bool
+        Whether ``lag_p_value`` is below the calibration's ``p_value`` and the pulls, fitted, move some view's angle
+        by more than a quarter of ``max_angle_se_deg`` (:data:`_LAG_MOVE_SHARE`).
+    lag_move_deg : float
+        The most the pulls, fitted, move a view's angle (deg, the common turn taken out); NaN where not tested.
     """
 
     angles_deg: np.ndarray
@@ -273,6 +285,10 @@ class BallCalibration:
     hidden_px: list = field(default_factory=list)
     overlap_pull_px: float = math.nan
     overlap_scatter_px: float = math.nan
+    lag_pull_px: np.ndarray | None = None
+    lag_p_value: float = math.nan
+    lag_shown: bool = False
+    lag_move_deg: float = math.nan
     axis_offset_mm: float = 0.0
     source_to_detector_mm: float = math.nan
     pose_p_value: float = math.nan
@@ -308,6 +324,11 @@ class BallCalibration:
                 "overlap_pull_px": None if not math.isfinite(self.overlap_pull_px) else round(self.overlap_pull_px, 4),
                 "overlap_scatter_px": (None if not math.isfinite(self.overlap_scatter_px)
                                        else round(self.overlap_scatter_px, 4)),
+                "lag_p_value": None if not math.isfinite(self.lag_p_value) else self.lag_p_value,
+                "lag_shown": self.lag_shown,
+                "lag_move_deg": None if not math.isfinite(self.lag_move_deg) else round(self.lag_move_deg, 5),
+                "lag_pull_px": None if self.lag_pull_px is None or not np.any(np.isfinite(self.lag_pull_px))
+                else np.round(self.lag_pull_px, 4).tolist(),
                 "shell_observations": self.shell_observations, "left_out": self.left_out,
                 "shift_p_value": None if not math.isfinite(self.shift_p_value) else self.shift_p_value,
                 "view_shifts_px": None if self.view_shifts_px is None else np.round(self.view_shifts_px, 4).tolist(),
@@ -933,6 +954,7 @@ class _Fit:
     n_gauge: int = 0                   # gauge rows after the discs' in ``jac``, each giving one unknown back
     overlap_pull_px: float = math.nan  # how far a disc is pushed from a neighbour covering all of it (px), if fitted
     n_det: int = 0                     # the detector's unknowns fitted, the last in ``jac``
+    lag_pull_px: np.ndarray | None = None   # (B,) each ball's discs' pull against the lag's direction (px), if fitted
 
 
 #: The robust loss once a round has settled the angles from the nominal ones (the first round, and the first after a
@@ -975,7 +997,8 @@ class _Discs:
     a clip cuts its rim on (M, 2: :attr:`~ctpipe.data.Features.clipped_side`), the radius of the edge that
     placed it over its disc's (1 for the rim, less for a shell's inside), how the other balls' discs overlap it
     (M, 2: :func:`_overlaps`) and the matrix its error is taken through before its weight, where its scatter
-    along that overlap is modelled (M, 2, 2: :func:`_overlap_whitening`; None: the identity)."""
+    along that overlap is modelled (M, 2, 2: :func:`_overlap_whitening`; None: the identity); where a detector's lag
+    is tested, the unit vector towards where its ball was the view before (M, 2: :func:`_lag_directions`)."""
 
     xy: np.ndarray
     weight: np.ndarray
@@ -985,6 +1008,7 @@ class _Discs:
     edge: np.ndarray
     overlap: np.ndarray
     whiten: np.ndarray | None = None
+    lag: np.ndarray | None = None
 
     def of_balls(self, keep_ball: np.ndarray) -> "_Discs":
         """The discs of the balls where ``keep_ball`` (bool, per ball) holds, those balls numbered anew."""
@@ -992,7 +1016,8 @@ class _Discs:
         renumber = np.cumsum(keep_ball) - 1
         return _Discs(self.xy[keep], self.weight[keep], self.view_of[keep], renumber[self.ball_of[keep]],
                       self.side[keep], self.edge[keep], self.overlap[keep],
-                      None if self.whiten is None else self.whiten[keep])
+                      None if self.whiten is None else self.whiten[keep],
+                      None if self.lag is None else self.lag[keep])
 
 
 #: The adjustment's Jacobian is handed to scipy dense (exact trust-region steps) up to this many entries (8 MB: a
@@ -1063,6 +1088,9 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     Where other balls' discs overlap some discs (``discs.overlap``), one more unknown, the overlap pull ``p`` (px, from
     0): a disc's fitted centre is taken as pushed by ``-p overlap`` (:func:`_overlaps`).
 
+    Given ``discs.lag`` (:func:`_lag_directions`), one more unknown a ball with such discs, ``g`` (px): its discs'
+    fitted centres are taken as pushed by ``-g lag`` (:func:`_lag_test`).
+
     Given ``shifts_px`` (V, 2: their start), every free view's projection is shifted by its own ``(du, dv)`` px
     besides, a source spot or a detector that drifts. Four more gauge rows (weighed :data:`_SHIFT_GAUGE_WEIGHT`)
     hold where they start the free views' mean shift, which the axis column and the principal row would otherwise
@@ -1088,7 +1116,14 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     first_shift = n_free + 3 * B + n_cut
     overlapped = np.any(discs.overlap != 0.0, axis=1)
     n_pull = 1 if overlapped.any() else 0
-    pull_at = first_shift + 2 * n_shift          # the overlap pull's unknown, then the detector's
+    pull_at = first_shift + 2 * n_shift          # the overlap pull's unknown, the lag's pulls, then the detector's
+    lagged = np.zeros(len(overlapped), bool) if discs.lag is None else np.any(discs.lag != 0.0, axis=1)
+    lag_balls = np.flatnonzero(np.bincount(ball_of[lagged], minlength=B) > 0) if B else np.zeros(0, int)
+    n_lag = len(lag_balls)
+    lag_column = np.full(B, -1)
+    lag_column[lag_balls] = np.arange(n_lag)
+    lag_at = pull_at + n_pull
+    det_at = lag_at + n_lag
 
     def unpack(x):
         a = angles.copy()
@@ -1099,8 +1134,10 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
         c[cut_balls] = x[n_free + 3 * B:first_shift]
         t = np.zeros((len(angles), 2)) if shifts_px is None else np.array(shifts_px, dtype=np.float64)
         t[shifted] = x[shift_unknowns].reshape(-1, 2)
-        d = np.concatenate([x[pull_at + n_pull:], detector[n_det:]]) if n_det else detector
-        return a, p, c, t, d, (x[pull_at] if n_pull else 0.0)
+        d = np.concatenate([x[det_at:], detector[n_det:]]) if n_det else detector
+        g = np.zeros(B)
+        g[lag_balls] = x[lag_at:det_at]
+        return a, p, c, t, d, (x[pull_at] if n_pull else 0.0), g
 
     start_mean = float(np.mean(angles[free_views])) if n_free else 0.0
     # The shifts' gauges, over their unknowns (du, dv of each shifted view in turn): their mean (the detector's u0 and
@@ -1122,10 +1159,12 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
         return rows
 
     def residuals(x, gauge=True):
-        a, p, c, t, d, pull = unpack(x)
+        a, p, c, t, d, pull, lag = unpack(x)
         uv = ellipse_centres(p[ball_of], radii_mm[ball_of] * edge, a[view_of], geometry, *d)
-        # Where the disc's centre would be, uncut and uncovered.
+        # Where the disc's centre would be, uncut, uncovered and without the detector's lag.
         seen = observed + _CUT_PULL * c[ball_of, None] * side + pull * discs.overlap
+        if n_lag:
+            seen = seen + lag[ball_of, None] * discs.lag
         off = uv + t[view_of] - seen
         if discs.whiten is not None:
             off = np.einsum("mij,mj->mi", discs.whiten, off)
@@ -1134,7 +1173,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
 
     x0 = np.concatenate([angles[free_views] if n_free else [], balls.reshape(-1), cut_start[cut_balls],
                          np.asarray(shifts_px, dtype=np.float64)[shifted].reshape(-1) if n_shift else [],
-                         [0.0] * n_pull, detector[:n_det]])
+                         [0.0] * n_pull, [0.0] * n_lag, detector[:n_det]])
     # The Jacobian's structure: each observation sees its view's angle, its ball, its ball's cut, the overlap pull
     # where another disc overlaps it, and the detector.
     M = len(observed)
@@ -1146,7 +1185,8 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     seen += [(disc, n_free + 3 * ball_of + j) for j in range(3)]
     seen.append((disc[one_sided], n_free + 3 * B + cut_column[ball_of[one_sided]]))
     seen.append((disc[overlapped], np.full(int(np.sum(overlapped)), pull_at)) if n_pull else (disc[:0], disc[:0]))
-    seen += [(disc, np.full(M, pull_at + n_pull + j)) for j in range(n_det)]
+    seen.append((disc[lagged], lag_at + lag_column[ball_of[lagged]]) if n_lag else (disc[:0], disc[:0]))
+    seen += [(disc, np.full(M, det_at + j)) for j in range(n_det)]
     rows = np.concatenate([np.concatenate([2 * m, 2 * m + 1]) for m, _ in seen])
     cols = np.concatenate([np.concatenate([k, k]) for _, k in seen])
     if n_shift:
@@ -1209,13 +1249,13 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
 
     solved = least_squares(objective, x0, jac=jacobian, bounds=(lower, upper), method=method, loss=loss,
                            f_scale=scale_px, x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
-    a, p, c, t, d, pull = unpack(solved.x)
+    a, p, c, t, d, pull, lag = unpack(solved.x)
     cut = np.full(B, np.nan)
     cut[cut_balls] = c[cut_balls]
     return _Fit(a, p, np.asarray(d, dtype=np.float64), residuals(solved.x, gauge=False).reshape(-1, 2),
                 solved.jac.toarray() if hasattr(solved.jac, "toarray") else solved.jac,
                 np.asarray(free_views), len(x0), cut, None if shifts_px is None else t, shift_unknowns, n_gauge,
-                float(pull) if n_pull else math.nan, n_det)
+                float(pull) if n_pull else math.nan, n_det, lag if n_lag else None)
 
 
 #: A view's correction may exceed the nominal angles' stated error by this many of the largest standard error of the
@@ -1413,6 +1453,27 @@ def _overlaps(view_of, ball_of, balls, radii_mm, angles, geometry: Geometry, det
         with np.errstate(divide="ignore", invalid="ignore"):
             toward = np.where(d[..., None] > 0, gap / d[..., None], 0.0)
         out[mine] = np.sum(np.nan_to_num(share)[..., None] * toward, axis=1)
+    return out
+
+
+def _lag_directions(view_of, ball_of, balls, radii_mm, angles, geometry: Geometry, detector) -> np.ndarray:
+    """Per disc, the unit vector from where its ball projects to where it projected in the view before (M, 2); zero in
+    the first view, and where the ball moved less than a pixel.
+
+    A detector's afterglow (lag) carries a share of each frame's signal into the next: every ball's disc of the view
+    before is there again, faint, a step behind. The views are taken in the order given, the order they were
+    recorded in.
+    """
+    out = np.zeros((len(view_of), 2))
+    for v in np.unique(view_of):
+        if v == 0:
+            continue
+        mine = np.flatnonzero(view_of == v)
+        uv, _ = _view_discs(balls, radii_mm, angles[v], geometry, detector)
+        before, _ = _view_discs(balls, radii_mm, angles[v - 1], geometry, detector)
+        step = before[ball_of[mine]] - uv[ball_of[mine]]
+        d = np.hypot(step[:, 0], step[:, 1])
+        out[mine] = np.where(d[:, None] >= 1.0, step / np.maximum(d, 1.0)[:, None], 0.0)
     return out
 
 
@@ -1754,6 +1815,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
     cov = _covariance(fit) if extra > 0 else None
     if cov is not None:
         se[free_views] = np.rad2deg(np.sqrt(np.clip(np.diag(cov)[:len(free_views)], 0, None)))
+    lag_p, lag_pull, lag_move = _lag_test(fit, discs, radii_mm, free_views, geometry, fit_detector=fit_detector,
+                                          scale_px=scale_px, loss=fit_loss, shifts_px=view_shifts, fit_pose=posing)
+    # Shown where the test says so and the pulls, fitted, move some view's angle by a share of what is allowed.
+    lag_shown = bool(lag_p < p_value) and bool(np.nanmax(lag_move, initial=0.0) > _LAG_MOVE_SHARE * max_angle_se_deg)
     # The balls must agree on each view's angle: the Gauss-Newton errors take the residuals as independent, and a
     # bias a ball's discs share (a rim the clip cuts less where something below the clip lies behind it) is not.
     jack_se, jack_n = np.full(V, np.nan), np.zeros(V, dtype=int)
@@ -1829,6 +1894,13 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         kept, reason = False, (f"the balls disagree on view {view}'s angle: left out one at a time, they move it by a "
                                f"standard error of {jack_se[view]:.3f} deg, beyond the {max_angle_se_deg:g} deg "
                                f"allowed (chi-square p < {p_value:g}; {len(disagree)} view(s) so)")
+    elif lag_shown and np.nanmax(lag_move) > max_angle_se_deg:
+        view = int(np.nanargmax(lag_move))
+        one_view = True
+        kept, reason = False, (f"the balls' discs are pulled towards where they were the view before, as a detector's "
+                               f"lag pulls them (F test p {lag_p:.2g}), and with those pulls fitted view {view} moves "
+                               f"by {lag_move[view]:.3f} deg, more than the {max_angle_se_deg:g} deg allowed: the "
+                               f"balls do not fix the angles to that")
     elif unclean:
         view, (ball, why) = next(iter(unclean.items()))
         one_view = True
@@ -1904,7 +1976,50 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                            view_shifts_px=shifts_out, shift_p_value=shift_p,
                            hidden_px=_hidden_discs_px(detections, assigned, gross, balls, radii_mm, angles, geometry,
                                                       detector, view_shifts), overlap_pull_px=fit.overlap_pull_px,
-                           overlap_scatter_px=fit_scatter_px if math.isfinite(fit.overlap_pull_px) else math.nan)
+                           overlap_scatter_px=fit_scatter_px if math.isfinite(fit.overlap_pull_px) else math.nan,
+                           lag_pull_px=lag_pull, lag_p_value=lag_p, lag_shown=lag_shown,
+                           lag_move_deg=float(np.nanmax(lag_move)) if np.any(np.isfinite(lag_move)) else math.nan)
+
+
+#: A detector's lag is said where its test's F test is below the calibration's ``p_value`` and the pulls, fitted, move
+#: some view's angle by more than this share of ``max_angle_se_deg`` (0.005 deg at the default 0.02). The F test
+#: alone also shows pulls too small to matter: a hardened scan of 36 views with no lag (solid 3112 of
+#: ``benchmarks/bench_ball_phantom_mixed.py``) had p 7e-9, pulls up to 0.064 px, and moves up to 0.0021 deg; with 3 and
+#: 5 % lag (solid 3104, kept 0.0138 and 0.0167 deg off) the moves were 0.0054 and 0.0106 deg, and on the scans whose
+#: lag left them within 0.01 deg (the mixed phantom with 5 %, coated balls with 8 %) 0.0041 and 0.0019. Chosen on
+#: those seen scans.
+_LAG_MOVE_SHARE = 0.25
+
+
+def _lag_test(fit: _Fit, discs: _Discs, radii_mm, free_views, geometry: Geometry,
+              **adjust) -> tuple[float, np.ndarray, np.ndarray]:
+    """Are the discs pulled towards where their balls were the view before, as a detector's lag pulls them? The F test
+    of ``fit`` against the same adjustment with one more unknown a ball, how far its discs are pulled so
+    (:func:`_lag_directions`), those pulls (px, towards the view before) and how far they move each view's angle
+    (deg, the common turn taken out; NaN where not free): ``(p, pulls, moves)``, NaN where it cannot be tested. Only
+    tested: the angles are ``fit``'s.
+
+    Lag (afterglow) leaves a share of each frame's signal in the next, so every disc of the view before is there
+    again, faint. Under a clipped background it moves a faint ball's rim most: inside the view before's disc the
+    ghost takes light away, outside it the rim reads as it is, so the clip cuts the rim on the side the ball moves
+    towards deeper than on the side it came from, and the disc is found pulled back along its way, by about the same
+    whatever the step (simulated hardened scans with 3-5 % lag, ``benchmarks/bench_ball_phantom_mixed.py
+    --lag-fraction``: a clipped aluminium ball's discs 0.27-0.41 px back at steps of 0.08-0.76 of its diameter, the
+    faint polymer balls' 0.5-2.7 px, a dense ball's a few hundredths; ``docs/calibration-phantoms.md``). Fitted, the
+    pulls take up some of it (a hardened scan with 3 % lag: its worst view 0.0138 -> 0.0104 deg) and cost elsewhere
+    (the mixed phantom with 5 %: 0.0081 -> 0.0108 deg, the faint balls' pulls trading with the angles), so they are
+    reported, not fitted.
+    """
+    lag = _lag_directions(discs.view_of, discs.ball_of, fit.balls, radii_mm, fit.angles, geometry, fit.detector)
+    trial = _adjust(dataclasses.replace(discs, lag=lag), radii_mm, fit.angles, fit.balls, fit.detector, geometry,
+                    free_views=free_views, cut_px=fit.cut_px, **adjust)
+    if trial.lag_pull_px is None:
+        return math.nan, np.full(len(fit.balls), np.nan), math.nan
+    move = np.full(len(fit.angles), np.nan)
+    if len(free_views):
+        turn = trial.angles[free_views] - fit.angles[free_views]
+        move[free_views] = np.rad2deg(np.abs(turn - np.median(turn)))
+    return _f_test(fit, trial)[1], -trial.lag_pull_px, move
 
 
 def _shifted(detections, shifts_px: np.ndarray) -> list[np.ndarray]:
