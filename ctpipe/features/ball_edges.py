@@ -184,6 +184,8 @@ _ACROSS_CLIP = 3
 _CLIPPED_FRACTION = 0.01
 #: ... and this fraction of them or more with all four neighbours too (a plateau, not noise clamped at a level).
 _CLIP_INTERIOR = 0.5
+#: ... under the few pixels that may read below it, this share of the view at most (400 of 2000^2).
+_BELOW_CLIP = 1e-4
 #: A disc crosses a clip edge when the fraction of its outside that reads the clip level is within these.
 _CLIP_MIXED = (0.05, 0.95)
 #: Where its outside is read: this far beyond the fitted rim (px).
@@ -959,18 +961,31 @@ def _biweight_weights(residual: np.ndarray) -> np.ndarray:
 
 
 def _clip_level(g: np.ndarray) -> float | None:
-    """The lowest line integral if the detector clipped there, else None.
+    """The lowest line integral but a few pixels' (:data:`_BELOW_CLIP`) if the detector clipped there, else None.
 
     Clipped: ``_CLIPPED_FRACTION`` of the pixels or more read it exactly, and most of them
     (``_CLIP_INTERIOR``) with their four neighbours too, as a plateau does. Line integrals clamped
     at 0 after a noisy flat field also read 0 on half the background, but pixel by pixel (a quarter
     of a quarter of them with all four neighbours), and they cut no ball's edge.
+
+    A few pixels may read below the plateau: hot or stuck pixels a scanner's own correction left brighter than its
+    clip. Taken as the lowest, twenty such pixels in a 2000^2 view hid the clip from every view of a simulated mixed
+    phantom (the clipped background moved 0.18 up, as where a scanner clips below its white level, or not): no rim
+    was taken as cut, and the worst view went 0.0050 -> 0.0070 deg, the balls' reprojection RMS 0.017 -> 0.087 px.
     """
     lowest = float(np.min(g))
     at = g == lowest
     count = np.count_nonzero(at)
     if count < _CLIPPED_FRACTION * g.size:
-        return None
+        # The plateau under a few pixels: the lowest value but theirs.
+        k = int(_BELOW_CLIP * g.size)
+        if count > k:
+            return None
+        lowest = float(np.partition(g.ravel(), k)[k])
+        at = g == lowest
+        count = np.count_nonzero(at)
+        if count < _CLIPPED_FRACTION * g.size:
+            return None
     interior = np.count_nonzero(at[1:-1, 1:-1] & at[:-2, 1:-1] & at[2:, 1:-1] & at[1:-1, :-2] & at[1:-1, 2:])
     return lowest if interior >= _CLIP_INTERIOR * count else None
 
