@@ -1,4 +1,4 @@
-"""Detector artefacts: scatter, blur, stuck pixels, gain errors that make rings, and lag.
+"""Detector artefacts: scatter, blur, stuck pixels, gain errors that make rings, lag, and a tube whose output wanders.
 
 The optional ``detector:`` section of a scan spec (:mod:`ctpipe.sim.scan_spec`); every key
 defaults to "off", and a scan without the section is simulated exactly as before::

@@ -2013,9 +2013,9 @@ def _lag_test(fit: _Fit, discs: _Discs, radii_mm, free_views, geometry: Geometry
     lag = _lag_directions(discs.view_of, discs.ball_of, fit.balls, radii_mm, fit.angles, geometry, fit.detector)
     trial = _adjust(dataclasses.replace(discs, lag=lag), radii_mm, fit.angles, fit.balls, fit.detector, geometry,
                     free_views=free_views, cut_px=fit.cut_px, **adjust)
-    if trial.lag_pull_px is None:
-        return math.nan, np.full(len(fit.balls), np.nan), math.nan
     move = np.full(len(fit.angles), np.nan)
+    if trial.lag_pull_px is None:
+        return math.nan, np.full(len(fit.balls), np.nan), move
     if len(free_views):
         turn = trial.angles[free_views] - fit.angles[free_views]
         move[free_views] = np.rad2deg(np.abs(turn - np.median(turn)))
