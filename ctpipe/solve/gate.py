@@ -45,8 +45,8 @@ beyond one band's threshold and the conjugate rays show no band of it worse, the
 returned: whole where the held-out views vouch for it beyond doubt (z at or below minus
 ``HELD_OUT_DECISIVE_Z``), else less its slow-even band, which the conjugate rays hardly see and the
 held-out views, whose reference carries a slow warp too, may not either (a sweep scan returned
-whole at held-out z -2.7 was 2.13 -> 2.77 deg RMS, and 1.41 without the band). Held-out evidence beyond doubt (z at or below minus
-``HELD_OUT_DECISIVE_Z``: -6) stands without the conjugate rays' agreement unless they contradict
+whole at held-out z -2.7 was 2.13 -> 2.77 deg RMS, and 1.41 without the band). Held-out
+evidence beyond doubt (-6) stands without the conjugate rays' agreement unless they contradict
 it (a band shown worse, or the nominal angles shown better) or lean the other way, band by band:
 an estimate whose correction is nearly all twice per turn scores near zero by the conjugate rays
 however right it is, so its slow-even band comes in where the held-out views show that band
