@@ -401,8 +401,9 @@ def _backward(scored, nominal, correction, present, parts, z, held_out_z, held_o
         # conjugate z -2.2 (-3.4 together): 2.13 -> 2.77 deg RMS returned, 1.41 without the band (which the held-out
         # views, asked, showed better on its own at z -3.1).
         record["returned"] = conjugate
+        kept = [name for name in present if name != "slow-even"]
         return (reason + f"; the slow-even band is left out (held-out z {held_out_z:+.1f}, decisive below "
-                f"{-HELD_OUT_DECISIVE_Z:.0f})"), steps, needed, record, [name for name in present if name != "slow-even"]
+                f"{-HELD_OUT_DECISIVE_Z:.0f})"), steps, needed, record, kept
     if held_out_z > -HELD_OUT_DECISIVE_Z:
         return None
     # Held-out evidence beyond doubt stands without the conjugate rays where they do not contradict
