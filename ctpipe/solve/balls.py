@@ -1465,15 +1465,12 @@ def _lag_directions(view_of, ball_of, balls, radii_mm, angles, geometry: Geometr
     recorded in.
     """
     out = np.zeros((len(view_of), 2))
-    for v in np.unique(view_of):
-        if v == 0:
-            continue
-        mine = np.flatnonzero(view_of == v)
-        uv, _ = _view_discs(balls, radii_mm, angles[v], geometry, detector)
-        before, _ = _view_discs(balls, radii_mm, angles[v - 1], geometry, detector)
-        step = before[ball_of[mine]] - uv[ball_of[mine]]
-        d = np.hypot(step[:, 0], step[:, 1])
-        out[mine] = np.where(d[:, None] >= 1.0, step / np.maximum(d, 1.0)[:, None], 0.0)
+    mine = np.flatnonzero(view_of > 0)
+    points, radii = balls[ball_of[mine]], radii_mm[ball_of[mine]]
+    step = (_project(points, angles[view_of[mine] - 1], geometry, detector, radii)
+            - _project(points, angles[view_of[mine]], geometry, detector, radii))
+    d = np.hypot(step[:, 0], step[:, 1])
+    out[mine] = np.where(d[:, None] >= 1.0, step / np.maximum(d, 1.0)[:, None], 0.0)
     return out
 
 
@@ -1704,9 +1701,9 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                           shifts_px=shifts if shifting else None, fit_pose=posing)
             if not posing and loss == _SETTLED_LOSS and not pose_tested:
                 # Once the angles have settled: does the scanner's pose differ from its file's beyond noise?
-                trial = _adjust(discs, radii_mm, fit.angles, fit.balls, fit.detector, geometry, free_views=free_views,
-                                fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=fit.cut_px,
-                                shifts_px=shifts if shifting else None, fit_pose=True)
+                trial = _adjust_from(fit, discs, radii_mm, geometry, free_views=free_views, fit_detector=fit_detector,
+                                     scale_px=scale_px, loss=loss, shifts_px=shifts if shifting else None,
+                                     fit_pose=True)
                 pose_p, pose_tested = _f_test(fit, trial)[1], True
                 if pose_p < p_value:
                     fit, posing = trial, True
@@ -1715,9 +1712,8 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                         done -= 1
             if fit_shifts is None and not shifting and loss == _SETTLED_LOSS and not shift_tested:
                 # Once the angles have settled: do the views' projections shift, each its own way?
-                trial = _adjust(discs, radii_mm, fit.angles, fit.balls, fit.detector, geometry, free_views=free_views,
-                                fit_detector=fit_detector, scale_px=scale_px, loss=loss, cut_px=fit.cut_px,
-                                shifts_px=np.zeros((V, 2)), fit_pose=posing)
+                trial = _adjust_from(fit, discs, radii_mm, geometry, free_views=free_views, fit_detector=fit_detector,
+                                     scale_px=scale_px, loss=loss, shifts_px=np.zeros((V, 2)), fit_pose=posing)
                 # A drift moves every disc of a view: tested over all of them, and again without each view's worst
                 # (:func:`_but_the_worst`), which a shift also takes up where a neighbour pulled it.
                 shift_p = max(_f_test(fit, trial)[1], _f_test(fit, trial, _but_the_worst(fit.residual, view_of))[1])
@@ -1817,8 +1813,10 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         se[free_views] = np.rad2deg(np.sqrt(np.clip(np.diag(cov)[:len(free_views)], 0, None)))
     lag_p, lag_pull, lag_move = _lag_test(fit, discs, radii_mm, free_views, geometry, fit_detector=fit_detector,
                                           scale_px=scale_px, loss=fit_loss, shifts_px=view_shifts, fit_pose=posing)
+    lag_view = int(np.nanargmax(lag_move)) if np.any(np.isfinite(lag_move)) else None
+    lag_most = math.nan if lag_view is None else float(lag_move[lag_view])
     # Shown where the test says so and the pulls, fitted, move some view's angle by a share of what is allowed.
-    lag_shown = bool(lag_p < p_value) and bool(np.nanmax(lag_move, initial=0.0) > _LAG_MOVE_SHARE * max_angle_se_deg)
+    lag_shown = bool(lag_p < p_value and lag_most > _LAG_MOVE_SHARE * max_angle_se_deg)
     # The balls must agree on each view's angle: the Gauss-Newton errors take the residuals as independent, and a
     # bias a ball's discs share (a rim the clip cuts less where something below the clip lies behind it) is not.
     jack_se, jack_n = np.full(V, np.nan), np.zeros(V, dtype=int)
@@ -1894,12 +1892,12 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
         kept, reason = False, (f"the balls disagree on view {view}'s angle: left out one at a time, they move it by a "
                                f"standard error of {jack_se[view]:.3f} deg, beyond the {max_angle_se_deg:g} deg "
                                f"allowed (chi-square p < {p_value:g}; {len(disagree)} view(s) so)")
-    elif lag_shown and np.nanmax(lag_move) > max_angle_se_deg:
-        view = int(np.nanargmax(lag_move))
+    elif lag_shown and lag_most > max_angle_se_deg:
+        view = lag_view
         one_view = True
         kept, reason = False, (f"the balls' discs are pulled towards where they were the view before, as a detector's "
                                f"lag pulls them (F test p {lag_p:.2g}), and with those pulls fitted view {view} moves "
-                               f"by {lag_move[view]:.3f} deg, more than the {max_angle_se_deg:g} deg allowed: the "
+                               f"by {lag_most:.3f} deg, more than the {max_angle_se_deg:g} deg allowed: the "
                                f"balls do not fix the angles to that")
     elif unclean:
         view, (ball, why) = next(iter(unclean.items()))
@@ -1978,7 +1976,7 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
                                                       detector, view_shifts), overlap_pull_px=fit.overlap_pull_px,
                            overlap_scatter_px=fit_scatter_px if math.isfinite(fit.overlap_pull_px) else math.nan,
                            lag_pull_px=lag_pull, lag_p_value=lag_p, lag_shown=lag_shown,
-                           lag_move_deg=float(np.nanmax(lag_move)) if np.any(np.isfinite(lag_move)) else math.nan)
+                           lag_move_deg=lag_most)
 
 
 #: A detector's lag is said where its test's F test is below the calibration's ``p_value`` and the pulls, fitted, move
@@ -1989,6 +1987,12 @@ def calibrate_balls(detections, geometry: Geometry, nominal_angles_deg, *, max_e
 #: lag left them within 0.01 deg (the mixed phantom with 5 %, coated balls with 8 %) 0.0041 and 0.0019. Chosen on
 #: those seen scans.
 _LAG_MOVE_SHARE = 0.25
+
+
+def _adjust_from(fit: _Fit, discs: _Discs, radii_mm, geometry: Geometry, **adjust) -> _Fit:
+    """:func:`_adjust` again from ``fit``'s solution (its angles, balls, detector and cut depths), with ``adjust``'s
+    changes: a larger model tried against it (the scanner's pose, the views' shifts, the lag's pulls)."""
+    return _adjust(discs, radii_mm, fit.angles, fit.balls, fit.detector, geometry, cut_px=fit.cut_px, **adjust)
 
 
 def _lag_test(fit: _Fit, discs: _Discs, radii_mm, free_views, geometry: Geometry,
@@ -2011,8 +2015,7 @@ def _lag_test(fit: _Fit, discs: _Discs, radii_mm, free_views, geometry: Geometry
     reported, not fitted.
     """
     lag = _lag_directions(discs.view_of, discs.ball_of, fit.balls, radii_mm, fit.angles, geometry, fit.detector)
-    trial = _adjust(dataclasses.replace(discs, lag=lag), radii_mm, fit.angles, fit.balls, fit.detector, geometry,
-                    free_views=free_views, cut_px=fit.cut_px, **adjust)
+    trial = _adjust_from(fit, dataclasses.replace(discs, lag=lag), radii_mm, geometry, free_views=free_views, **adjust)
     move = np.full(len(fit.angles), np.nan)
     if trial.lag_pull_px is None:
         return math.nan, np.full(len(fit.balls), np.nan), move
