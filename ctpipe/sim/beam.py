@@ -240,7 +240,7 @@ def _groups(phantom) -> list[tuple[str, Any]]:
 def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, supersample: int = 1,
                                  blur_px: float = 0.0, progress: Callable[[int], object] | None = None,
                                  detector_offsets_px=None, detector_tilt_deg: float = 0.0,
-                                 axis_offset_mm: float = 0.0) -> np.ndarray:
+                                 axis_offset_mm: float = 0.0, spot_offsets_px=None) -> np.ndarray:
     """``-log T`` of every pixel (see the module docstring), float32 of shape (V, rows, cols).
 
     Parameters
@@ -251,7 +251,7 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
     geometry : Geometry
     angles_deg : array_like of shape (V,)
         Turntable angles, degrees.
-    supersample, blur_px, progress, detector_offsets_px, detector_tilt_deg, axis_offset_mm
+    supersample, blur_px, progress, detector_offsets_px, detector_tilt_deg, axis_offset_mm, spot_offsets_px
         As for :func:`ctpipe.sim.simulator.project_phantom` (a misaligned detector included); the
         blur acts on ``T``.
     """
@@ -261,7 +261,7 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
     if phantom.primitives is None:   # before any projection: only primitives are moved off the axis
         from ctpipe.sim.drift import _refuse_axis_offset
 
-        _refuse_axis_offset(axis_offset_mm)
+        _refuse_axis_offset(axis_offset_mm, spot_offsets_px)
     energies, weights = beam_spectrum(beam)
     water_per_mm = _water_per_mm()
     if phantom.primitives is not None:
@@ -277,10 +277,11 @@ def polychromatic_line_integrals(phantom, beam: Beam, geometry, angles_deg, *, s
         stop = min(start + _CHUNK_VIEWS, angles.size)
         chunk = angles[start:stop]
         offsets = None if detector_offsets_px is None else np.asarray(detector_offsets_px)[start:stop]
+        spot = None if spot_offsets_px is None else np.asarray(spot_offsets_px)[start:stop]
         if phantom.primitives is not None:
             paths = [project_analytic(prims, geometry, chunk, supersample=supersample, detector_offsets_px=offsets,
-                                      detector_tilt_deg=detector_tilt_deg,
-                                      axis_offset_mm=axis_offset_mm).astype(np.float64)
+                                      detector_tilt_deg=detector_tilt_deg, axis_offset_mm=axis_offset_mm,
+                                      spot_offsets_px=spot).astype(np.float64)
                      for _, prims in groups]
         else:
             path = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, chunk)

@@ -209,7 +209,7 @@ def _project_primitives(out, cos_t, sin_t, kind, centre, maps, corners, density,
 def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, supersample: int = 1,
                      blur_px: float = 0.0, progress: Callable[[int], object] | None = None,
                      detector_offsets_px=None, detector_tilt_deg: float = 0.0,
-                     axis_offset_mm: float = 0.0) -> np.ndarray:
+                     axis_offset_mm: float = 0.0, spot_offsets_px=None) -> np.ndarray:
     """Exact line integrals through analytic primitives.
 
     Every pixel integrates the ray from the source to its centre (or the mean of
@@ -248,6 +248,13 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         the same, a detector yawed by ``asin(axis_offset_mm / SOD)`` about its columns' perpendicular; the axis
         images ``axis_offset_mm * SDD / (SOD * pitch_u)`` columns from the principal point). Each view then projects
         the primitives moved by ``R(theta)^T (axis_offset_mm, 0, 0)``, one view at a time. 0 for none.
+    spot_offsets_px : array_like of shape (V, 2), optional
+        Per view, how far the source spot has moved, given as ``(du, dv)``, the pixels it moves the rotation axis's
+        image by (:mod:`ctpipe.sim.drift`, ``drift.at: source``). A spot moved by ``s`` mm in its plane, the detector
+        still, is the object moved by ``-s`` and the detector by ``-s`` with the spot still: the axis's image moves by
+        ``-s (M - 1) / pitch`` px (``M = SDD / SOD``) and a point at distance ``z`` from the spot by ``-s (SDD / z -
+        1) / pitch``, so a ball nearer the spot moves further (parallax). Added to ``detector_offsets_px``; each view
+        is then projected on its own. None: the spot still.
 
     Returns
     -------
@@ -265,6 +272,19 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
     if progress is not None and not callable(progress):
         raise InputError(f"progress: must be a callable taking a number of views, or None, got {progress!r}")
 
+    spot_mm = None
+    if spot_offsets_px is not None:
+        spot = np.asarray(spot_offsets_px, dtype=np.float64)
+        if spot.shape != (angles.size, 2) or not np.all(np.isfinite(spot)):
+            raise InputError(f"spot_offsets_px: must be finite, one (du, dv) per view ({angles.size}, 2), got shape "
+                             f"{spot.shape}")
+        gain = geometry.source_to_detector_mm / geometry.source_to_object_mm - 1.0   # M - 1
+        # The spot's move in mm (camera x, y) that moves the axis's image by ``spot`` px.
+        spot_mm = -spot * np.array([geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm]) / gain
+        still = np.zeros((angles.size, 2)) if detector_offsets_px is None else np.asarray(detector_offsets_px,
+                                                                                          dtype=np.float64)
+        # The detector moved by -s: its principal point by +s / pitch px.
+        detector_offsets_px = still + spot_mm / np.array([geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm])
     u0_v, v0_v = _principal_points(geometry, angles.size, detector_offsets_px)
     tilt_deg = detector_tilt_deg
     if not (isinstance(tilt_deg, (int, float, np.floating, np.integer)) and not isinstance(tilt_deg, bool)
@@ -274,10 +294,13 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
             and math.isfinite(axis_offset_mm) and abs(axis_offset_mm) < 0.5 * geometry.source_to_object_mm):
         raise InputError(f"axis_offset_mm: must be a finite number of mm within half the source-to-object distance "
                          f"({0.5 * geometry.source_to_object_mm:g} mm), got {axis_offset_mm!r}")
-    if axis_offset_mm:
+    if axis_offset_mm or spot_mm is not None:
         offsets = (np.zeros((angles.size, 2)) if detector_offsets_px is None
                    else np.asarray(detector_offsets_px, dtype=np.float64))   # checked by _principal_points
-        return _project_off_axis(primitives, geometry, angles, offsets, float(axis_offset_mm),
+        # The object moved by -s (camera frame) where the spot moved by s, besides the axis's own offset.
+        moves = np.zeros((angles.size, 2)) if spot_mm is None else -spot_mm
+        moves[:, 0] += float(axis_offset_mm)
+        return _project_off_axis(primitives, geometry, angles, offsets, moves,
                                  supersample=supersample, blur_px=blur_px, progress=progress,
                                  detector_tilt_deg=detector_tilt_deg)
     tilt = math.radians(detector_tilt_deg)
@@ -346,15 +369,16 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
 
 
 def _project_off_axis(primitives: Primitives, geometry: Geometry, angles: np.ndarray, offsets_px: np.ndarray,
-                      axis_offset_mm: float, *, progress, **settings) -> np.ndarray:
-    """:func:`project_analytic` with the axis ``axis_offset_mm`` off the source's perpendicular: view by view, the
-    primitives moved by ``R(theta)^T (axis_offset_mm, 0, 0)``, which puts them at ``R(theta) X + (axis_offset_mm, 0,
-    SOD)`` in the camera frame."""
+                      moves_mm: np.ndarray, *, progress, **settings) -> np.ndarray:
+    """:func:`project_analytic` with the object moved in the camera frame by ``moves_mm`` (V, 2: along camera
+    ``x`` and ``y``), an axis off the source's perpendicular or a spot that moved: view by view, the primitives moved
+    by ``R(theta)^T (mx, my, 0)``, which puts them at ``R(theta) X + (mx, my, SOD)`` in the camera frame."""
     import dataclasses
 
     out = np.empty((angles.size, geometry.detector_rows, geometry.detector_cols), dtype=np.float32)
     for k, theta in enumerate(np.deg2rad(angles)):
-        moved = axis_offset_mm * np.array([math.cos(theta), 0.0, -math.sin(theta)])
+        mx, my = moves_mm[k]
+        moved = np.array([mx * math.cos(theta), my, -mx * math.sin(theta)])
         shifted = dataclasses.replace(primitives, centre_mm=primitives.centre_mm + moved)
         out[k] = project_analytic(shifted, geometry, angles[k:k + 1], detector_offsets_px=offsets_px[k:k + 1],
                                   **settings)[0]

@@ -45,6 +45,10 @@ class SimulatedScan:
     true_axis_offset_mm : float
         How far the true axis lies off the source's perpendicular to the detector (mm; 0 unless the scan's
         misalignment says so: :class:`ctpipe.sim.drift.Misalignment`).
+    true_spot_offsets_px : ndarray of shape (V, 2), float64, or None
+        Where the drift is the source spot's (``drift.at: source``), how far it moved the rotation axis's image in
+        every view ``(du, dv)`` px; ``true_detector_offsets_px`` then holds the centre-of-rotation offset alone.
+        None otherwise.
     """
 
     projections: np.ndarray
@@ -57,17 +61,19 @@ class SimulatedScan:
     true_detector_offsets_px: np.ndarray | None = None
     true_detector_tilt_deg: float = 0.0
     true_axis_offset_mm: float = 0.0
+    true_spot_offsets_px: np.ndarray | None = None
 
 
 def project_phantom(phantom, geometry: Geometry, angles_deg, *, supersample: int = 1, blur_px: float = 0.0,
                     progress: Callable[[int], object] | None = None, detector_offsets_px=None,
-                    detector_tilt_deg: float = 0.0, axis_offset_mm: float = 0.0) -> np.ndarray:
+                    detector_tilt_deg: float = 0.0, axis_offset_mm: float = 0.0, spot_offsets_px=None) -> np.ndarray:
     """Line integrals (V, rows, cols), float32, of a primitive or voxel phantom.
 
     ``detector_offsets_px`` (V, 2) and ``detector_tilt_deg`` place the true detector of a misaligned
     scan (:func:`ctpipe.sim.projectors.project_analytic`); a voxel phantom's projections on the
     nominal detector are resampled onto it (:func:`ctpipe.sim.drift.resample_to_detector`).
-    ``axis_offset_mm`` puts the axis off the source's perpendicular (primitive phantoms only).
+    ``axis_offset_mm`` puts the axis off the source's perpendicular and ``spot_offsets_px`` moves the source spot
+    (primitive phantoms only).
     """
     from ctpipe.sim.drift import _refuse_axis_offset
     from ctpipe.sim.projectors import VoxelProjector, project_analytic
@@ -75,8 +81,9 @@ def project_phantom(phantom, geometry: Geometry, angles_deg, *, supersample: int
     if phantom.primitives is not None:
         return project_analytic(phantom.primitives, geometry, angles_deg, supersample=supersample, blur_px=blur_px,
                                 progress=progress, detector_offsets_px=detector_offsets_px,
-                                detector_tilt_deg=detector_tilt_deg, axis_offset_mm=axis_offset_mm)
-    _refuse_axis_offset(axis_offset_mm)
+                                detector_tilt_deg=detector_tilt_deg, axis_offset_mm=axis_offset_mm,
+                                spot_offsets_px=spot_offsets_px)
+    _refuse_axis_offset(axis_offset_mm, spot_offsets_px)
     projections = VoxelProjector(geometry, phantom.grid).forward(phantom.volume, angles_deg)
     if detector_offsets_px is not None or detector_tilt_deg != 0:
         from ctpipe.sim.drift import resample_to_detector
@@ -281,8 +288,8 @@ def _add_holder(out: np.ndarray, primitives, spec, angles_deg: np.ndarray, misal
     settings = {"supersample": spec.projector.supersample, "blur_px": spec.projector.blur_px,
                 "detector_tilt_deg": misaligned.get("detector_tilt_deg", 0.0),
                 "axis_offset_mm": misaligned.get("axis_offset_mm", 0.0)}
-    offsets = misaligned.get("detector_offsets_px")
-    if offsets is None and np.all(angles_deg == angles_deg[0]) and not settings["axis_offset_mm"]:
+    offsets, spot = misaligned.get("detector_offsets_px"), misaligned.get("spot_offsets_px")
+    if offsets is None and spot is None and np.all(angles_deg == angles_deg[0]) and not settings["axis_offset_mm"]:
         out += project_analytic(primitives, spec.geometry, angles_deg[:1], **settings)
         return
     chunk = 32
@@ -290,7 +297,7 @@ def _add_holder(out: np.ndarray, primitives, spec, angles_deg: np.ndarray, misal
         stop = min(start + chunk, len(angles_deg))
         out[start:stop] += project_analytic(primitives, spec.geometry, angles_deg[start:stop],
                                             detector_offsets_px=None if offsets is None else offsets[start:stop],
-                                            **settings)
+                                            spot_offsets_px=None if spot is None else spot[start:stop], **settings)
 
 
 def _true_detector(spec, rng, jitter: bool) -> dict:
@@ -302,9 +309,14 @@ def _true_detector(spec, rng, jitter: bool) -> dict:
     misalignment = getattr(spec, "misalignment", None)
     if misalignment is None:
         return {}
-    return {"detector_offsets_px": misalignment.sample_offsets_px(spec.n_views, rng, drift=jitter),
-            "detector_tilt_deg": misalignment.tilt_deg,
-            **({"axis_offset_mm": misalignment.axis_offset_mm} if misalignment.axis_offset_mm else {})}
+    offsets = misalignment.sample_offsets_px(spec.n_views, rng, drift=jitter)
+    spot = {}
+    if jitter and misalignment.drift is not None and misalignment.drift.at == "source":
+        # The drift is the source spot's: the detector keeps the centre-of-rotation offset alone.
+        drifted = offsets - [misalignment.cor_offset_px, 0.0]
+        offsets, spot = offsets - drifted, {"spot_offsets_px": drifted}
+    return {"detector_offsets_px": offsets, "detector_tilt_deg": misalignment.tilt_deg,
+            **({"axis_offset_mm": misalignment.axis_offset_mm} if misalignment.axis_offset_mm else {}), **spot}
 
 
 def voxelise_phantom(phantom, grid: VolumeGrid, *, supersample: int = 2) -> np.ndarray:
@@ -341,6 +353,8 @@ def write_simulated_scan(out: str | Path, scan: SimulatedScan, *, phantom, spec,
         provenance["true_detector_tilt_deg"] = float(scan.true_detector_tilt_deg)
         if scan.true_axis_offset_mm:
             provenance["true_axis_offset_mm"] = float(scan.true_axis_offset_mm)
+        if scan.true_spot_offsets_px is not None:
+            provenance["true_spot_offsets_px"] = np.asarray(scan.true_spot_offsets_px).tolist()
     if scan.intensities is None:
         return write_scan(out, scan.projections, scan.geometry, scan.nominal_angles_deg, scan.true_angles_deg,
                           values="line_integrals", provenance=provenance, overwrite=overwrite)

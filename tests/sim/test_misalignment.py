@@ -276,3 +276,37 @@ def test_an_axis_off_the_perpendicular_round_trips_and_is_refused_for_a_voxel_ph
 
     with pytest.raises(InputError, match="primitive phantoms only"):
         polychromatic_line_integrals(volume, parse_beam({"energy_kev": 60}), spec.geometry, [0.0], axis_offset_mm=1.0)
+
+
+def test_a_source_spot_that_moves_shifts_a_bead_by_its_parallax_and_the_axis_by_the_drift(tmp_path):
+    """``drift.at: source``: the spot moves, the detector stays. The drift is the axis's image's move; a bead at
+    distance ``z`` from the spot moves by ``(SDD / z - 1) / (SDD / SOD - 1)`` times it (0.92-1.08 across this bead's
+    depths), where a detector's drift moves every bead by the drift itself. The same draws: the jitter and the drift
+    are those of ``at: detector``."""
+    section = {"drift": {"walk_px": 0.3, "jumps": 1, "jump_px": 1.0, "at": "source"}}
+    spec = _spec(n_views=6, supersample=8, misalignment=section)
+    assert spec.misalignment.drift.at == "source" and parse_scan_spec(spec.to_dict()) == spec
+    moved = simulate(BEAD, spec, rng=np.random.default_rng(5))
+    still = simulate(BEAD, _spec(n_views=6, supersample=8), rng=np.random.default_rng(5))
+    detector = simulate(BEAD, _spec(n_views=6, supersample=8, misalignment={"drift": {**section["drift"],
+                                                                                    "at": "detector"}}),
+                        rng=np.random.default_rng(5))
+    np.testing.assert_array_equal(moved.true_angles_deg, still.true_angles_deg)
+    np.testing.assert_array_equal(moved.true_spot_offsets_px, detector.true_detector_offsets_px)
+    np.testing.assert_array_equal(moved.true_detector_offsets_px, 0.0)   # the detector keeps its place
+    theta = np.deg2rad(moved.true_angles_deg)
+    x, _, z = BEAD.primitives.centre_mm[0]
+    depth = np.sin(theta) * x + np.cos(theta) * z + GEOMETRY["source_to_object_mm"]
+    sdd, sod = GEOMETRY["source_to_detector_mm"], GEOMETRY["source_to_object_mm"]
+    parallax = (sdd / depth - 1.0) / (sdd / sod - 1.0)
+    shift = _centroids(moved.projections) - _centroids(still.projections)
+    np.testing.assert_allclose(shift, parallax[:, None] * moved.true_spot_offsets_px, atol=0.005)
+    assert np.ptp(parallax) > 0.05   # not the detector's drift, which moves the bead by the drift itself
+    np.testing.assert_allclose(_centroids(detector.projections) - _centroids(still.projections),
+                               detector.true_detector_offsets_px, atol=0.005)
+    np.save(tmp_path / "cube.npy", np.ones((8, 8, 8), dtype=np.float32))
+    volume = parse_phantom({"name": "cube", "voxels": {"file": "cube.npy", "voxel_size_mm": 0.5}}, base_dir=tmp_path)
+    from ctpipe.errors import InputError
+
+    with pytest.raises(InputError, match=r"^misalignment\.drift\.at: source is simulated for primitive phantoms only"):
+        project_phantom(volume, spec.geometry, [0.0], spot_offsets_px=[[1.0, 0.0]])
