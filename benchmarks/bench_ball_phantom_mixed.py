@@ -37,11 +37,12 @@ closing image a turn on from the first (``--views 17``: 22.5 deg steps, 0 to 360
 scan's beam: with ``--saturation 0.9`` the polymer rod's middle reads above the clip and its edges under it, and
 titanium discs across that edge are pulled towards the rod (``docs/calibration-phantoms.md``, Limits).
 
-``--drift-walk-px W`` and ``--drift-jump-px J`` make the projections drift as a source spot does while the
-tube warms (:mod:`ctpipe.sim.drift`: a random walk of normal steps of ``W`` px between views in both
-directions, and one jump of ``J`` px at a random view); the calibration should fit each view's
-shift and keep its angles (the per-view shifts are then printed against the simulator's, less their
-mean and their columns' once-a-turn part, which the balls' positions and the axis take).
+``--drift-walk-px W`` and ``--drift-jump-px J`` make the projections drift as a detector or a source spot does
+while the tube warms (:mod:`ctpipe.sim.drift`: a random walk of normal steps of ``W`` px between views in both
+directions, and one jump of ``J`` px at a random view; ``--drift-at source``: the spot moves, and a ball nearer it
+moves further than the axis's image); the calibration should fit each view's shift and keep its angles (the per-view
+shifts are then printed against the simulator's, less their mean and their columns' once-a-turn part, which the
+balls' positions and the axis share, with the share of the drift the fit gave the spot).
 
 ``--lag-fraction L`` gives the detector an afterglow (each frame carries ``L`` of the last one's signal: the ghost of
 every ball's disc a step behind it) and ``--flux-sigma F`` a tube whose output in each view is off the flats' by
@@ -290,6 +291,9 @@ def main(argv=None) -> int:
                         help="the tube's output in each view off the flats' by this relative standard deviation")
     parser.add_argument("--drift-jump-px", type=float, default=0.0,
                         help="and one jump of this size (px) at a random view")
+    parser.add_argument("--drift-at", choices=("detector", "source"), default="detector",
+                        help="what drifts: the detector (every disc shifts alike) or the source spot (the shifts are "
+                             "the axis's image's; a ball nearer the spot moves further)")
     layout = parser.add_mutually_exclusive_group()
     layout.add_argument("--random-layout", action="store_true", help="place the balls anew for each seed")
     layout.add_argument("--coated", action="store_true",
@@ -304,7 +308,8 @@ def main(argv=None) -> int:
     for seed in args.seeds:
         start = time.perf_counter()
         drift = ({"walk_px": args.drift_walk_px, "jumps": 1 if args.drift_jump_px else 0,
-                  "jump_px": args.drift_jump_px} if args.drift_walk_px or args.drift_jump_px else None)
+                  "jump_px": args.drift_jump_px, "at": args.drift_at}
+                 if args.drift_walk_px or args.drift_jump_px else None)
         scan, nominal, truth = simulate_scan(args.views, args.jitter_deg, args.max_error_deg, seed, args.random_layout,
                                              args.coated, args.saturation, drift, args.solid, args.axis_offset_mm,
                                              {key: value for key, value in (("lag_fraction", args.lag_fraction),
@@ -325,6 +330,8 @@ def main(argv=None) -> int:
         offsets = scan.true_detector_offsets_px
         drifted = (np.zeros((len(truth), 2)) if offsets is None         # the drift alone
                    else offsets - np.array([COR_OFFSET_PX, 0.0]))
+        if scan.true_spot_offsets_px is not None:   # the spot's: the axis's image moved by it
+            drifted = scan.true_spot_offsets_px
         g = scan.geometry   # the axis images this far from the principal point where it is off the perpendicular
         axis_image_px = args.axis_offset_mm * g.source_to_detector_mm / (g.source_to_object_mm * g.pixel_pitch_u_mm)
         axis_px = balls.get("u0_px", np.nan) - (g.u0_px + COR_OFFSET_PX + axis_image_px
@@ -350,7 +357,7 @@ def main(argv=None) -> int:
         print(f"  detector{given}: axis {axis_px:+.3f} px from the truth, tilt {tilt_deg:+.4f} deg from it, the axis "
               f"{balls.get('axis_offset_mm', np.nan):+.3f} mm off the source's perpendicular (truth "
               f"{args.axis_offset_mm:g}), source to "
-              f"detector {sdd_mm:+.2f} mm from the truth; "
+              f"detector {sdd_mm:+.2f} mm from the truth (the pose's F test p {balls.get('pose_p_value')}); "
               f"reprojection RMS {balls.get('rms_px', np.nan):.3f} px (nominal angles "
               f"{balls.get('nominal_rms_px', np.nan):.3f}); "
               f"rims cut by the clip (px, per ball): {balls.get('ball_cut_px')}; discs pushed from the balls overlapping "
@@ -364,8 +371,8 @@ def main(argv=None) -> int:
             fitted = "none fitted" if shifts is None else (
                 f"fitted within {np.abs(_gauge_free(np.array(shifts), truth) - _gauge_free(drifted, truth)).max():.3f} "
                 f"px of the simulator's")
-            print(f"  views' shifts: the simulator's up to {np.abs(drifted).max():.3f} px; {fitted} (F test p "
-                  f"{balls.get('shift_p_value')})")
+            print(f"  views' shifts: the simulator's up to {np.abs(drifted).max():.3f} px ({args.drift_at}); {fitted} "
+                  f"(F test p {balls.get('shift_p_value')}; the spot's share fitted {balls.get('drift_spot_share')})")
         failed |= not (largest <= args.bar_deg and abs(axis_px) <= GEOMETRY_BAR_PX and abs(tilt_deg) <= GEOMETRY_BAR_DEG)
     return 1 if failed else 0
 
