@@ -1105,7 +1105,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     share. The columns' once-a-turn part (``du`` along ``cos`` and ``sin`` of the angle) is left free: a common
     translation of the balls explains it only to within the cone's magnification across the phantom's depth, and
     held at its start as a gauge, a drift's (1 px on a 17-view coated scan) went into the angles, 0.021 deg, where
-    left free they were within 0.0032 deg (:func:`_shift_se_px` leaves it out of the shifts' standard errors).
+    left free they were within 0.0033 deg (:func:`_shift_se_px` leaves it out of the shifts' standard errors).
     """
     from scipy import sparse
     from scipy.optimize import least_squares
