@@ -11,6 +11,7 @@ The optional ``misalignment`` section of a scan spec (:mod:`ctpipe.sim.scan_spec
         jumps: 2                  # persistent steps at 2 random views (1..V-1)
         jump_px: 0.5              # each jump 0.5 px with a random sign
         axis: both                # u (columns), v (rows) or both, drawn independently
+        at: detector              # what moves: the detector, or the source spot (source: parallax across the sample)
 
 Every key is optional and zero (or absent) by default. The scan is *simulated* with the true
 detector, but the geometry it returns and writes stays the nominal one, the one the scanner's
@@ -29,8 +30,9 @@ perpendicular to the detector (the principal point stays): a point of the object
 (axis_offset_mm, 0, SOD)`` in the camera frame, so the axis images ``axis_offset_mm * SDD / (SOD * pitch_u)`` columns
 from the principal point and the cone's perspective is no longer centred on it. ``du``/``dv`` are the drift. A
 source spot that moves sideways by ``s`` mm moves the image of the rotation axis by ``-s (M - 1) / pitch`` pixels
-(``M`` the magnification); the drift models it as that uniform shift, leaving out the parallax
-across the sample's depth (a fraction ``depth / SOD`` of the shift). The tilt turns the
+(``M`` the magnification); ``at: detector`` (the default) models it as that uniform shift, leaving out the
+parallax across the sample's depth (a fraction ``depth / SOD`` of the shift), and ``at: source`` moves the spot,
+parallax and all. The tilt turns the
 detector's column direction by ``tilt_deg`` from the camera ``x`` axis towards the camera ``y``
 axis (a right-handed rotation about the ray from the source to the detector, the ``z`` axis of
 :mod:`ctpipe.model`) about the principal point: the rotation axis then images along
