@@ -505,9 +505,14 @@ class ScanResult:
             shifts, shift_p = balls.get("view_shifts_px"), balls.get("shift_p_value")
             if shifts is not None:
                 shifts = np.asarray(shifts, dtype=np.float64)
+                share = balls.get("drift_spot_share")   # by the parallax across the balls' depths
+                moved = ("a source spot or detector that drifts" if share is None else
+                         "a detector that drifts: no source spot's parallax" if share <= 0.05 else
+                         "a source spot that drifts, by its parallax" if share >= 0.95 else
+                         f"a drift {share:.0%} the source spot's and {1 - share:.0%} the detector's, by the parallax")
                 notes.append(f"each view's projection shifted by up to {np.abs(shifts[:, 0]).max():.2f} px across and "
-                             f"{np.abs(shifts[:, 1]).max():.2f} px along the axis, fitted with its angle (a source "
-                             f"spot or detector that drifts{'' if shift_p is None else f'; F test p {shift_p:.2g}'})")
+                             f"{np.abs(shifts[:, 1]).max():.2f} px along the axis, fitted with its angle ({moved}"
+                             f"{'' if shift_p is None else f'; F test p {shift_p:.2g}'})")
             placed = f" ({'; '.join(notes)})" if notes else ""
             lines.append(f"refiner: ball calibration, {balls['balls']} balls followed through the views{placed}, "
                          f"{'the corrected angles kept' if balls['kept'] else 'the nominal angles returned'}: "
