@@ -279,12 +279,13 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
             raise InputError(f"spot_offsets_px: must be finite, one (du, dv) per view ({angles.size}, 2), got shape "
                              f"{spot.shape}")
         gain = geometry.source_to_detector_mm / geometry.source_to_object_mm - 1.0   # M - 1
+        pitch = np.array([geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm])
         # The spot's move in mm (camera x, y) that moves the axis's image by ``spot`` px.
-        spot_mm = -spot * np.array([geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm]) / gain
+        spot_mm = -spot * pitch / gain
         still = np.zeros((angles.size, 2)) if detector_offsets_px is None else np.asarray(detector_offsets_px,
                                                                                           dtype=np.float64)
         # The detector moved by -s: its principal point by +s / pitch px.
-        detector_offsets_px = still + spot_mm / np.array([geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm])
+        detector_offsets_px = still + spot_mm / pitch
     u0_v, v0_v = _principal_points(geometry, angles.size, detector_offsets_px)
     tilt_deg = detector_tilt_deg
     if not (isinstance(tilt_deg, (int, float, np.floating, np.integer)) and not isinstance(tilt_deg, bool)

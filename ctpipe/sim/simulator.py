@@ -313,8 +313,8 @@ def _true_detector(spec, rng, jitter: bool) -> dict:
     spot = {}
     if jitter and misalignment.drift is not None and misalignment.drift.at == "source":
         # The drift is the source spot's: the detector keeps the centre-of-rotation offset alone.
-        drifted = offsets - [misalignment.cor_offset_px, 0.0]
-        offsets, spot = offsets - drifted, {"spot_offsets_px": drifted}
+        still = np.array([misalignment.cor_offset_px, 0.0])
+        offsets, spot = np.tile(still, (len(offsets), 1)), {"spot_offsets_px": offsets - still}
     return {"detector_offsets_px": offsets, "detector_tilt_deg": misalignment.tilt_deg,
             **({"axis_offset_mm": misalignment.axis_offset_mm} if misalignment.axis_offset_mm else {}), **spot}
 

@@ -1105,7 +1105,10 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
     share. The columns' once-a-turn part (``du`` along ``cos`` and ``sin`` of the angle) is left free: a common
     translation of the balls explains it only to within the cone's magnification across the phantom's depth, and
     held at its start as a gauge, a drift's (1 px on a 17-view coated scan) went into the angles, 0.021 deg, where
-    left free they were within 0.0033 deg (:func:`_shift_se_px` leaves it out of the shifts' standard errors).
+    left free they were within 0.0033 deg (:func:`_shift_se_px` leaves it out of the shifts' standard errors). One
+    more unknown, the source spot's share of the shifts (0-1, from 0): a spot's move shifts a disc by ``(SDD / z - 1)
+    / (SDD / SOD - 1)`` times the axis's image, ``z`` its ball's distance from the source, a detector's every disc
+    alike (:attr:`BallCalibration.drift_spot_share`).
     """
     from scipy import sparse
     from scipy.optimize import least_squares
@@ -1178,7 +1181,7 @@ def _adjust(discs: _Discs, radii_mm, angles, balls, detector, geometry, *, free_
         if n_spot:
             # A source spot's move shifts a disc by more the nearer its ball is to the source: the axis's image by
             # ``t``, a ball at depth ``z`` from the source by ``t (SDD / z - 1) / (SDD / SOD - 1)``.
-            sdd = d[4] if len(d) > 4 else geometry.source_to_detector_mm
+            sdd = d[4]   # the detector's distance, fitted with the pose
             parallax = (sdd / _depth_mm(p[ball_of], a[view_of], geometry) - 1.0) / (
                 sdd / geometry.source_to_object_mm - 1.0)
             moved = moved * (1.0 + spot * (parallax - 1.0))[:, None]
