@@ -174,6 +174,22 @@ def test_refined_geometry_is_typed_on_the_solution_and_refiner_info_is_read_in_o
     assert TurnCheck(0).to_dict() == {"pairs": 0} and not TurnCheck(0).reversed
 
 
+def test_a_turn_is_called_reversed_only_where_the_pairs_show_it_beyond_chance():
+    """Pair angles that are guesses (a ball phantom's: a median of one inlier) disagree with the nominal steps about
+    half the time; 19 of 32 disagreeing is no evidence of a reversed sign. Every pair disagreeing is."""
+    nominal = np.arange(16) * 22.5
+    pairs = np.array([(i, j) for i in range(16) for j in (i + 1, i + 2, i + 3) if j < 16][:32])
+    signs = np.where(np.arange(32) < 19, -1.0, 1.0)
+    guesses = TurnCheck.compute(pairs, signs * 170.0, nominal)
+    assert guesses.agree_fraction < 0.5 and guesses.sign_p_value > 0.1 and not guesses.reversed
+    flipped = TurnCheck.compute(pairs, -22.5 * (pairs[:, 1] - pairs[:, 0]), nominal)
+    assert flipped.agree_fraction == 0.0 and flipped.sign_p_value < 1e-9 and flipped.reversed
+    assert flipped.to_dict()["sign_p_value"] == flipped.sign_p_value
+    # Ten pairs of ten disagreeing is the least that is told.
+    assert TurnCheck.compute(pairs[:10], -np.ones(10), nominal).reversed
+    assert not TurnCheck.compute(pairs[:9], -np.ones(9), nominal).reversed
+
+
 def test_a_scan_brings_its_own_geometry_and_projections_need_one(scan_and_result):
     scan, _ = scan_and_result
     pipeline = Pipeline.from_config(FAST)
