@@ -282,6 +282,10 @@ class ScanSolution:
         How far the rotation axis lies off the source's perpendicular to the detector, along the columns, at the axis
         (mm), where the refiner estimated it; ``(u0_px, v0_px)`` is then where the axis's point level with the source
         projects (:func:`ctpipe.solve.balls.ellipse_centres`). None otherwise.
+    drift_spot_share : float or None
+        How much of :attr:`view_shifts_px` the source spot made (0: the detector moved, 1: the spot did), where the
+        refiner told them apart (the ball calibration, by the parallax across its balls' depths); None: the
+        detector's.
     """
 
     angles_rad: np.ndarray
@@ -294,3 +298,4 @@ class ScanSolution:
     view_shifts_px: np.ndarray | None = None
     source_to_detector_mm: float | None = None
     axis_offset_mm: float | None = None
+    drift_spot_share: float | None = None

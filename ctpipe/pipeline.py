@@ -70,6 +70,10 @@ class RefinedGeometry:
         estimated it (the ball calibration), else 0: ``(u0_px, v0_px)`` is where the axis's point level with the
         source projects. :meth:`ScanResult.cone_vectors` places the source and detector so; ctpipe's own FDK takes
         the axis on the perpendicular.
+    spot_share : float
+        How much of each view's shift the source spot made (:attr:`ctpipe.data.ScanSolution.drift_spot_share`;
+        0: the detector's, as where the refiner did not tell): :meth:`ScanResult.cone_vectors` moves the source
+        by that share and the detector by the rest.
     """
 
     geometry: Geometry
@@ -77,6 +81,7 @@ class RefinedGeometry:
     refined: tuple[str, ...] = ()
     view_shifts_px: tuple[tuple[float, float], ...] | None = None
     axis_offset_mm: float = 0.0
+    spot_share: float = 0.0
 
     @classmethod
     def from_solution(cls, geometry: Geometry, solution: ScanSolution) -> "RefinedGeometry":
@@ -89,11 +94,13 @@ class RefinedGeometry:
         offset = solution.axis_offset_mm
         tilt = solution.tilt_deg
         shifts = solution.view_shifts_px
+        share = 0.0
         if shifts is not None:
             shifts = tuple((float(du), float(dv)) for du, dv in np.asarray(shifts, dtype=np.float64))
             refined = (*refined, "view_shifts_px")
+            share = 0.0 if solution.drift_spot_share is None else float(solution.drift_spot_share)
         return cls(corrected, 0.0 if tilt is None else float(tilt), refined, shifts,
-                   0.0 if offset is None else float(offset))
+                   0.0 if offset is None else float(offset), share)
 
 
 @dataclass(frozen=True)
@@ -420,6 +427,7 @@ class ScanResult:
                 report["refined_geometry"]["axis_offset_mm"] = refined.axis_offset_mm
             if refined.view_shifts_px is not None:
                 report["refined_geometry"]["view_shifts_px"] = np.round(np.array(refined.view_shifts_px), 4).tolist()
+                report["refined_geometry"]["drift_spot_share"] = refined.spot_share
         if self.gate is not None:
             report["gate"] = self.gate.to_dict()
         if self.angle_se_deg is not None:
@@ -461,7 +469,8 @@ class ScanResult:
         """
         refined = self.refined_geometry
         return cone_vectors(refined.geometry, self.estimated_deg, tilt_deg=refined.tilt_deg,
-                            shifts_px=refined.view_shifts_px, axis_offset_mm=refined.axis_offset_mm)
+                            shifts_px=refined.view_shifts_px, axis_offset_mm=refined.axis_offset_mm,
+                            spot_share=refined.spot_share)
 
     def failed_pairs_warning(self) -> str | None:
         """One line saying how many pairs failed and why the first did, or None when none failed."""

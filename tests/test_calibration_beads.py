@@ -246,8 +246,11 @@ def test_a_drifting_source_spot_is_fitted_per_view_and_written_into_the_geometry
     assert np.abs(truth).max() > 0.5 and np.abs(gauge_free(shifts) - gauge_free(truth)).max() < 0.05
     vectors = np.loadtxt(tmp_path / "out" / "geometry_vectors.csv", delimiter=",", skiprows=1)[:, 1:]
     geometry = scan.geometry.__class__(**refined["geometry"])
+    # The spot's share of the drift goes into the vectors as what it is: the balls' parallax says the detector's.
+    assert 0.0 <= refined["drift_spot_share"] <= 0.05
     np.testing.assert_allclose(vectors, cone_vectors(geometry, report["estimated_deg"], tilt_deg=refined["tilt_deg"],
-                                                     shifts_px=shifts), atol=1e-3)
+                                                     shifts_px=shifts, spot_share=refined["drift_spot_share"]),
+                               atol=1e-3)
     assert not np.allclose(vectors, cone_vectors(geometry, report["estimated_deg"], tilt_deg=refined["tilt_deg"]),
                            atol=1e-3)
 

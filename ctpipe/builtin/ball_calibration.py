@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -96,7 +97,9 @@ class BallCalibrationRefiner(Refiner):
                      **found.pose_beyond_noise(observations.geometry)} if found.detector_kept else {})
         return ScanSolution(np.deg2rad(angles - angles[0]), tuple(observations.estimates), info,
                             angle_se_deg=found.angle_se_deg if found.kept else None,
-                            view_shifts_px=found.view_shifts_px, **detector)
+                            view_shifts_px=found.view_shifts_px,
+                            drift_spot_share=(found.drift_spot_share if found.view_shifts_px is not None
+                                              and math.isfinite(found.drift_spot_share) else None), **detector)
 
 
 #: A hidden ball's disc is taken where its rim places it within this of where the balls put it (px). On 19 cached

@@ -62,7 +62,7 @@ def scanner_frame_deg(angles_deg, nominal_deg) -> np.ndarray:
 
 
 def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0, shifts_px=None,
-                 axis_offset_mm: float = 0.0) -> np.ndarray:
+                 axis_offset_mm: float = 0.0, spot_share: float = 0.0) -> np.ndarray:
     """ASTRA ``cone_vec`` rows, one per view: source, detector centre, column step, row step (mm).
 
     Parameters
@@ -83,6 +83,13 @@ def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0, shift
         SOD)`` in the camera frame, and ``(u0_px, v0_px)`` is where the axis's point level with the source projects,
         the principal point ``offset SDD / SOD`` mm from it along the (tilted) columns
         (:func:`ctpipe.solve.balls.ellipse_centres`). 0: the axis on the perpendicular, as before.
+    spot_share : float
+        How much of each view's shift the source spot made, 0 to 1
+        (:attr:`ctpipe.data.ScanSolution.drift_spot_share`): the detector is moved by ``-(1 - share)`` of the
+        shift and the source by ``-share t / (M - 1)``, ``t`` the shift in mm along the detector's columns and
+        rows and ``M = SDD / SOD``. The axis's image then moves by the whole shift and a point at distance ``z``
+        from the source by ``share (SDD / z - 1) / (M - 1)`` of it besides the detector's part, as the ball
+        calibration models a spot's drift (:func:`ctpipe.solve.balls._adjust`). 0: every shift the detector's.
 
     Returns
     -------
@@ -104,11 +111,14 @@ def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0, shift
     shift = np.array([float(axis_offset_mm), 0.0, g.source_to_object_mm])
     angles = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
     shifts = np.zeros((len(angles), 2)) if shifts_px is None else np.asarray(shifts_px, dtype=np.float64)
+    share = float(spot_share)
+    gain = g.source_to_detector_mm / g.source_to_object_mm - 1.0     # M - 1: the axis's image per spot's move
     rows = []
     for angle, (du, dv) in zip(angles, shifts):
         to_object = rotation_matrix(angle).T
-        source = to_object @ (-shift)
-        centre = to_object @ (centre_cam - du * u_cam - dv * v_cam - shift)
+        moved = du * u_cam + dv * v_cam
+        source = to_object @ (-share * moved / gain - shift)
+        centre = to_object @ (centre_cam - (1.0 - share) * moved - shift)
         rows.append(np.concatenate([TO_ASTRA @ source, TO_ASTRA @ centre, TO_ASTRA @ (to_object @ u_cam),
                                     TO_ASTRA @ (to_object @ v_cam)]))
     return np.array(rows).reshape(-1, 12)

@@ -86,3 +86,31 @@ def test_cone_vectors_of_an_axis_off_the_perpendicular_project_as_the_ball_calib
     # The axis images at (u0, v0) at the source's height, whatever the view.
     on_axis = np.array([_pixel_from_vectors(row, np.zeros(3), geometry) for row in vectors])
     np.testing.assert_allclose(on_axis, np.tile([geometry.u0_px, geometry.v0_px], (len(vectors), 1)), atol=1e-9)
+
+
+@pytest.mark.parametrize("share", [1.0, 0.4])
+def test_cone_vectors_of_a_drift_the_source_spot_shares_project_as_the_ball_calibration_models(share):
+    """A view's shift ``t`` made ``share`` by the source spot: the axis's image moves by ``t`` and a point at distance
+    ``z`` from the source by ``(1 - share) t + share t (SDD / z - 1) / (SDD / SOD - 1)`` (``ctpipe.solve.balls``'s
+    model of a spot's drift: a ball nearer the spot moves further). The detector-only vectors miss that parallax."""
+    from ctpipe.solve.balls import ellipse_centres
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-40, 40, (40, 3))
+    angles_deg = rng.uniform(-180, 180, 40)
+    shifts = rng.uniform(-3.0, 3.0, (40, 2))
+    tilt = np.deg2rad(0.7)
+    bare = ellipse_centres(points, np.zeros(len(points)), np.deg2rad(angles_deg), GEOMETRY, GEOMETRY.u0_px,
+                           GEOMETRY.v0_px, tilt, 0.5)
+    theta = np.deg2rad(angles_deg)
+    z = np.sin(theta) * points[:, 0] + np.cos(theta) * points[:, 2] + GEOMETRY.source_to_object_mm
+    magnification = GEOMETRY.source_to_detector_mm / GEOMETRY.source_to_object_mm
+    parallax = (GEOMETRY.source_to_detector_mm / z - 1.0) / (magnification - 1.0)
+    expected = bare + shifts * (1.0 + share * (parallax - 1.0))[:, None]
+    vectors = cone_vectors(GEOMETRY, angles_deg, tilt_deg=0.7, shifts_px=shifts, axis_offset_mm=0.5,
+                           spot_share=share)
+    got = np.array([_pixel_from_vectors(row, TO_ASTRA @ p, GEOMETRY) for row, p in zip(vectors, points)])
+    np.testing.assert_allclose(got, expected, atol=1e-9)
+    on_detector = cone_vectors(GEOMETRY, angles_deg, tilt_deg=0.7, shifts_px=shifts, axis_offset_mm=0.5)
+    missed = np.array([_pixel_from_vectors(row, TO_ASTRA @ p, GEOMETRY) for row, p in zip(on_detector, points)])
+    assert np.abs(missed - expected).max() > 0.1
