@@ -508,9 +508,13 @@ class ScanResult:
                          + (f" (keypoints found on views binned {self.detect_binning} x {self.detect_binning})"
                             if self.detect_binning > 1 else ""))
         failed = sum(s != "ok" for s in self.pair_status)
+        # The ball calibration follows every ball from the nominal angles: the pairs' guesses on look-alike discs
+        # (a median of one inlier) are not what its angles rest on, and a user reading them should know.
+        unused = ("; the ball calibration does not use them: it follows every ball from the nominal angles"
+                  if isinstance(self.refiner_info.get("balls"), dict) else "")
         lines.append(f"pairs: {len(self.pairs) - failed}/{len(self.pairs)} estimated, median "
                      f"{np.median(self.n_inliers):.0f} inliers of {np.median(self.n_matches):.0f} matches; "
-                     f"{int(np.isfinite(self.angles_deg).sum())}/{len(self.angles_deg)} views have an angle")
+                     f"{int(np.isfinite(self.angles_deg).sum())}/{len(self.angles_deg)} views have an angle{unused}")
         choice = self.refiner_choice
         if choice.matched:
             kept = "matched" if choice.chosen is None else choice.chosen

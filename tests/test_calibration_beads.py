@@ -146,6 +146,8 @@ def test_a_nikon_ball_scan_clipped_flat_at_its_white_level_is_calibrated_by_the_
     assert "ball calibration, 7 balls followed through the views, the corrected angles kept" in said.out
     # The pairs' angles on look-alike balls are guesses, as often of one sign as the other: no "reversed" warning.
     assert "turn the other way" not in said.out
+    assert "views have an angle; the ball calibration does not use them: it follows every ball from the nominal" \
+        in said.out
     report = json.loads((tmp_path / "out" / "result.json").read_text())
     errors = view_errors_deg(np.array(report["estimated_deg"]), scan.true_angles_deg)
     assert np.abs(view_errors_deg(scan.nominal_angles_deg, scan.true_angles_deg)).max() > 0.3
