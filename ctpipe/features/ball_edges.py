@@ -380,6 +380,15 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     refused (found on two of them); coated, mixed and randomly placed scans moved by up to 0.0012 deg. Of eight hardened
     scans drawn after, seven came within 0.0028-0.0078 deg and one was refused.
 
+    The two kinds of rim are read to noises of their own: a faint ball's cut rays, fitted on the few samples the clip
+    leaves, scatter by half a pixel where its whole rays scatter by a tenth, and one spread for both understated the
+    centre's standard error: a faint ball whose centre lay on the holder's clipped edge (half its rim cut, half whole, the kinds' offset and the centre's shift then all
+    but one unknown) was placed 0.25 px towards the holder with a standard error of 0.017 px, unflagged, and set its
+    view's angle 0.0186 deg off (a simulated scan of randomly placed balls, 30 views, seed 3507). The centre's
+    covariance is now the sandwich with each kind's own spread (:func:`_robust_offset`; the centre itself as before):
+    such a disc is pinned too loosely to be placed, and is flagged as crossing the clip's edge for the calibration
+    (``docs/calibration-phantoms.md``, "Two kinds of rim, each read to its own noise").
+
     It places the centre where half the rays or more fitted (the cut rays and the whole ones; where some are whole,
     ``_MIN_CUT_RAYS`` cut rays suffice), leaving no gap wider than ``_MAX_GAP_DEG`` round the
     turn, where the blurred sphere explains the profile (its median misfit within ``_SPHERE_MISFIT_RATIO`` of a
@@ -449,7 +458,10 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     if whole.any():
         columns.append(whole[used].astype(np.float64))      # a steepest fall lies its own offset from the profile's R
     design = np.column_stack(columns)
-    found = _robust_offset(design, rims[used])
+    # The cut rays' rims come from the profile inside the cut, the whole ones' from the steepest fall: each read to a
+    # noise of its own (a faint ball's cut rays to half a pixel where its whole rays read a tenth), which the centre's
+    # standard error, and so whether it is placed, must count.
+    found = _robust_offset(design, rims[used], groups=whole[used].astype(np.intp) if whole.any() else None)
     if found is None:
         return None
     (dx, dy), se = found
@@ -458,10 +470,16 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     return x0 + dx, y0 + dy, float(np.median(rim[placed])), se
 
 
-def _robust_offset(design: np.ndarray, values: np.ndarray, iterations: int = 10):
+def _robust_offset(design: np.ndarray, values: np.ndarray, iterations: int = 10, groups: np.ndarray | None = None):
     """``((dx, dy), standard error)`` of the first two of the coefficients ``c`` with which ``design @ c`` fits
     ``values`` (IRLS with Tukey's biweight), or None where too few points fit. The standard error is the larger axis
-    of their covariance, the others' uncertainty included."""
+    of their covariance, the others' uncertainty included.
+
+    With ``groups`` (an integer per value), each group's values are taken as read to a noise of its own: the
+    covariance is the sandwich ``A^-1 X^T W S W X A^-1`` (``A = X^T W X`` over the fitting values, ``W`` their
+    biweights, ``S`` each value's group's robust spread squared; White 1980, "A heteroskedasticity-consistent
+    covariance matrix estimator") in place of one spread for all, so that a group read to half a pixel beside one
+    read to a tenth shows in the centre's standard error. The estimate is the same."""
     weights = np.ones(len(values))
     shift = np.zeros(design.shape[1])
     for _ in range(iterations):
@@ -471,13 +489,22 @@ def _robust_offset(design: np.ndarray, values: np.ndarray, iterations: int = 10)
         weights = _biweight_weights(residual)
         if np.count_nonzero(weights) < 6:
             return None
-    spread, _ = _biweight_scale(residual)
     fitting = weights > 0
+    x, w = design[fitting], weights[fitting]
+    if groups is None:
+        variance = np.full(len(x), _biweight_scale(residual)[0] ** 2)
+        w = np.ones(len(x))          # one spread for all: the unweighted normal matrix, as the fit's scale says
+    else:
+        groups = np.asarray(groups)
+        spread = {label: _biweight_scale(residual[groups == label])[0] for label in np.unique(groups)}
+        variance = np.array([spread[label] ** 2 for label in groups[fitting]])
     try:
-        worst = float(np.linalg.eigvalsh(np.linalg.inv(design[fitting].T @ design[fitting])[:2, :2])[-1])
+        inverse = np.linalg.inv((x * w[:, None]).T @ x)
     except np.linalg.LinAlgError:
         return None
-    return (float(shift[0]), float(shift[1])), spread * math.sqrt(max(worst, 0.0))
+    covariance = inverse @ ((x * (w * w * variance)[:, None]).T @ x) @ inverse
+    worst = float(np.linalg.eigvalsh(covariance[:2, :2])[-1])
+    return (float(shift[0]), float(shift[1])), math.sqrt(max(worst, 0.0))
 
 
 def _profile_fit(values: np.ndarray, use: np.ndarray, radii: np.ndarray, cut: np.ndarray):
