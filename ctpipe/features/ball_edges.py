@@ -380,14 +380,15 @@ def _uncut_rim(g: np.ndarray, x0: float, y0: float, radius: float, direction: np
     refused (found on two of them); coated, mixed and randomly placed scans moved by up to 0.0012 deg. Of eight hardened
     scans drawn after, seven came within 0.0028-0.0078 deg and one was refused.
 
-    The two kinds of rim are read to noises of their own: a faint ball's cut rays, fitted on the few samples the clip
-    leaves, scatter by half a pixel where its whole rays scatter by a tenth, and one spread for both understated the
-    centre's standard error: a faint ball whose centre lay on the holder's clipped edge (half its rim cut, half whole, the kinds' offset and the centre's shift then all
-    but one unknown) was placed 0.25 px towards the holder with a standard error of 0.017 px, unflagged, and set its
-    view's angle 0.0186 deg off (a simulated scan of randomly placed balls, 30 views, seed 3507). The centre's
-    covariance is now the sandwich with each kind's own spread (:func:`_robust_offset`; the centre itself as before):
-    such a disc is pinned too loosely to be placed, and is flagged as crossing the clip's edge for the calibration
-    (``docs/calibration-phantoms.md``, "Two kinds of rim, each read to its own noise").
+    The two kinds of rim are read to noises of their own: a faint ball's cut rays, fitted on the few samples the
+    clip leaves, scatter by half a pixel where its whole rays scatter by a tenth, and one spread for both
+    understated the centre's standard error: a faint ball whose centre lay on the holder's clipped edge (half its
+    rim cut, half whole, the kinds' offset and the centre's shift then all but one unknown) was placed 0.25 px
+    towards the holder with a standard error of 0.017 px, unflagged, and set its view's angle 0.0186 deg off (a
+    simulated scan of randomly placed balls, 30 views, seed 3507). The centre's covariance is now the sandwich with
+    each kind's own spread (:func:`_robust_offset`; the centre itself as before): such a disc is pinned too loosely
+    to be placed, and is flagged as crossing the clip's edge for the calibration (``docs/calibration-phantoms.md``,
+    "Two kinds of rim, each read to its own noise").
 
     It places the centre where half the rays or more fitted (the cut rays and the whole ones; where some are whole,
     ``_MIN_CUT_RAYS`` cut rays suffice), leaving no gap wider than ``_MAX_GAP_DEG`` round the
