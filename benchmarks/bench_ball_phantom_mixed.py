@@ -328,10 +328,9 @@ def main(argv=None) -> int:
         largest, rms = float(np.abs(errors).max()), float(np.sqrt(np.mean(errors ** 2)))
         nominal_errors = view_errors_deg(nominal, truth)
         offsets = scan.true_detector_offsets_px
-        drifted = (np.zeros((len(truth), 2)) if offsets is None         # the drift alone
+        drifted = (scan.true_spot_offsets_px if scan.true_spot_offsets_px is not None   # the axis's image moved by it
+                   else np.zeros((len(truth), 2)) if offsets is None                      # the drift alone
                    else offsets - np.array([COR_OFFSET_PX, 0.0]))
-        if scan.true_spot_offsets_px is not None:   # the spot's: the axis's image moved by it
-            drifted = scan.true_spot_offsets_px
         g = scan.geometry   # the axis images this far from the principal point where it is off the perpendicular
         axis_image_px = args.axis_offset_mm * g.source_to_detector_mm / (g.source_to_object_mm * g.pixel_pitch_u_mm)
         axis_px = balls.get("u0_px", np.nan) - (g.u0_px + COR_OFFSET_PX + axis_image_px

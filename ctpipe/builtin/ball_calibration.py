@@ -98,8 +98,8 @@ class BallCalibrationRefiner(Refiner):
         return ScanSolution(np.deg2rad(angles - angles[0]), tuple(observations.estimates), info,
                             angle_se_deg=found.angle_se_deg if found.kept else None,
                             view_shifts_px=found.view_shifts_px,
-                            drift_spot_share=(found.drift_spot_share if found.view_shifts_px is not None
-                                              and math.isfinite(found.drift_spot_share) else None), **detector)
+                            drift_spot_share=(found.drift_spot_share if math.isfinite(found.drift_spot_share)
+                                              else None), **detector)   # NaN where no shifts were fitted
 
 
 #: A hidden ball's disc is taken where its rim places it within this of where the balls put it (px). On 19 cached

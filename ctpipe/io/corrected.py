@@ -112,7 +112,7 @@ def cone_vectors(geometry: Geometry, angles_deg, *, tilt_deg: float = 0.0, shift
     angles = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
     shifts = np.zeros((len(angles), 2)) if shifts_px is None else np.asarray(shifts_px, dtype=np.float64)
     share = float(spot_share)
-    gain = g.source_to_detector_mm / g.source_to_object_mm - 1.0     # M - 1: the axis's image per spot's move
+    gain = g.magnification - 1.0     # M - 1: the axis's image per spot's move
     rows = []
     for angle, (du, dv) in zip(angles, shifts):
         to_object = rotation_matrix(angle).T

@@ -278,7 +278,7 @@ def project_analytic(primitives: Primitives, geometry: Geometry, angles_deg, *, 
         if spot.shape != (angles.size, 2) or not np.all(np.isfinite(spot)):
             raise InputError(f"spot_offsets_px: must be finite, one (du, dv) per view ({angles.size}, 2), got shape "
                              f"{spot.shape}")
-        gain = geometry.source_to_detector_mm / geometry.source_to_object_mm - 1.0   # M - 1
+        gain = geometry.magnification - 1.0   # M - 1
         pitch = np.array([geometry.pixel_pitch_u_mm, geometry.pixel_pitch_v_mm])
         # The spot's move in mm (camera x, y) that moves the axis's image by ``spot`` px.
         spot_mm = -spot * pitch / gain
